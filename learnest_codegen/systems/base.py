@@ -1,0 +1,171 @@
+"""The description of a dynamical system, written once and evaluated in any backend.
+
+A :class:`System` names its states, inputs and outputs (with units), holds the parameters of the
+prior model and of the true system used for simulation, and gives the continuous dynamics and the
+measurement as backend-generic functions ``fn(ops, x, u, p) -> list`` where ``x`` and ``u`` are
+lists of scalar components and ``p`` a parameter mapping. See ``systems/cartpole.py`` for a
+complete example and the README for writing one in your own file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Callable, Mapping, Sequence
+
+import casadi as cs
+import numpy as np
+
+from ..errors import ShapeError
+from .backends import ops_for
+
+DynamicsFn = Callable[..., Sequence]  # fn(ops, x: list, u: list, p: Mapping) -> list of n terms
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A named scalar signal with its unit, e.g. ``Signal("p", "m", "cart position")``."""
+
+    name: str
+    unit: str
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise standard deviations used to simulate data and to tune the estimators.
+
+    Attributes
+    ----------
+    measurement_std : per-output measurement noise std (units of each output).
+    state_std : per-state noise std on full-state observations (the "full state" training data).
+    process_std : per-state std of the process-noise model the estimators assume (Q = diag**2).
+        It is a tuning choice, not noise that the simulator injects.
+    initial_std : per-state std of the estimators' initial uncertainty (P0 = diag**2).
+    """
+
+    measurement_std: tuple[float, ...]
+    state_std: tuple[float, ...]
+    process_std: tuple[float, ...]
+    initial_std: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class System:
+    """A dynamical system ``xdot = f(x, u, p)``, ``y = h(x, u, p)``.
+
+    ``dynamics`` is the prior model; ``true_dynamics`` (default: ``dynamics``) evaluated with
+    ``true_params`` is the system that generates simulated data. Both are written once against
+    an ``ops`` backend and evaluate on numpy arrays ``(..., n)``, torch tensors ``(..., n)`` and
+    CasADi columns ``(n, 1)``.
+    """
+
+    name: str
+    states: tuple[Signal, ...]
+    inputs: tuple[Signal, ...]
+    outputs: tuple[Signal, ...]
+    params: Mapping[str, float]
+    true_params: Mapping[str, float]
+    dynamics: DynamicsFn
+    measurement: DynamicsFn
+    noise: NoiseModel
+    dt: float
+    duration: float
+    x0: tuple[float, ...]
+    excitation: Callable[[np.ndarray, np.random.Generator], np.ndarray]
+    true_dynamics: DynamicsFn | None = None
+    description: str = ""
+    extra: Mapping[str, object] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
+        object.__setattr__(self, "true_params", MappingProxyType(dict(self.true_params)))
+        noise = self.noise
+        for what, values, n in (
+            ("noise.measurement_std", noise.measurement_std, self.ny),
+            ("noise.state_std", noise.state_std, self.nx),
+            ("noise.process_std", noise.process_std, self.nx),
+            ("noise.initial_std", noise.initial_std, self.nx),
+            ("x0", self.x0, self.nx),
+        ):
+            if len(values) != n:
+                raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
+        if not self.dt > 0 or not self.duration > self.dt:
+            raise ValueError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, {self.duration}")
+
+    # -- sizes and names ------------------------------------------------------------------
+    @property
+    def nx(self) -> int:
+        return len(self.states)
+
+    @property
+    def nu(self) -> int:
+        return len(self.inputs)
+
+    @property
+    def ny(self) -> int:
+        return len(self.outputs)
+
+    @property
+    def state_names(self) -> list[str]:
+        return [s.name for s in self.states]
+
+    @property
+    def input_names(self) -> list[str]:
+        return [s.name for s in self.inputs]
+
+    @property
+    def output_names(self) -> list[str]:
+        return [s.name for s in self.outputs]
+
+    # -- evaluation in any backend ------------------------------------------------------------
+    def f(self, x, u, *, variant: str = "prior", params: Mapping[str, float] | None = None):
+        """Continuous dynamics ``xdot``; ``variant`` is ``"prior"`` or ``"true"``."""
+        ops = ops_for(x)
+        fn, p = self._variant(variant)
+        xs, us = ops.unpack(x, self.nx), ops.unpack(u, self.nu)
+        return ops.stack(fn(ops, xs, us, {**p, **(params or {})}))
+
+    def h(self, x, u):
+        """Measurement ``y = h(x, u)`` (noise-free)."""
+        ops = ops_for(x)
+        xs, us = ops.unpack(x, self.nx), ops.unpack(u, self.nu)
+        return ops.stack(self.measurement(ops, xs, us, self.params))
+
+    def _variant(self, variant: str):
+        if variant == "prior":
+            return self.dynamics, self.params
+        if variant == "true":
+            return self.true_dynamics or self.dynamics, self.true_params
+        raise ValueError(f"variant must be 'prior' or 'true', got {variant!r}")
+
+    def casadi_f(self, variant: str = "prior") -> cs.Function:
+        """The continuous dynamics as a named CasADi Function ``f(x, u) -> xdot``."""
+        x, u = cs.SX.sym("x", self.nx), cs.SX.sym("u", self.nu)
+        return cs.Function(f"{self.name}_f_{variant}", [x, u], [self.f(x, u, variant=variant)],
+                           ["x", "u"], ["xdot"])
+
+    def casadi_h(self) -> cs.Function:
+        """The measurement as a named CasADi Function ``h(x, u) -> y``."""
+        x, u = cs.SX.sym("x", self.nx), cs.SX.sym("u", self.nu)
+        return cs.Function(f"{self.name}_h", [x, u], [self.h(x, u)], ["x", "u"], ["y"])
+
+    @property
+    def n_samples(self) -> int:
+        return int(round(self.duration / self.dt))
+
+    def with_true_params(self, **changes: float) -> "System":
+        """A copy whose true system uses changed parameters (for experiments)."""
+        return dataclasses.replace(self, true_params={**self.true_params, **changes})
+
+    def describe(self) -> dict:
+        """A JSON-serialisable summary, used in manifests and model directories."""
+        return {
+            "name": self.name,
+            "states": [dataclasses.asdict(s) for s in self.states],
+            "inputs": [dataclasses.asdict(s) for s in self.inputs],
+            "outputs": [dataclasses.asdict(s) for s in self.outputs],
+            "params": dict(self.params),
+            "dt": self.dt,
+        }
