@@ -45,29 +45,47 @@ class NetworkSettings:
 
 
 class ResidualNet(torch.nn.Module):
-    """``Delta(x, u) = MLP((concat(x, u) - mean) / scale)``, float64."""
+    """``Delta(x, u) = MLP((features(x, u) - mean) / scale)``, float64.
 
-    def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings()):
+    ``features`` is ``concat(x, u)`` with every periodic state (an angle, index in ``periodic``)
+    replaced by its sine and cosine, so the net sees the same input for ``alpha`` and
+    ``alpha + 2 pi`` and never extrapolates in an unwrapped angle.
+    """
+
+    def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
+                 periodic: tuple[int, ...] = ()):
         super().__init__()
-        self.nx, self.nu, self.settings = nx, nu, settings
-        self.mlp = MultiLayerPerceptron(nx + nu, settings.hidden, nx, settings.layers - 1,
+        self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
+        n_in = nx + nu + len(self.periodic)
+        self.mlp = MultiLayerPerceptron(n_in, settings.hidden, nx, settings.layers - 1,
                                         settings.activation).double()
-        self.register_buffer("in_mean", torch.zeros(nx + nu, dtype=torch.float64))
-        self.register_buffer("in_scale", torch.ones(nx + nu, dtype=torch.float64))
+        self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
+        self.register_buffer("in_scale", torch.ones(n_in, dtype=torch.float64))
 
-    def set_input_scaling(self, inputs: np.ndarray) -> None:
-        """Fix the standardisation from training inputs ``(M, nx + nu)``."""
-        mean, std = inputs.mean(axis=0), inputs.std(axis=0)
+    def _features(self, parts: list, sin, cos) -> list:
+        keep = [p for i, p in enumerate(parts) if i not in self.periodic]
+        return keep + [f(parts[i]) for i in self.periodic for f in (sin, cos)]
+
+    def features_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Network input features of ``x (M, nx)``, ``u (M, nu)`` before standardisation."""
+        parts = list(np.hstack([x, u]).T)
+        return np.stack(self._features(parts, np.sin, np.cos), axis=-1)
+
+    def set_input_scaling(self, x: np.ndarray, u: np.ndarray) -> None:
+        """Fix the standardisation from training data ``x (M, nx)``, ``u (M, nu)``."""
+        feats = self.features_numpy(x, u)
+        mean, std = feats.mean(axis=0), feats.std(axis=0)
         self.in_mean.copy_(torch.as_tensor(mean))
         self.in_scale.copy_(torch.as_tensor(np.where(std > 1e-12, std, 1.0)))
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        z = (torch.cat([x, u], dim=-1) - self.in_mean) / self.in_scale
-        return self.mlp(z)
+        xu = torch.cat([x, u], dim=-1)
+        feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos)
+        return self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
 
     def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
-        mean = self.in_mean.detach().numpy()
-        scale = self.in_scale.detach().numpy()
-        z = (cs.vertcat(x, u) - mean) / scale
+        xu = cs.vertcat(x, u)
+        feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos))
+        z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         return self.mlp(z.T).T  # the naive MLP works on row vectors

@@ -7,6 +7,7 @@ import importlib.util
 from pathlib import Path
 
 from ..errors import SystemFileError, UnknownNameError
+from .base import KinematicChain as KinematicChain
 from .base import NoiseModel as NoiseModel
 from .base import Signal as Signal
 from .base import System as System

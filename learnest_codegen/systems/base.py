@@ -52,6 +52,19 @@ class NoiseModel:
 
 
 @dataclass(frozen=True)
+class KinematicChain:
+    """A measured output that is a state, followed by that state's time derivatives.
+
+    ``KinematicChain("p", ("p", "pdot"))`` says output ``p`` measures state ``p`` whose derivative
+    is state ``pdot``. The kinematic pre-training observer runs one constant-acceleration Kalman
+    filter per chain, which needs no dynamics model at all.
+    """
+
+    output: str
+    states: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class System:
     """A dynamical system ``xdot = f(x, u, p)``, ``y = h(x, u, p)``.
 
@@ -75,6 +88,8 @@ class System:
     x0: tuple[float, ...]
     excitation: Callable[[np.ndarray, np.random.Generator], np.ndarray]
     true_dynamics: DynamicsFn | None = None
+    kinematic_chains: tuple[KinematicChain, ...] = ()
+    periodic_states: tuple[str, ...] = ()  # angles: learned models see their sin and cos
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -93,6 +108,14 @@ class System:
                 raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
         if not self.dt > 0 or not self.duration > self.dt:
             raise ValueError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, {self.duration}")
+        unknown = [n for n in self.periodic_states if n not in self.state_names]
+        if unknown:
+            raise ValueError(f"system {self.name!r}: periodic_states {unknown} are not states")
+        for chain in self.kinematic_chains:
+            unknown = [n for n in chain.states if n not in self.state_names]
+            if chain.output not in self.output_names or unknown:
+                raise ValueError(f"system {self.name!r}: kinematic chain {chain} names unknown "
+                                 f"signals (outputs {self.output_names}, states {self.state_names})")
 
     # -- sizes and names ------------------------------------------------------------------
     @property

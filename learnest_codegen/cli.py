@@ -1,0 +1,219 @@
+"""The ``learnest`` command line (and ``learnest-compile``).
+
+Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``. Every ``--system``
+accepts a built-in name or the path of a Python file defining ``SYSTEM``. Errors of the package
+(:class:`LearnestError`) and missing files are printed as one clear line with exit code 2.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from .errors import LearnestError
+
+SYSTEM_HELP = "built-in system name (cartpole) or path to a .py file defining SYSTEM"
+
+
+def _friendly(fn):
+    """Turn expected failures into a one-line error instead of a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (LearnestError, FileNotFoundError) as exc:
+            raise click.ClickException(str(exc)) from exc
+
+    return wrapper
+
+
+def _system(name: str):
+    from .systems import get_system
+
+    return get_system(name)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="learnest_codegen")
+def cli() -> None:
+    """Learned (KNODE) dynamics models to compiled C state estimators (MHE, UKF)."""
+
+
+@cli.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--seed", default=0, show_default=True, help="seeds the excitation and the noise")
+@click.option("--duration", type=float, default=None, help="run length [s] (default: the system's)")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="run CSV to write")
+@_friendly
+def simulate(system_name: str, seed: int, duration: float | None, out: str) -> None:
+    """Simulate the true system and write a run CSV (truth included)."""
+    from .data import write_run
+    from .simulation import simulate as sim
+
+    system = _system(system_name)
+    run = sim(system, seed, duration=duration)
+    write_run(run, system, out)
+    click.echo(f"wrote {out}: {len(run)} samples of {system.name}, dt={run.dt:g} s")
+
+
+@cli.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="training run CSV")
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="model directory to write")
+@click.option("--epochs", default=250, show_default=True)
+@click.option("--lr", "learning_rate", default=1e-2, show_default=True, help="Adam learning rate")
+@click.option("--batch-size", default=256, show_default=True)
+@click.option("--hidden", default=8, show_default=True, help="hidden neurons per layer")
+@click.option("--layers", default=2, show_default=True, help="linear layers (2 = one hidden layer)")
+@click.option("--activation", default="Tanh", show_default=True,
+              type=click.Choice(["Tanh", "Sigmoid", "ReLU", "LeakyReLU"]))
+@click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]),
+              help="pre-training observer turning (y, u) into state observations")
+@click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
+@click.option("--seed", default=0, show_default=True)
+@_friendly
+def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
+          observer, full_state, seed) -> None:
+    """Train the KNODE residual network on a run and write a model directory."""
+    from .data import read_run
+    from .network import NetworkSettings
+    from .training import TrainingSettings, train_on_run
+
+    system = _system(system_name)
+    run = read_run(data, system)
+    settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
+                                NetworkSettings(layers, hidden, activation))
+    model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
+    model.save(out)
+    click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
+               f"(prior alone {model.meta['prior_loss']:.4e}), {model.meta['train_seconds']:.1f} s")
+
+
+def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
+             estimators: tuple[str, ...]) -> dict:
+    from .compilation import compile_estimators, resolve_model
+
+    if nominal:
+        system = _system(system_name or "cartpole")
+        model, model_hash = resolve_model(system, "nominal")
+    else:
+        if model_dir is None:
+            raise click.UsageError("give MODEL_DIR, or --nominal for the prior-only estimators")
+        meta_path = Path(model_dir) / "model.json"
+        if system_name is None and meta_path.is_file():
+            system_name = json.loads(meta_path.read_text()).get("system")
+        model, model_hash = resolve_model(_system(system_name or "cartpole"), model_dir)
+    results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators)
+    for name, res in results.items():
+        click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
+                   f"built in {res.build_seconds:.2f} s{', reused' if res.build_seconds == 0 else ''})")
+    return results
+
+
+COMPILE_OPTIONS = [
+    click.argument("model_dir", required=False, type=click.Path(file_okay=False)),
+    click.option("--out", default="generated", show_default=True, type=click.Path(file_okay=False),
+                 help="output directory (one subdirectory per estimator)"),
+    click.option("--system", "system_name", default=None, help=SYSTEM_HELP + " (default: the model's)"),
+    click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
+    click.option("--estimator", "estimators", multiple=True, type=click.Choice(["mhe", "ukf"]),
+                 default=("mhe", "ukf"), show_default=True),
+]
+
+
+def _with_compile_options(fn):
+    for option in reversed(COMPILE_OPTIONS):
+        fn = option(fn)
+    return fn
+
+
+@cli.command("compile")
+@_with_compile_options
+@_friendly
+def compile_cmd(model_dir, out, system_name, nominal, estimators) -> None:
+    """Generate C for the MHE (with Ipopt) and the UKF of a model and build shared libraries."""
+    _compile(model_dir, out, system_name, nominal, tuple(estimators))
+
+
+@click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
+@_with_compile_options
+@_friendly
+def compile_standalone(model_dir, out, system_name, nominal, estimators) -> None:
+    """Generate C for the MHE (with Ipopt) and the UKF of a model and build shared libraries."""
+    _compile(model_dir, out, system_name, nominal, tuple(estimators))
+
+
+@cli.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="run CSV")
+@click.option("--estimator", type=click.Choice(["mhe", "ukf"]), required=True)
+@click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
+@click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
+@click.option("--compiled", type=click.Path(file_okay=False), default=None,
+              help="compiled estimator directory (C backend; default: compile on demand)")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@_friendly
+def estimate(system_name, data, estimator, model, backend, compiled, out) -> None:
+    """Run an estimator over a run and write ``t`` and ``xhat_<state>`` columns."""
+    from .compilation import compile_estimators, estimator_dir, estimator_kind, resolve_model
+    from .data import read_run
+    from .evaluation import mse, run_estimator
+
+    system = _system(system_name)
+    run = read_run(data, system)
+    kind = estimator_kind(estimator)
+    discrete, model_hash = resolve_model(system, model)
+    if backend == "python":
+        est = kind.python(discrete, kind.settings_from_system(system))
+    else:
+        if compiled is None:
+            root = Path(out).resolve().parent / ".learnest_compiled"
+            compile_estimators(discrete, root, model_hash=model_hash, estimators=(estimator,))
+            compiled = estimator_dir(root, discrete, estimator)
+        est = kind.compiled(compiled, expect={"system": system.name, "model_hash": model_hash})
+    result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
+    header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(out, np.column_stack([run.t, result.x_hat]), delimiter=",", header=header,
+               comments="", fmt="%.17g")
+    line = f"wrote {out}: {len(run)} estimates, {result.seconds_per_step * 1e6:.1f} us/step"
+    if run.x is not None:
+        line += f", MSE vs truth {mse(result.x_hat, run.x):.4e}"
+    click.echo(line)
+
+
+@cli.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
+@click.option("--epochs", default=250, show_default=True)
+@click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]))
+@click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
+@_friendly
+def demo(system_name, out, epochs, observer, no_python_mhe) -> None:
+    """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
+    from .demo import run_demo
+
+    report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
+                      python_mhe=not no_python_mhe)
+    click.echo("\n" + report.table())
+    click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
+
+
+def main() -> None:
+    """Entry point of ``learnest``."""
+    cli(prog_name="learnest")
+
+
+def compile_main() -> None:
+    """Entry point of ``learnest-compile``."""
+    compile_standalone(prog_name="learnest-compile")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

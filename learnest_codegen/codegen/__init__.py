@@ -1,0 +1,1 @@
+"""C code generation for the estimators (CasADi codegen plus a small hand-written C API)."""

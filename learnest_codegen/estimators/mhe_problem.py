@@ -1,0 +1,246 @@
+"""The moving-horizon estimation NLP of the paper's eq. (2), built once for every MHE.
+
+The Python reference (:mod:`.mhe`) and the C code generator (:mod:`..codegen.mhe`) both call
+:func:`build_problem`, so the problem they solve is the same object, not two copies to keep
+in step.
+
+Formulation. The decision variables are the window states ``X = [x_0 .. x_N]`` (window index
+``i`` is sample ``k-N+i``). The noises of eq. (2) are eliminated, ``w_i = x_{i+1} - F(x_i, u)``
+and ``v_i = y_i - h(x_i, u)``: the same minimiser as eq. (2) with ``w, v`` as variables and
+equality constraints, but an unconstrained NLP with ``nx (N+1)`` variables instead of
+``nx (2N+1) + ny (N+1)`` and no constraint Jacobian. The cost is
+
+    sum_i a_i ||x_i - xbar||^2_P + sum_{i<N} m_i ||w_i||^2_Q + sum_i m_i ||v_i||^2_R,
+    a_i = 1 - m_{i-1} (m_{-1} = 0),
+
+with the 0/1 mask ``m`` marking window stages that hold a real sample. Once the window is
+full, ``m = 1`` and ``a = e_0``: eq. (2) exactly. Before it is full (the first ``N`` samples)
+the leading stages are padding: their measurement and process terms are masked out, the
+arrival term sits on the first real stage, and each padded state is pinned to ``xbar`` by a
+term that touches no other variable (it keeps the Hessian non-singular and does not move the
+real states). So the first ``N`` estimates are the full-information estimates with prior
+``x_0 ~ (xbar, P^-1)``, which for a linear-Gaussian model are the Kalman filter's.
+
+Parameters (one vector ``p``, laid out by :class:`ParamLayout`): ``xbar``; the inputs ``U``
+with ``N+1`` stages, where ``U[i]`` is the input applied since the previous sample (it drives
+the transition into stage ``i`` and enters ``h`` at stage ``i``; ``U[0]`` only enters ``h``);
+the outputs ``Y`` (``N+1`` stages); the mask; the weights ``Q, R, P`` as full matrices, so
+they are set at run time, not baked into the code.
+
+Size of the generated code. One SX stage function is reused over the horizon with
+``Function.map`` inside an MX graph. CasADi's own exact Hessian of that graph differentiates
+every mapped stage in 12 forward directions (the colouring of the whole block-tridiagonal
+Hessian), which for the cartpole gives 0.8 MB of C (5 s to compile; KNODE 1.3 MB, 10 s). The
+Hessian is therefore supplied as ``hess_lag``: each stage's exact 8x8 Hessian from SX
+``cs.hessian``, mapped and assembled into the block-tridiagonal matrix (0.18 MB, 1 s; KNODE
+0.4 MB, 2.5 s). ``tests/test_mhe.py`` checks it against CasADi's own Hessian.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import TYPE_CHECKING
+
+import casadi as cs
+import numpy as np
+
+from ..errors import ShapeError
+
+if TYPE_CHECKING:  # keeps this module importable by the torch-free runtime
+    from ..export import DiscreteModel
+    from ..systems import System
+
+# Ipopt options, in one place for the reference solver and the generated C (nlpsol embeds them).
+# tol 1e-10: both solvers run Newton to well below the 1e-6 parity tolerance, so they land on
+# the same optimum even when round-off makes them take different last steps. The problem is
+# unconstrained and warm-started, so Ipopt needs 1-3 iterations; max_iter 100 only bounds a
+# failing step.
+IPOPT_OPTIONS = MappingProxyType({
+    "tol": 1e-10,
+    "max_iter": 100,
+    "hessian_approximation": "exact",
+    "print_level": 0,
+    "sb": "yes",
+})
+# error_on_fail: the generated C then returns Ipopt's unified status (0 ok, 1 failed, 2 maximum
+# iterations) instead of 0; the Python solver raises. calc_lam_p: multipliers of p are unused.
+NLPSOL_OPTIONS = MappingProxyType({"print_time": False, "error_on_fail": True, "calc_lam_p": False})
+
+
+@dataclass(frozen=True, kw_only=True)
+class MHESettings:
+    """Horizon and weights of the MHE; ``Q, R, P = diag(1 / std**2)``.
+
+    Attributes
+    ----------
+    horizon : N, the number of transitions in the window (N+1 states).
+    process_std : (nx,) std of the process noise ``w`` (Q = diag(1/process_std**2)).
+    measurement_std : (ny,) std of the measurement noise ``v`` (R).
+    arrival_std : (nx,) std of the arrival prior ``x_{k-N} - xbar`` (P).
+    """
+
+    horizon: int = 20
+    process_std: tuple[float, ...]
+    measurement_std: tuple[float, ...]
+    arrival_std: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) \
+                or self.horizon < 1:
+            raise ValueError(f"MHESettings.horizon must be an integer >= 1, got {self.horizon!r}")
+        object.__setattr__(self, "horizon", int(self.horizon))
+        for name in ("process_std", "measurement_std", "arrival_std"):
+            values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
+            if not values or not all(math.isfinite(v) and v > 0 for v in values):
+                raise ValueError(f"MHESettings.{name} must be finite positive numbers, got {values}")
+            object.__setattr__(self, name, values)
+
+    @classmethod
+    def from_system(cls, system: "System", **overrides) -> "MHESettings":
+        """Settings from ``system.noise`` (arrival std = ``initial_std``), with ``overrides``."""
+        noise = system.noise
+        defaults = {"process_std": noise.process_std, "measurement_std": noise.measurement_std,
+                    "arrival_std": noise.initial_std}
+        return cls(**{**defaults, **overrides})
+
+    def check(self, nx: int, ny: int, where: str) -> None:
+        """Raise :class:`ShapeError` unless the std tuples have ``nx, ny, nx`` entries."""
+        for name, n in (("process_std", nx), ("measurement_std", ny), ("arrival_std", nx)):
+            got = len(getattr(self, name))
+            if got != n:
+                raise ShapeError(f"{where}: MHESettings.{name} needs {n} values, got {got}")
+
+    def weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(Q (nx, nx), R (ny, ny), P (nx, nx))``, the inverse covariances."""
+        return tuple(np.diag(1.0 / np.square(getattr(self, name)))
+                     for name in ("process_std", "measurement_std", "arrival_std"))
+
+    def to_json(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "MHESettings":
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class ParamLayout:
+    """Where each block of the parameter vector ``p`` lives; shared with the generated C.
+
+    Blocks in order: ``xbar (nx)``, ``U (N+1, nu)``, ``Y (N+1, ny)``, ``mask (N+1)``,
+    ``Q (nx, nx)``, ``R (ny, ny)``, ``P (nx, nx)``. Window blocks are stage-contiguous (stage
+    ``i`` at ``offset + i * width``) and matrices column-major, CasADi's order.
+    """
+
+    nx: int
+    nu: int
+    ny: int
+    horizon: int
+
+    def sizes(self) -> dict[str, int]:
+        n1 = self.horizon + 1
+        return {"xbar": self.nx, "U": n1 * self.nu, "Y": n1 * self.ny, "mask": n1,
+                "Q": self.nx**2, "R": self.ny**2, "P": self.nx**2}
+
+    def offsets(self) -> dict[str, int]:
+        starts = np.cumsum([0, *self.sizes().values()])
+        return dict(zip(self.sizes(), map(int, starts)))
+
+    @property
+    def size(self) -> int:
+        return sum(self.sizes().values())
+
+    def slice(self, name: str) -> slice:
+        start = self.offsets()[name]
+        return slice(start, start + self.sizes()[name])
+
+
+@dataclass(frozen=True)
+class MHEProblem:
+    """The built NLP: ``solver(x0=X0 (nx (N+1)), p=p) -> x`` and the layout of ``p``."""
+
+    name: str
+    layout: ParamLayout
+    solver: cs.Function
+    hessian: cs.Function  # the hess_lag given to nlpsol (tested against CasADi's own)
+
+
+def build_problem(model: "DiscreteModel", settings: MHESettings, name: str) -> MHEProblem:
+    """Build the MHE NLP for ``model`` with horizon ``settings.horizon``.
+
+    ``name`` names the nlpsol Function and so prefixes the symbols of generated C.
+    """
+    settings.check(model.nx, model.ny, f"MHE for {model.system.name} ({model.kind})")
+    layout = ParamLayout(model.nx, model.nu, model.ny, settings.horizon)
+    n = layout.horizon
+    stage, stage_hess, node, node_hess = _stage_functions(model)
+    X = cs.MX.sym("X", model.nx, n + 1)
+    p = cs.MX.sym("p", layout.size)
+    xbar, U, Y, mask, Q, R, P = _split(p, layout)
+    mask_prev = cs.horzcat(cs.MX.zeros(1, 1), mask[:, :n])
+    args = (X[:, :n], X[:, 1:], U[:, :n], U[:, 1:], Y[:, :n], mask[:, :n], mask_prev[:, :n],
+            xbar, Q, R, P)
+    last = (X[:, n], U[:, n], Y[:, n], mask[:, n], mask_prev[:, n], xbar, R, P)
+    scale = 1.0 / cs.mmax(cs.vertcat(cs.diag(Q), cs.diag(R), cs.diag(P)))
+    cost = scale * (cs.sum2(stage.map(n)(*args)) + node(*last))
+    lam_f, lam_g = cs.MX.sym("lam_f"), cs.MX.sym("lam_g", 0)
+    blocks = _assemble_hessian(*stage_hess.map(n)(*args), node_hess(*last), n)
+    hessian = cs.Function(f"{name}_hess_l", [cs.vec(X), p, lam_f, lam_g],
+                          [cs.triu((lam_f * scale) * blocks)], ["x", "p", "lam_f", "lam_g"],
+                          ["triu_hess_gamma_x_x"])
+    solver = cs.nlpsol(name, "ipopt", {"x": cs.vec(X), "p": p, "f": cost},
+                       {**NLPSOL_OPTIONS, "ipopt": dict(IPOPT_OPTIONS), "hess_lag": hessian})
+    return MHEProblem(name, layout, solver, hessian)
+
+
+def _split(p: cs.MX, layout: ParamLayout) -> list[cs.MX]:
+    """The blocks of ``p`` as MX of shapes (nx,1), (nu,N+1), (ny,N+1), (1,N+1), Q, R, P."""
+    n1 = layout.horizon + 1
+    shapes = {"xbar": (layout.nx, 1), "U": (layout.nu, n1), "Y": (layout.ny, n1), "mask": (1, n1),
+              "Q": (layout.nx, layout.nx), "R": (layout.ny, layout.ny), "P": (layout.nx, layout.nx)}
+    return [cs.reshape(p[layout.slice(name)], *shape) for name, shape in shapes.items()]
+
+
+def _stage_functions(model: "DiscreteModel") -> tuple[cs.Function, ...]:
+    """SX cost of one stage ``i < N`` and of the last node, and their exact Hessians.
+
+    Stage: ``node_i + m_i ||x_{i+1} - F(x_i, u_{i+1})||^2_Q``; node:
+    ``m_i ||y_i - h(x_i, u_i)||^2_R + (1 - m_{i-1}) ||x_i - xbar||^2_P``.
+    """
+    nx, nu, ny = model.nx, model.nu, model.ny
+    x, x_next, xbar = cs.SX.sym("x", nx), cs.SX.sym("x_next", nx), cs.SX.sym("xbar", nx)
+    u, u_next, y = cs.SX.sym("u", nu), cs.SX.sym("u_next", nu), cs.SX.sym("y", ny)
+    m, m_prev = cs.SX.sym("m"), cs.SX.sym("m_prev")
+    Q, R, P = cs.SX.sym("Q", nx, nx), cs.SX.sym("R", ny, ny), cs.SX.sym("P", nx, nx)
+    v, e, w = y - model.h(x, u), x - xbar, x_next - model.F(x, u_next)
+    node_cost = m * cs.bilin(R, v, v) + (1 - m_prev) * cs.bilin(P, e, e)
+    stage_cost = node_cost + m * cs.bilin(Q, w, w)
+    node_in, node_names = [x, u, y, m, m_prev, xbar, R, P], ["x", "u", "y", "m", "m_prev", "xbar", "R", "P"]
+    stage_in = [x, x_next, u, u_next, y, m, m_prev, xbar, Q, R, P]
+    stage_names = ["x", "x_next", "u", "u_next", "y", "m", "m_prev", "xbar", "Q", "R", "P"]
+    H, _ = cs.hessian(stage_cost, cs.vertcat(x, x_next))
+    H_node, _ = cs.hessian(node_cost, x)
+    return (
+        cs.Function("mhe_stage", stage_in, [stage_cost], stage_names, ["cost"]),
+        cs.Function("mhe_stage_hess", stage_in, [H[:nx, :nx], H[:nx, nx:], H[nx:, nx:]],
+                    stage_names, ["H_xx", "H_xn", "H_nn"]),
+        cs.Function("mhe_node", node_in, [node_cost], node_names, ["cost"]),
+        cs.Function("mhe_node_hess", node_in, [H_node], node_names, ["H_xx"]),
+    )
+
+
+def _assemble_hessian(H_xx: cs.MX, H_xn: cs.MX, H_nn: cs.MX, H_last: cs.MX, n: int) -> cs.MX:
+    """Block-tridiagonal Hessian of the cost from the mapped stage blocks (each nx x n nx)."""
+    nx = H_last.shape[0]
+    H_xx, H_xn, H_nn = (cs.horzsplit(h, nx) for h in (H_xx, H_xn, H_nn))
+    blocks = [[cs.MX(nx, nx)] * (n + 1) for _ in range(n + 1)]
+    for i in range(n + 1):
+        own = H_xx[i] if i < n else H_last  # x_i in its own stage (or the last node)
+        blocks[i][i] = own + H_nn[i - 1] if i > 0 else own  # ... and as x_next of stage i-1
+        if i < n:
+            blocks[i][i + 1] = H_xn[i]
+            blocks[i + 1][i] = H_xn[i].T
+    return cs.blockcat(blocks)

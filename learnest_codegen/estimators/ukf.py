@@ -1,0 +1,228 @@
+"""The reference Unscented Kalman Filter: FilterPy's UKF over a :class:`DiscreteModel`.
+
+The generated C filter (``codegen/ukf.py``) reproduces this filter's arithmetic; the parity
+tests compare the two. Both share the sample convention of :meth:`UKF.run`: sample 0 is an
+update only, every later sample a predict with the input held since the previous sample
+followed by an update.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from ..errors import ShapeError, SolverError
+from ..export import DiscreteModel
+from ..systems import System
+
+_STD_FIELDS = ("process_std", "measurement_std", "initial_std")
+
+
+@dataclass(frozen=True, kw_only=True)
+class UKFSettings:
+    """Tuning of the UKF: Merwe scaled sigma points and diagonal noise covariances.
+
+    Attributes
+    ----------
+    alpha, beta, kappa : sigma-point spread, prior-distribution and secondary scaling
+        parameters of :class:`filterpy.kalman.MerweScaledSigmaPoints`.
+    process_std : (nx,) stds of the assumed process noise, ``Q = diag(process_std**2)``.
+    measurement_std : (ny,) stds of the measurement noise, ``R = diag(measurement_std**2)``.
+    initial_std : (nx,) stds of the initial uncertainty, ``P0 = diag(initial_std**2)``.
+    """
+
+    alpha: float = 0.1
+    beta: float = 2.0
+    kappa: float = 0.0
+    process_std: tuple[float, ...]
+    measurement_std: tuple[float, ...]
+    initial_std: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        for name in ("alpha", "beta", "kappa"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value):
+                raise ValueError(f"UKFSettings.{name} must be finite, got {value}")
+            object.__setattr__(self, name, value)
+        if not self.alpha > 0:
+            raise ValueError(f"UKFSettings.alpha must be > 0, got {self.alpha}")
+        for name in _STD_FIELDS:
+            values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
+            if not values or not all(math.isfinite(v) and v > 0 for v in values):
+                raise ValueError(f"UKFSettings.{name} must be a non-empty sequence of positive "
+                                 f"finite stds, got {values}")
+            object.__setattr__(self, name, values)
+
+    @classmethod
+    def from_system(cls, system: System, **overrides) -> "UKFSettings":
+        """Settings with the noise stds of ``system.noise``, any field overridden by keyword."""
+        unknown = set(overrides) - {f.name for f in fields(cls)}
+        if unknown:
+            raise TypeError(f"UKFSettings has no field(s) {sorted(unknown)}")
+        noise = {name: getattr(system.noise, name) for name in _STD_FIELDS}
+        return cls(**{**noise, **overrides})
+
+    def validate_for(self, model: DiscreteModel) -> None:
+        """Raise :class:`ShapeError` unless the std lengths match ``model.nx`` and ``model.ny``."""
+        for name, size, n in (("process_std", "nx", model.nx), ("measurement_std", "ny", model.ny),
+                              ("initial_std", "nx", model.nx)):
+            if len(getattr(self, name)) != n:
+                raise ShapeError(f"UKFSettings.{name}: the model has {size} = {n}, "
+                                 f"got {len(getattr(self, name))} values")
+        # The sigma points scale P by alpha**2 (n + kappa); it must stay positive.
+        if not self.alpha**2 * (model.nx + self.kappa) > 0:
+            raise ValueError(f"UKFSettings: need kappa > -nx = {-model.nx}, got {self.kappa}")
+
+    def to_json(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    def Q(self) -> np.ndarray:
+        """Process-noise covariance ``(nx, nx)``."""
+        return np.diag(np.square(self.process_std))
+
+    def R(self) -> np.ndarray:
+        """Measurement-noise covariance ``(ny, ny)``."""
+        return np.diag(np.square(self.measurement_std))
+
+    def P0(self) -> np.ndarray:
+        """Initial covariance ``(nx, nx)``."""
+        return np.diag(np.square(self.initial_std))
+
+
+def as_vector(name: str, value, n: int) -> np.ndarray:
+    """``value`` as a finite float64 array ``(n,)``; :class:`ShapeError` / ``ValueError`` otherwise."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape != (n,):
+        raise ShapeError(f"{name}: expected shape ({n},), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: expected finite values, got {array}")
+    return array
+
+
+def as_matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``; rows with non-finite values are named."""
+    array = np.asarray(value, dtype=np.float64)
+    if array.shape != tuple(shape):
+        raise ShapeError(f"{name}: expected shape {tuple(shape)}, got {array.shape}")
+    finite = np.isfinite(array)
+    if not finite.all():
+        rows = np.flatnonzero(~finite.reshape(array.shape[0], -1).all(axis=1))
+        raise ValueError(f"{name}: expected finite values, row(s) {rows[:5].tolist()} are not")
+    return array
+
+
+def check_run_arrays(where: str, U, Y, model) -> tuple[np.ndarray, np.ndarray]:
+    """``U (T, nu)`` and ``Y (T, ny)`` as finite float64 arrays with the same T."""
+    Y = np.asarray(Y, dtype=np.float64)
+    T = Y.shape[0] if Y.ndim == 2 else -1
+    if T < 0:
+        raise ShapeError(f"{where}: Y must be (T, {model.ny}), got {Y.shape}")
+    return as_matrix(f"{where} U", U, (T, model.nu)), as_matrix(f"{where} Y", Y, (T, model.ny))
+
+
+class UKF:
+    """Reference UKF (FilterPy) with ``fx = model.step`` and ``hx = model.measure``.
+
+    Parameters
+    ----------
+    model : the discrete model ``x+ = F(x, u)``, ``y = h(x, u)``.
+    settings : tuning; default ``UKFSettings.from_system(model.system)``.
+    """
+
+    def __init__(self, model: DiscreteModel, settings: UKFSettings | None = None):
+        self.model = model
+        self.settings = settings or UKFSettings.from_system(model.system)
+        self.settings.validate_for(model)
+        # filterpy is imported here, not at the top, so that the settings and array checks of
+        # this module stay importable by the filterpy- and torch-free runtime.
+        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+        s = self.settings
+        self._points = MerweScaledSigmaPoints(model.nx, s.alpha, s.beta, s.kappa)
+        self._kf = UnscentedKalmanFilter(model.nx, model.ny, model.dt, hx=self._hx, fx=self._fx,
+                                         points=self._points)
+        self._kf.Q, self._kf.R = s.Q(), s.R()
+        self._first: bool | None = None  # None until reset(): no state to filter from
+
+    def _fx(self, x: np.ndarray, dt: float, u: np.ndarray) -> np.ndarray:
+        return self.model.step(x, u)  # dt is fixed inside the discrete model
+
+    def _hx(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.model.measure(x, u)
+
+    def reset(self, x0, P0=None) -> None:
+        """Start from mean ``x0 (nx,)`` and covariance ``P0 (nx, nx)`` (default settings.P0())."""
+        nx = self.model.nx
+        self._kf.x = as_vector("UKF.reset x0", x0, nx).copy()
+        P0 = self.settings.P0() if P0 is None else P0
+        self._kf.P = as_matrix("UKF.reset P0", P0, (nx, nx)).copy()
+        self._first = True
+
+    def step(self, u, y) -> np.ndarray:
+        """Filter one sample and return the posterior mean ``x (nx,)``.
+
+        Predicts with ``u (nu,)``, the input applied since the previous sample (no predict on
+        the first call after :meth:`reset`), then updates with ``y (ny,)``, evaluating ``h`` at
+        the same ``u``. Raises :class:`SolverError` (state unchanged) if the covariance stops
+        being positive definite.
+        """
+        self._require_reset("step")
+        u = as_vector("UKF.step u", u, self.model.nu)
+        y = as_vector("UKF.step y", y, self.model.ny)
+        saved = self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f.copy()
+        try:
+            if self._first:
+                # FilterPy's update() transforms the sigma points that predict() leaves behind;
+                # sample 0 has no predict, so draw them from (x0, P0) as predict would.
+                self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
+            else:
+                self._kf.predict(u=u)
+            self._kf.update(y, u=u)
+        except np.linalg.LinAlgError as exc:  # Cholesky of a non-positive-definite P
+            self._kf.x, self._kf.P, self._kf.sigmas_f = saved
+            raise SolverError(f"UKF.step: {exc} (state left as before this step)") from exc
+        if not (np.all(np.isfinite(self._kf.x)) and np.all(np.isfinite(self._kf.P))):
+            self._kf.x, self._kf.P, self._kf.sigmas_f = saved
+            raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
+        self._first = False
+        return self.x
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current state estimate ``(nx,)`` (a copy)."""
+        self._require_reset("x")
+        return self._kf.x.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance ``(nx, nx)`` (a copy)."""
+        self._require_reset("P")
+        return self._kf.P.copy()
+
+    def _require_reset(self, what: str) -> None:
+        if self._first is None:
+            raise RuntimeError(f"UKF.{what}: call reset(x0) first")
+
+    def run(self, U, Y, x0, P0=None) -> np.ndarray:
+        """Filter a whole run from ``x0``.
+
+        Parameters
+        ----------
+        U : (T, nu) inputs; ``U[k]`` is applied from sample k to sample k+1.
+        Y : (T, ny) measurements.
+        x0, P0 : initial mean ``(nx,)`` and covariance ``(nx, nx)``.
+
+        Returns
+        -------
+        X_hat : (T, nx) posterior means. Sample 0 is an update only (``h`` with ``U[0]``);
+            sample k >= 1 is ``step(U[k-1], Y[k])``.
+        """
+        U, Y = check_run_arrays("UKF.run", U, Y, self.model)
+        self.reset(x0, P0)
+        X_hat = np.empty((len(Y), self.model.nx))
+        for k in range(len(Y)):
+            X_hat[k] = self.step(U[max(k - 1, 0)], Y[k])
+        return X_hat
+

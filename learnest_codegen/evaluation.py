@@ -1,0 +1,62 @@
+"""Running estimators on runs, scoring them against truth, and timing them."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .data import Run
+from .errors import ShapeError
+
+
+@dataclass(frozen=True)
+class EstimateResult:
+    """An estimator's output on one run.
+
+    Attributes
+    ----------
+    label : e.g. ``"KNODE-MHE (C)"``.
+    x_hat : (T, nx) estimates.
+    seconds_per_step : mean wall time of one estimator step [s].
+    """
+
+    label: str
+    x_hat: np.ndarray
+    seconds_per_step: float
+
+    def mse(self, x_true: np.ndarray) -> float:
+        """Mean over samples and states of the squared error, the paper's metric."""
+        return mse(self.x_hat, x_true)
+
+
+def mse(x_hat: np.ndarray, x_true: np.ndarray) -> float:
+    """Overall mean-squared error ``mean((x_hat - x_true)**2)`` over samples and states."""
+    if x_hat.shape != x_true.shape:
+        raise ShapeError(f"mse: estimate shape {x_hat.shape} != truth shape {x_true.shape}")
+    return float(np.mean((x_hat - x_true) ** 2))
+
+
+def mse_per_state(x_hat: np.ndarray, x_true: np.ndarray) -> np.ndarray:
+    """(nx,) mean-squared error of each state."""
+    return np.mean((x_hat - x_true) ** 2, axis=0)
+
+
+def run_estimator(estimator, run: Run, x0: np.ndarray, label: str) -> EstimateResult:
+    """Run ``estimator.run`` over a whole run and time it."""
+    start = time.perf_counter()
+    x_hat = estimator.run(run.u, run.y, np.asarray(x0, dtype=float))
+    seconds = time.perf_counter() - start
+    return EstimateResult(label, np.asarray(x_hat), seconds / len(run))
+
+
+def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
+    """A plain-text table; ``columns`` holds ``(key, header, format)`` triples."""
+    cells = [[h for _, h, _ in columns]]
+    cells += [[format(r[k], f) if r.get(k) is not None else "-" for k, _, f in columns] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(row, widths)))
+             for row in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""torch-free ctypes bindings for compiled estimator libraries."""

@@ -1,0 +1,172 @@
+"""KNODE training (Alg. 1, phase 1) and the trained-model directory.
+
+The loss is the paper's eq. (11): the mean over consecutive pairs of
+``||zeta_{i+1} - RK4_step(f_prior + Delta_theta)(zeta_i, u_i)||^2``, minimised with Adam in
+float64. A trained model is a directory holding the weights (``weights.pt``), ``model.json``
+(system, network and training settings, hash of the training data, final loss) and nothing else.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .data import Run
+from .errors import ModelMismatchError
+from .integrators import rk4_step
+from .network import NetworkSettings, ResidualNet
+from .systems import System
+
+WEIGHTS, META = "weights.pt", "model.json"
+
+
+@dataclass(frozen=True)
+class TrainingSettings:
+    """Optimisation settings; the defaults are the paper's cartpole settings (250 epochs)."""
+
+    epochs: int = 250
+    learning_rate: float = 1e-2
+    batch_size: int = 256
+    seed: int = 0
+    network: NetworkSettings = field(default_factory=NetworkSettings)
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
+            raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class TrainedModel:
+    """A trained residual network and what it was trained for."""
+
+    system: System
+    net: ResidualNet
+    meta: dict
+
+    def save(self, directory: str | Path) -> Path:
+        """Write the model directory (weights + ``model.json``)."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        torch.save(self.net.state_dict(), directory / WEIGHTS)
+        (directory / META).write_text(json.dumps(self.meta, indent=2, sort_keys=True))
+        return directory
+
+    @property
+    def hash(self) -> str:
+        """Content hash of weights and metadata: identifies the model in compiled manifests."""
+        h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())
+        for name, tensor in sorted(self.net.state_dict().items()):
+            h.update(name.encode() + tensor.detach().numpy().tobytes())
+        return h.hexdigest()
+
+
+def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> ResidualNet:
+    """An untrained residual net for ``system`` (its angles enter as sine and cosine)."""
+    periodic = tuple(system.state_names.index(n) for n in system.periodic_states)
+    return ResidualNet(system.nx, system.nu, settings, periodic)
+
+
+def data_hash(*arrays: np.ndarray) -> str:
+    """sha256 of the training arrays (identifies the data a model was trained on)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch.Tensor,
+                  zeta_next: torch.Tensor, dt: float) -> torch.Tensor:
+    """Eq. (11): mean squared one-step RK4 prediction error of the hybrid model."""
+    hybrid = lambda x, v: system.f(x, v) + net(x, v)  # noqa: E731
+    pred = rk4_step(hybrid, zeta, u, dt)
+    return ((pred - zeta_next) ** 2).sum(dim=-1).mean()
+
+
+def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
+          settings: TrainingSettings = TrainingSettings(), *, observer: str = "",
+          progress: bool = True) -> TrainedModel:
+    """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``."""
+    zeta, u = np.asarray(zeta, float), np.asarray(u, float)
+    if zeta.ndim != 2 or zeta.shape[1] != system.nx or u.shape != (zeta.shape[0], system.nu):
+        raise ValueError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
+                         f"got {zeta.shape}, {u.shape}")
+    if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
+        raise ValueError("train: zeta and u must be finite")
+    torch.manual_seed(settings.seed)
+    net = make_net(system, settings.network)
+    net.set_input_scaling(zeta, u)
+    x0, u0, x1 = (torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:]))
+    optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
+    generator = torch.Generator().manual_seed(settings.seed)
+    start, history = time.perf_counter(), []
+    bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=not progress, unit="epoch")
+    for _ in bar:
+        for idx in torch.randperm(x0.shape[0], generator=generator).split(settings.batch_size):
+            optimiser.zero_grad()
+            loss = one_step_loss(system, net, x0[idx], u0[idx], x1[idx], dt)
+            loss.backward()
+            optimiser.step()
+        with torch.no_grad():
+            history.append(float(one_step_loss(system, net, x0, u0, x1, dt)))
+        bar.set_postfix(loss=f"{history[-1]:.3e}")
+    with torch.no_grad():
+        prior_loss = float(one_step_loss(system, _ZeroNet(system), x0, u0, x1, dt))
+    meta = {
+        "system": system.name, "nx": system.nx, "nu": system.nu, "dt": dt,
+        "network": settings.network.to_json(), "training": settings.to_json(),
+        "observer": observer, "data_hash": data_hash(zeta, u), "samples": int(zeta.shape[0]),
+        "final_loss": history[-1], "prior_loss": prior_loss, "loss_history": history,
+        "train_seconds": time.perf_counter() - start, "torch_version": torch.__version__,
+    }
+    return TrainedModel(system, net, meta)
+
+
+class _ZeroNet(torch.nn.Module):
+    """Delta = 0: the prior's own loss, reported next to the trained loss."""
+
+    def __init__(self, system: System):
+        super().__init__()
+        self.nx = system.nx
+
+    def forward(self, x, u):
+        return torch.zeros_like(x)
+
+
+def load_model(directory: str | Path, system: System) -> TrainedModel:
+    """Load a model directory, checking that it was trained for ``system``."""
+    directory = Path(directory)
+    meta_path, weights_path = directory / META, directory / WEIGHTS
+    if not meta_path.is_file() or not weights_path.is_file():
+        raise FileNotFoundError(f"{directory} is not a model directory (needs {META} and {WEIGHTS})")
+    meta = json.loads(meta_path.read_text())
+    got = (meta.get("system"), meta.get("nx"), meta.get("nu"))
+    if got != (system.name, system.nx, system.nu):
+        raise ModelMismatchError(f"model {directory} was trained for system {got[0]!r} "
+                                 f"(nx={got[1]}, nu={got[2]}), not {system.name!r} "
+                                 f"(nx={system.nx}, nu={system.nu})")
+    net = make_net(system, NetworkSettings(**meta["network"]))
+    net.load_state_dict(torch.load(weights_path, weights_only=True))
+    return TrainedModel(system, net, meta)
+
+
+def train_on_run(run: Run, system: System, settings: TrainingSettings = TrainingSettings(), *,
+                 observer: str = "rts", full_state: bool = False, progress: bool = True) -> TrainedModel:
+    """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train."""
+    from .observers import observe
+    from .simulation import noisy_states
+
+    if full_state:
+        zeta, source = noisy_states(run, system, settings.seed), "full_state"
+    else:
+        zeta, source = observe(run, system, observer).zeta, observer
+    return train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress)

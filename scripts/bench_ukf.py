@@ -1,0 +1,99 @@
+"""Per-step time of the FilterPy UKF and of the compiled UKF on a cartpole run.
+
+Times three things on the same simulated run: the Python reference (``UKF.run``), the whole run
+in C (``CompiledUKF.run``, one ctypes call) and sample-by-sample ctypes calls
+(``CompiledUKF.step``), and records the build time and sizes of the library. Usage::
+
+    python scripts/bench_ukf.py --out bench_ukf.json --models nominal knode
+
+(from the repository root with the package installed, e.g. ``pip install -e .``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from learnest_codegen import get_system
+from learnest_codegen.codegen.ukf import generate_ukf
+from learnest_codegen.estimators.ukf import UKF, UKFSettings
+from learnest_codegen.export import hybrid_model, prior_model
+from learnest_codegen.network import ResidualNet
+from learnest_codegen.runtime.ukf import CompiledUKF
+from learnest_codegen.simulation import simulate
+
+
+def best_seconds(fn, repeat: int) -> float:
+    """Shortest wall time of ``repeat`` calls (the least disturbed by the machine)."""
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
+    settings = UKFSettings.from_system(model.system)
+    gen = generate_ukf(model, settings, build_dir / model.kind, force=True)
+    x0, T = model.system.x0, len(Y)
+    compiled, reference = CompiledUKF(gen.directory), UKF(model, settings)
+    start = time.perf_counter()
+    X_ref = reference.run(U, Y, x0)
+    python_s = time.perf_counter() - start
+    c_run_s = best_seconds(lambda: compiled.run(U, Y, x0), repeat)
+    X_c = compiled.run(U, Y, x0)
+
+    def ctypes_steps():
+        compiled.reset(x0)
+        for k in range(T):
+            compiled.step(U[max(k - 1, 0)], Y[k])
+
+    ctypes_s = best_seconds(ctypes_steps, max(1, repeat // 5))
+    rel = np.abs(X_c - X_ref).max(axis=1) / np.maximum(np.abs(X_ref).max(axis=1), 1e-6)
+    return {
+        "model_kind": model.kind, "steps": T,
+        "python_us_per_step": 1e6 * python_s / T,
+        "c_run_us_per_step": 1e6 * c_run_s / T,
+        "ctypes_step_us_per_step": 1e6 * ctypes_s / T,
+        "speedup_c_run": python_s / c_run_s,
+        "max_relative_state_difference": float(rel.max()),
+        "generate_seconds": gen.generate_seconds, "build_seconds": gen.build.seconds,
+        "code_bytes": gen.code_bytes, "library_bytes": gen.library.stat().st_size,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("bench_ukf.json"))
+    parser.add_argument("--models", nargs="+", choices=["nominal", "knode"],
+                        default=["nominal", "knode"])
+    parser.add_argument("--steps", type=int, default=None, help="default: one full run")
+    parser.add_argument("--repeat", type=int, default=20, help="repeats of the C timings")
+    parser.add_argument("--build-dir", type=Path, default=None, help="default: a temporary folder")
+    args = parser.parse_args(argv)
+    system = get_system("cartpole")
+    run = simulate(system, seed=0, duration=(args.steps or system.n_samples) * system.dt)
+    U, Y = run.u, run.y
+    torch.manual_seed(0)  # random KNODE weights: timing depends on the size, not the values
+    models = {"nominal": lambda: prior_model(system),
+              "knode": lambda: hybrid_model(system, ResidualNet(system.nx, system.nu))}
+    with tempfile.TemporaryDirectory() as tmp:
+        build_dir = args.build_dir or Path(tmp)
+        results = [bench_model(models[kind](), U, Y, build_dir, args.repeat) for kind in args.models]
+    report = {"system": system.name, "machine": platform.platform(), "cpus": os.cpu_count(),
+              "python": platform.python_version(), "results": results}
+    args.out.write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
