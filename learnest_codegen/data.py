@@ -8,6 +8,7 @@ time increases strictly and that every value is finite, and says exactly what is
 from __future__ import annotations
 
 import csv
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,7 +84,9 @@ def read_run(path: str | Path, system: System) -> Run:
     if missing:
         raise DataError(f"{path}: missing columns {missing} for system {system.name!r} (has {header})")
     try:
-        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        with warnings.catch_warnings():  # an empty table is reported below as a DataError
+            warnings.simplefilter("ignore", UserWarning)
+            table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
         raise DataError(f"{path}: non-numeric content: {exc}") from exc
     if table.shape[0] < 2:

@@ -63,8 +63,12 @@ class TrainedModel:
 
     @property
     def hash(self) -> str:
-        """Content hash of weights and metadata: identifies the model in compiled manifests."""
-        h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())
+        """Content hash of weights and settings: identifies the model in compiled manifests.
+
+        Wall-clock fields (``train_seconds``) are left out so retraining gives the same hash.
+        """
+        stable = {k: v for k, v in self.meta.items() if k != "train_seconds"}
+        h = hashlib.sha256(json.dumps(stable, sort_keys=True).encode())
         for name, tensor in sorted(self.net.state_dict().items()):
             h.update(name.encode() + tensor.detach().numpy().tobytes())
         return h.hexdigest()

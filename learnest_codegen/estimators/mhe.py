@@ -21,8 +21,8 @@ from ..errors import DataError, ShapeError, SolverError
 from ..export import DiscreteModel
 from .mhe_problem import MHESettings, ParamLayout, build_problem
 
-_NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
-                  "propagates no P. The arrival-cost weight is `arrival_weight`.")
+NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
+                 "propagates no P. The arrival-cost weight is `arrival_weight`.")
 
 
 class MHE:
@@ -52,7 +52,8 @@ class MHE:
 
     @property
     def P(self):
-        raise AttributeError(_NO_COVARIANCE)
+        """Not available: an MHE has no state covariance (raises AttributeError)."""
+        raise AttributeError(NO_COVARIANCE)
 
     @property
     def x(self) -> np.ndarray:
@@ -74,7 +75,7 @@ class MHE:
         ``P0 (nx, nx)``, if given, is the covariance of that prior: the arrival weight becomes
         ``inv(P0)`` for the whole run (otherwise ``diag(1/arrival_std**2)`` from the settings).
         """
-        x0 = _finite_vector("MHE.reset: x0", x0, self.model.nx)
+        x0 = check_vector("MHE.reset: x0", x0, self.model.nx)
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.model.nx)
@@ -92,8 +93,8 @@ class MHE:
         only enters ``h``. Returns the estimate ``x (nx,)``.
         """
         self._started()
-        u = _finite_vector("MHE.step: u", u, self.model.nu)
-        y = _finite_vector("MHE.step: y", y, self.model.ny)
+        u = check_vector("MHE.step: u", u, self.model.nu)
+        y = check_vector("MHE.step: y", y, self.model.ny)
         p, guess = self._advance(u, y)
         try:
             solution = self.problem.solver(x0=guess.ravel(), p=p)
@@ -170,8 +171,9 @@ def check_run_arrays(U, Y, nu: int, ny: int, where: str) -> tuple[np.ndarray, np
     return U, Y
 
 
-def _finite_vector(where: str, value, n: int) -> np.ndarray:
-    v = np.asarray(value, dtype=float)
+def check_vector(where: str, value, n: int) -> np.ndarray:
+    """``value`` as a finite float64 ``(n,)`` array, or ShapeError / DataError."""
+    v = np.ascontiguousarray(value, dtype=float)
     if v.shape != (n,):
         raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
     if not np.all(np.isfinite(v)):

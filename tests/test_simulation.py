@@ -1,0 +1,85 @@
+"""Integrators and simulation against theory and an independent integrator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from learnest_codegen.data import DataError, read_run, write_run
+from learnest_codegen.integrators import rk4_step
+from learnest_codegen.simulation import noisy_states, simulate
+
+
+def test_rk4_convergence_order_is_four(cartpole):
+    """Global error of RK4 over 1 s scales as dt**4: the fitted slope must be close to 4."""
+    x0, u = np.array([0.0, 0.0, 0.5, 0.0]), np.array([1.0])
+    f = lambda x, v: cartpole.f(x, v)  # noqa: E731
+    ref = solve_ivp(lambda _t, x: f(x, u), (0, 1.0), x0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    steps = np.array([40, 80, 160, 320])
+    errors = []
+    for n in steps:
+        x = x0.copy()
+        for _ in range(n):
+            x = rk4_step(f, x, u, 1.0 / n)
+        errors.append(np.linalg.norm(x - ref))
+    slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert 3.75 < slope < 4.25  # order 3 or 5 would fail
+
+
+def test_simulated_truth_matches_independent_integrator(cartpole, cartpole_run):
+    """Re-integrate the first 0.5 s with DOP853 and the recorded zero-order-hold inputs."""
+    run, n = cartpole_run, 250
+    x = run.x[0]
+    for k in range(n):
+        sol = solve_ivp(lambda _t, s: cartpole.f(s, run.u[k], variant="true"), (0, run.dt), x,
+                        method="DOP853", rtol=1e-12, atol=1e-12)
+        x = sol.y[:, -1]
+    np.testing.assert_allclose(run.x[n], x, atol=1e-8)
+
+
+def test_run_shape_noise_and_boundedness(cartpole, cartpole_run):
+    run = cartpole_run
+    assert len(run) == 5000 and np.isclose(run.dt, 0.002) and np.isclose(run.t[-1], 9.998)
+    residual = run.y - cartpole.h(run.x, run.u)
+    np.testing.assert_allclose(residual.std(axis=0), 0.01, rtol=0.05)  # std 0.01 measurement noise
+    assert abs(residual.mean()) < 1e-3
+    assert np.abs(run.x[:, 0]).max() < 2.0, "the excitation must keep the cart near the origin"
+    assert run.x[:, 3].std() > 1.0, "the pole must move (informative data)"
+
+
+def test_simulation_is_reproducible(cartpole):
+    a, b = simulate(cartpole, 3, duration=0.2), simulate(cartpole, 3, duration=0.2)
+    np.testing.assert_array_equal(a.y, b.y)
+    assert not np.array_equal(a.y, simulate(cartpole, 4, duration=0.2).y)
+
+
+def test_noisy_states_have_state_noise(cartpole, cartpole_run):
+    z = noisy_states(cartpole_run, cartpole, seed=0)
+    np.testing.assert_allclose((z - cartpole_run.x).std(axis=0), 0.01, rtol=0.05)
+
+
+def test_csv_roundtrip_is_exact(cartpole, tmp_path):
+    run = simulate(cartpole, 0, duration=0.1)
+    back = read_run(write_run(run, cartpole, tmp_path / "r.csv"), cartpole)
+    for name in ("t", "u", "y", "x"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(run, name))
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda lines: [lines[0].replace("y_alpha", "y_beta")] + lines[1:], "missing columns"),
+    (lambda lines: lines[:2] + [lines[2].replace(lines[2].split(",")[2], "nan", 1)] + lines[3:], "non-finite"),
+    (lambda lines: [lines[0], lines[2], lines[1]] + lines[3:], "increase strictly"),
+    (lambda lines: [lines[0]], "at least 2 samples"),
+    (lambda lines: lines[:2] + ["0.5,abc,1,2,3,4,5,6"] + lines[3:], "non-numeric"),
+])
+def test_bad_csv_fails_clearly(cartpole, tmp_path, mutate, message):
+    path = write_run(simulate(cartpole, 0, duration=0.02), cartpole, tmp_path / "r.csv")
+    path.write_text("\n".join(mutate(path.read_text().splitlines())) + "\n")
+    with pytest.raises(DataError, match=message):
+        read_run(path, cartpole)
+
+
+def test_missing_file(cartpole, tmp_path):
+    with pytest.raises(FileNotFoundError):
+        read_run(tmp_path / "nope.csv", cartpole)

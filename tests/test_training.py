@@ -1,0 +1,106 @@
+"""KNODE training, the model directory, and the torch -> CasADi export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from learnest_codegen.errors import ModelMismatchError, ShapeError, UnknownNameError
+from learnest_codegen.export import hybrid_model, prior_model, true_model
+from learnest_codegen.integrators import rk4_step
+from learnest_codegen.network import NetworkSettings
+from learnest_codegen.simulation import simulate
+from learnest_codegen.systems import get_system
+from learnest_codegen.training import TrainingSettings, load_model, make_net, train, train_on_run
+
+
+@pytest.fixture(scope="module")
+def clean_model(cartpole, cartpole_run):
+    """Trained on the clean truth: isolates the optimiser from observer error."""
+    run = cartpole_run
+    return train(cartpole, run.x, run.u, run.dt, TrainingSettings(epochs=60), progress=False)
+
+
+def _relative_residual_error(system, net, run):
+    x, u = torch.tensor(run.x), torch.tensor(run.u)
+    true = (system.f(x, u, variant="true") - system.f(x, u)).numpy()
+    with torch.no_grad():
+        learned = net(x, u).numpy()
+    return np.sqrt(np.sum((learned - true) ** 2) / np.sum(true**2))
+
+
+def test_training_on_truth_learns_the_mass_error(cartpole, clean_model, cartpole_test_run):
+    """On an unseen run, the learned residual must match f_true - f_prior to within 35 %."""
+    meta = clean_model.meta
+    assert meta["final_loss"] < 0.05 * meta["prior_loss"]
+    assert _relative_residual_error(cartpole, clean_model.net, cartpole_test_run) < 0.35
+
+
+def test_casadi_export_matches_torch(cartpole, clean_model):
+    """The exported hybrid RK4 model equals the torch forward pass to 1e-10 on random inputs."""
+    model = hybrid_model(cartpole, clean_model.net)
+    rng = np.random.default_rng(1)
+    x, u = rng.normal(size=(200, 4)) * [1, 2, 3, 5], rng.normal(size=(200, 1)) * 5
+    hybrid = lambda s, v: cartpole.f(s, v) + clean_model.net(s, v)  # noqa: E731
+    with torch.no_grad():
+        ref = rk4_step(hybrid, torch.tensor(x), torch.tensor(u), cartpole.dt).numpy()
+        delta_ref = clean_model.net(torch.tensor(x), torch.tensor(u)).numpy()
+    got = model.F.map(200)(x.T, u.T).full().T
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+    delta = (model.f_continuous.map(200)(x.T, u.T) - prior_model(cartpole).f_continuous.map(200)(x.T, u.T))
+    np.testing.assert_allclose(delta.full().T, delta_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_periodic_states_enter_as_sine_and_cosine(cartpole, clean_model):
+    x = np.array([[0.1, 0.2, 0.3, 0.4]])
+    shifted = x + [0, 0, 2 * np.pi, 0]
+    with torch.no_grad():
+        a = clean_model.net(torch.tensor(x), torch.ones(1, 1, dtype=torch.float64))
+        b = clean_model.net(torch.tensor(shifted), torch.ones(1, 1, dtype=torch.float64))
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-12)
+
+
+def test_model_directory_roundtrip(cartpole, clean_model, tmp_path):
+    clean_model.save(tmp_path / "m")
+    back = load_model(tmp_path / "m", cartpole)
+    assert back.hash == clean_model.hash
+    x, u = torch.randn(5, 4, dtype=torch.float64), torch.randn(5, 1, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(back.net(x, u), clean_model.net(x, u), rtol=0, atol=0)
+    assert back.meta["data_hash"] == clean_model.meta["data_hash"]
+
+
+def test_loading_into_wrong_system_fails(clean_model, tmp_path):
+    clean_model.save(tmp_path / "m")
+    other = get_system("cartpole").__class__(**{**get_system("cartpole").__dict__, "name": "other"})
+    with pytest.raises(ModelMismatchError, match="trained for system 'cartpole'"):
+        load_model(tmp_path / "m", other)
+    with pytest.raises(FileNotFoundError):
+        load_model(tmp_path / "nothing", get_system("cartpole"))
+
+
+def test_training_is_deterministic_and_observer_path_runs(cartpole):
+    run = simulate(cartpole, 5, duration=1.0)
+    settings = TrainingSettings(epochs=3)
+    a = train_on_run(run, cartpole, settings, observer="rts", progress=False)
+    b = train_on_run(run, cartpole, settings, observer="rts", progress=False)
+    assert a.hash == b.hash and a.meta["observer"] == "rts"
+    full = train_on_run(run, cartpole, settings, full_state=True, progress=False)
+    assert full.meta["observer"] == "full_state" and full.hash != a.hash
+
+
+def test_bad_inputs(cartpole):
+    with pytest.raises(ValueError, match="zeta"):
+        train(cartpole, np.zeros((10, 3)), np.zeros((10, 1)), 0.01, progress=False)
+    with pytest.raises(ValueError, match="finite"):
+        train(cartpole, np.full((10, 4), np.nan), np.zeros((10, 1)), 0.01, progress=False)
+    with pytest.raises(UnknownNameError):
+        NetworkSettings(activation="Swish")
+    with pytest.raises(ShapeError):
+        hybrid_model(cartpole, make_net(get_system("cartpole")).__class__(3, 1))
+
+
+def test_true_model_differs_from_prior(cartpole):
+    x, u = np.array([0.0, 0.0, 0.2, 0.0]), np.array([3.0])
+    assert not np.allclose(true_model(cartpole).step(x, u), prior_model(cartpole).step(x, u))
