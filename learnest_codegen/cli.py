@@ -76,10 +76,14 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
 @click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]),
               help="pre-training observer turning (y, u) into state observations")
 @click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
+@click.option("--refine", default=2, show_default=True,
+              help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
+@click.option("--validation-fraction", default=0.2, show_default=True,
+              help="final share of the run held out for early stopping; 0 disables")
 @click.option("--seed", default=0, show_default=True)
 @_friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
-          observer, full_state, seed) -> None:
+          observer, full_state, refine, validation_fraction, seed) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
     from .data import read_run
     from .network import NetworkSettings
@@ -88,7 +92,7 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
     system = _system(system_name)
     run = read_run(data, system)
     settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
-                                NetworkSettings(layers, hidden, activation))
+                                NetworkSettings(layers, hidden, activation), validation_fraction, refine)
     model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
     model.save(out)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
@@ -193,14 +197,16 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
 @click.option("--epochs", default=250, show_default=True)
 @click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]))
+@click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
+@click.option("--refine", default=2, show_default=True, help="model-based smoothing rounds (0 = paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
-def demo(system_name, out, epochs, observer, no_python_mhe) -> None:
+def demo(system_name, out, epochs, observer, duration, refine, no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
     from .demo import run_demo
 
     report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
-                      python_mhe=not no_python_mhe)
+                      python_mhe=not no_python_mhe, duration=duration, refine=refine)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 

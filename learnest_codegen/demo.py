@@ -45,19 +45,21 @@ class DemoReport:
 
 def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: str = "rts",
              train_seed: int = 0, test_seed: int = 1, include_true: bool = True,
-             python_mhe: bool = True) -> DemoReport:
+             python_mhe: bool = True, duration: float | None = None, refine: int = 2) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``."""
     out = Path(out)
     report = DemoReport()
     say = lambda msg: click.echo(click.style(f"==> {msg}", bold=True))  # noqa: E731
 
     say(f"simulating {system.name}: training run (seed {train_seed}), test run (seed {test_seed})")
-    train_run, test_run = simulate(system, train_seed), simulate(system, test_seed)
+    train_run = simulate(system, train_seed, duration=duration)
+    test_run = simulate(system, test_seed, duration=duration)
     write_run(train_run, system, out / "train.csv")
     write_run(test_run, system, out / "test.csv")
 
-    say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs)")
-    trained = train_on_run(train_run, system, TrainingSettings(epochs=epochs), observer=observer)
+    say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
+        f"{refine} refinement rounds)")
+    trained = train_on_run(train_run, system, TrainingSettings(epochs=epochs, refine=refine), observer=observer)
     trained.save(out / "model")
     report.figures.append(str(plot_loss(trained.meta["loss_history"], trained.meta["prior_loss"],
                                         out / "training_loss.png")))

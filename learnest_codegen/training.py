@@ -4,12 +4,25 @@ The loss is the paper's eq. (11): the mean over consecutive pairs of
 ``||zeta_{i+1} - RK4_step(f_prior + Delta_theta)(zeta_i, u_i)||^2``, minimised with Adam in
 float64. A trained model is a directory holding the weights (``weights.pt``), ``model.json``
 (system, network and training settings, hash of the training data, final loss) and nothing else.
+
+Two additions to the paper's procedure, both measured on the cartpole (relative error of the
+learned residual against ``f_true - f_prior`` on an unseen run):
+
+* Early stopping on a held-out final segment of the run (``validation_fraction``). The
+  observer's errors are correlated in time and with the state, and after a few dozen epochs the
+  net starts fitting them instead of the physics; the held-out segment sees different errors.
+  0.84 -> 0.39.
+* ``refine`` rounds of model-based smoothing: the observations are recomputed by an EKF-RTS
+  smoother through the current hybrid model and the net is trained again. 0.39 -> 0.30 after
+  two rounds.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -36,10 +49,14 @@ class TrainingSettings:
     batch_size: int = 256
     seed: int = 0
     network: NetworkSettings = field(default_factory=NetworkSettings)
+    validation_fraction: float = 0.2  # final segment held out for early stopping; 0 disables
+    refine: int = 0  # rounds of model-based smoothing and retraining (see module docstring)
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
             raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
+        if not 0 <= self.validation_fraction < 0.9 or self.refine < 0:
+            raise ValueError(f"need 0 <= validation_fraction < 0.9 and refine >= 0; got {self}")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -109,27 +126,37 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     torch.manual_seed(settings.seed)
     net = make_net(system, settings.network)
     net.set_input_scaling(zeta, u)
-    x0, u0, x1 = (torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:]))
+    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
+    train_set = [a[:n_train] for a in pairs]
+    valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     generator = torch.Generator().manual_seed(settings.seed)
-    start, history = time.perf_counter(), []
+    start, history, valid_history = time.perf_counter(), [], []
+    best = (math.inf, copy.deepcopy(net.state_dict()), 0)
     bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=not progress, unit="epoch")
-    for _ in bar:
-        for idx in torch.randperm(x0.shape[0], generator=generator).split(settings.batch_size):
+    for epoch in bar:
+        for idx in torch.randperm(n_train, generator=generator).split(settings.batch_size):
             optimiser.zero_grad()
-            loss = one_step_loss(system, net, x0[idx], u0[idx], x1[idx], dt)
+            loss = one_step_loss(system, net, *(a[idx] for a in train_set), dt)
             loss.backward()
             optimiser.step()
         with torch.no_grad():
-            history.append(float(one_step_loss(system, net, x0, u0, x1, dt)))
-        bar.set_postfix(loss=f"{history[-1]:.3e}")
+            history.append(float(one_step_loss(system, net, *train_set, dt)))
+            valid_history.append(float(one_step_loss(system, net, *valid_set, dt)))
+        if valid_history[-1] < best[0]:
+            best = (valid_history[-1], copy.deepcopy(net.state_dict()), epoch)
+        bar.set_postfix(loss=f"{history[-1]:.3e}", valid=f"{valid_history[-1]:.3e}")
+    net.load_state_dict(best[1])
     with torch.no_grad():
-        prior_loss = float(one_step_loss(system, _ZeroNet(system), x0, u0, x1, dt))
+        final_loss = float(one_step_loss(system, net, *pairs, dt))
+        prior_loss = float(one_step_loss(system, _ZeroNet(system), *pairs, dt))
     meta = {
         "system": system.name, "nx": system.nx, "nu": system.nu, "dt": dt,
         "network": settings.network.to_json(), "training": settings.to_json(),
         "observer": observer, "data_hash": data_hash(zeta, u), "samples": int(zeta.shape[0]),
-        "final_loss": history[-1], "prior_loss": prior_loss, "loss_history": history,
+        "final_loss": final_loss, "prior_loss": prior_loss, "best_epoch": best[2],
+        "loss_history": history, "validation_history": valid_history,
         "train_seconds": time.perf_counter() - start, "torch_version": torch.__version__,
     }
     return TrainedModel(system, net, meta)
@@ -166,11 +193,17 @@ def load_model(directory: str | Path, system: System) -> TrainedModel:
 def train_on_run(run: Run, system: System, settings: TrainingSettings = TrainingSettings(), *,
                  observer: str = "rts", full_state: bool = False, progress: bool = True) -> TrainedModel:
     """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train."""
-    from .observers import observe
+    from .observers import ekf_rts, observe
     from .simulation import noisy_states
 
     if full_state:
         zeta, source = noisy_states(run, system, settings.seed), "full_state"
     else:
         zeta, source = observe(run, system, observer).zeta, observer
-    return train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress)
+    model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress)
+    rounds = 0 if full_state else settings.refine
+    for k in range(rounds):
+        zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
+        model = train(system, zeta, run.u, run.dt, settings, observer=f"{source}+ekf_rts*{k + 1}",
+                      progress=progress)
+    return model

@@ -1,0 +1,91 @@
+"""The command-line contract, end to end: simulate -> train -> compile -> estimate, and the demo."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from learnest_codegen.cli import cli, compile_standalone
+from learnest_codegen.data import read_run
+from learnest_codegen.systems import get_system
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("cli")
+
+
+def invoke(command, args):
+    result = CliRunner().invoke(command, [str(a) for a in args], catch_exceptions=False)
+    return result
+
+
+def test_simulate_train_compile_estimate(workdir):
+    run_csv, model_dir, compiled = workdir / "run.csv", workdir / "model", workdir / "compiled"
+    r = invoke(cli, ["simulate", "--system", "cartpole", "--seed", 3, "--duration", 0.6, "--out", run_csv])
+    assert r.exit_code == 0, r.output
+    run = read_run(run_csv, get_system("cartpole"))
+    assert len(run) == 300 and run.x is not None
+
+    r = invoke(cli, ["train", "--system", "cartpole", "--data", run_csv, "--out", model_dir, "--epochs", 3])
+    assert r.exit_code == 0, r.output
+    assert json.loads((model_dir / "model.json").read_text())["training"]["epochs"] == 3
+
+    r = invoke(compile_standalone, [model_dir, "--out", compiled])
+    assert r.exit_code == 0, r.output
+    for est in ("mhe", "ukf"):
+        manifest = json.loads((compiled / f"cartpole_knode_{est}" / "manifest.json").read_text())
+        assert manifest["system"] == "cartpole" and manifest["nx"] == 4
+
+    outputs = {}
+    for est in ("ukf", "mhe"):
+        for backend in ("python", "c"):
+            out = workdir / f"{est}_{backend}.csv"
+            args = ["estimate", "--system", "cartpole", "--data", run_csv, "--estimator", est,
+                    "--model", model_dir, "--backend", backend, "--out", out]
+            if backend == "c":
+                args += ["--compiled", compiled / f"cartpole_knode_{est}"]
+            r = invoke(cli, args)
+            assert r.exit_code == 0, r.output
+            header = out.read_text().splitlines()[0]
+            assert header == "t,xhat_p,xhat_pdot,xhat_alpha,xhat_alphadot"
+            outputs[est, backend] = np.loadtxt(out, delimiter=",", skiprows=1)
+        np.testing.assert_allclose(outputs[est, "c"], outputs[est, "python"], atol=1e-6)
+
+
+def test_estimate_compiles_on_demand_and_nominal_compile(workdir):
+    run_csv = workdir / "run2.csv"
+    invoke(cli, ["simulate", "--duration", 0.2, "--out", run_csv])
+    r = invoke(cli, ["estimate", "--data", run_csv, "--estimator", "ukf", "--model", "true",
+                     "--out", workdir / "true_ukf.csv"])
+    assert r.exit_code == 0 and "MSE vs truth" in r.output
+    r = invoke(cli, ["compile", "--nominal", "--out", workdir / "nominal", "--estimator", "ukf"])
+    assert r.exit_code == 0 and (workdir / "nominal" / "cartpole_nominal_ukf" / "manifest.json").is_file()
+
+
+def test_errors_are_one_clear_line(workdir, tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,u_F\n0,1\n")
+    r = CliRunner().invoke(cli, ["estimate", "--data", str(bad), "--estimator", "ukf", "--out", str(tmp_path / "o.csv")])
+    assert r.exit_code != 0 and "missing columns" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(cli, ["simulate", "--system", "nope", "--out", str(tmp_path / "x.csv")])
+    assert r.exit_code != 0 and "unknown system" in r.output
+    r = CliRunner().invoke(compile_standalone, [])
+    assert r.exit_code != 0 and "--nominal" in r.output
+
+
+def test_demo_end_to_end(tmp_path):
+    """The main job on a short horizon: every estimator runs in Python and C and they agree."""
+    r = invoke(cli, ["demo", "--out", tmp_path, "--epochs", 20, "--duration", 0.6])
+    assert r.exit_code == 0, r.output
+    report = json.loads((tmp_path / "report.json").read_text())
+    rows = {(row["method"], row["backend"]): row for row in report["rows"]}
+    for method in ("MHE", "UKF", "KNODE-MHE", "KNODE-UKF", "MHE (true dynamics)", "UKF (true dynamics)"):
+        c, py = rows[method, "C"], rows[method, "python"]
+        assert np.isfinite(c["mse"]) and c["mse"] == pytest.approx(py["mse"], rel=1e-5)
+    assert rows["UKF (true dynamics)", "C"]["mse"] < rows["UKF", "C"]["mse"]
+    for png in ("estimates.png", "errors.png", "training_loss.png"):
+        assert (tmp_path / png).stat().st_size > 10_000
