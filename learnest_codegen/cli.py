@@ -2,7 +2,7 @@
 
 Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``. Every ``--system``
 accepts a built-in name or the path of a Python file defining ``SYSTEM``. Errors of the package
-(:class:`LearnestError`) and missing files are printed as one clear line with exit code 2.
+(:class:`LearnestError`) and missing files are printed as one clear line (exit code 1) instead of a traceback.
 """
 
 from __future__ import annotations
