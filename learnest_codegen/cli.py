@@ -174,7 +174,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
     kind = estimator_kind(estimator)
     discrete, model_hash = resolve_model(system, model)
     if backend == "python":
-        est = kind.python(discrete, kind.settings_from_system(system))
+        est = kind.python(discrete, kind.default_settings(discrete))
     else:
         if compiled is None:
             root = Path(out).resolve().parent / ".learnest_compiled"

@@ -21,7 +21,7 @@ from .systems import System
 class EstimatorKind:
     """How to make settings for, generate, and load one kind of estimator."""
 
-    settings_from_system: Callable[..., Any]
+    default_settings: Callable[[DiscreteModel], Any]
     generate: Callable[..., Any]
     python: Callable[..., Any]
     compiled: Callable[..., Any]
@@ -31,14 +31,18 @@ def _registry() -> dict[str, EstimatorKind]:
     from .codegen.mhe import generate_mhe
     from .codegen.ukf import generate_ukf
     from .estimators.mhe import MHE
-    from .estimators.mhe_problem import MHESettings
+    from .estimators.mhe_problem import MHESettings, steady_state_arrival
     from .estimators.ukf import UKF, UKFSettings
     from .runtime.mhe import CompiledMHE
     from .runtime.ukf import CompiledUKF
 
+    def mhe_defaults(model: DiscreteModel) -> MHESettings:
+        return steady_state_arrival(model, MHESettings.from_system(model.system))
+
     return {
-        "mhe": EstimatorKind(MHESettings.from_system, generate_mhe, MHE, CompiledMHE),
-        "ukf": EstimatorKind(UKFSettings.from_system, generate_ukf, UKF, CompiledUKF),
+        "mhe": EstimatorKind(mhe_defaults, generate_mhe, MHE, CompiledMHE),
+        "ukf": EstimatorKind(lambda model: UKFSettings.from_system(model.system), generate_ukf, UKF,
+                             CompiledUKF),
     }
 
 
@@ -76,7 +80,7 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
     results = {}
     for name in estimators:
         kind = estimator_kind(name)
-        chosen = (settings or {}).get(name) or kind.settings_from_system(model.system)
+        chosen = (settings or {}).get(name) or kind.default_settings(model)
         directory = estimator_dir(Path(out), model, name)
         directory.mkdir(parents=True, exist_ok=True)
         results[name] = kind.generate(model, chosen, directory, model_hash=model_hash)

@@ -83,7 +83,7 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
             results[(model.kind, name, "C")] = run_estimator(compiled, test_run, x0, label)
             if name == "ukf" or python_mhe:
                 say(f"running the Python reference {label}")
-                python = kind.python(model, kind.settings_from_system(system))
+                python = kind.python(model, kind.default_settings(model))
                 results[(model.kind, name, "python")] = run_estimator(python, test_run, x0, label)
 
     for (kind, name, backend), res in results.items():

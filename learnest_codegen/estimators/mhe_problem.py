@@ -42,6 +42,7 @@ Hessian is therefore supplied as ``hess_lag``: each stage's exact 8x8 Hessian fr
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -87,12 +88,16 @@ class MHESettings:
     process_std : (nx,) std of the process noise ``w`` (Q = diag(1/process_std**2)).
     measurement_std : (ny,) std of the measurement noise ``v`` (R).
     arrival_std : (nx,) std of the arrival prior ``x_{k-N} - xbar`` (P).
+    arrival_covariance : optional full (nx, nx) covariance of the arrival prior; when given it
+        replaces ``arrival_std`` (P = its inverse). :func:`steady_state_arrival` fills it with
+        the steady-state Kalman covariance, which is what the arrival cost should summarise.
     """
 
     horizon: int = 20
     process_std: tuple[float, ...]
     measurement_std: tuple[float, ...]
     arrival_std: tuple[float, ...]
+    arrival_covariance: tuple[tuple[float, ...], ...] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) \
@@ -104,6 +109,15 @@ class MHESettings:
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
                 raise ValueError(f"MHESettings.{name} must be finite positive numbers, got {values}")
             object.__setattr__(self, name, values)
+        if self.arrival_covariance is not None:
+            cov = np.asarray(self.arrival_covariance, dtype=float)
+            n = len(self.arrival_std)
+            if cov.shape != (n, n) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T):
+                raise ValueError(f"MHESettings.arrival_covariance must be a finite symmetric "
+                                 f"({n}, {n}) matrix, got shape {cov.shape}")
+            if np.linalg.eigvalsh(cov).min() <= 0:
+                raise ValueError("MHESettings.arrival_covariance must be positive definite")
+            object.__setattr__(self, "arrival_covariance", tuple(tuple(map(float, r)) for r in cov))
 
     @classmethod
     def from_system(cls, system: "System", **overrides) -> "MHESettings":
@@ -122,15 +136,49 @@ class MHESettings:
 
     def weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(Q (nx, nx), R (ny, ny), P (nx, nx))``, the inverse covariances."""
-        return tuple(np.diag(1.0 / np.square(getattr(self, name)))
-                     for name in ("process_std", "measurement_std", "arrival_std"))
+        Q, R, P = (np.diag(1.0 / np.square(getattr(self, name)))
+                   for name in ("process_std", "measurement_std", "arrival_std"))
+        if self.arrival_covariance is not None:
+            P = np.linalg.inv(np.asarray(self.arrival_covariance))
+            P = 0.5 * (P + P.T)
+        return Q, R, P
 
     def to_json(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        return json.loads(json.dumps(dataclasses.asdict(self)))  # tuples -> lists, recursively
 
     @classmethod
     def from_json(cls, data: dict) -> "MHESettings":
         return cls(**data)
+
+
+def steady_state_arrival(model: "DiscreteModel", settings: MHESettings,
+                         x: np.ndarray | None = None, u: np.ndarray | None = None) -> MHESettings:
+    """``settings`` with the arrival covariance set to the steady-state Kalman prior covariance.
+
+    The arrival cost summarises the data that left the window. With a fixed ``arrival_std`` from
+    the initial uncertainty it forgets it: on the cartpole (N=20 is 40 ms of data) the MHE with
+    the *true* model then scores 8.0e-3 MSE instead of 5.6e-5. The covariance solves the
+    discrete algebraic Riccati equation of ``F`` and ``h`` linearised at ``(x, u)`` (default:
+    the system's ``x0`` and zero input) with ``Q = diag(process_std**2)``,
+    ``R = diag(measurement_std**2)``.
+    """
+    from scipy.linalg import solve_discrete_are
+
+    system = model.system
+    x = np.asarray(system.x0 if x is None else x, dtype=float)
+    u = np.zeros(system.nu) if u is None else np.asarray(u, dtype=float)
+    xs, us = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
+    A = cs.Function("A", [xs, us], [cs.jacobian(model.F(xs, us), xs)])(x, u).full()
+    C = cs.Function("C", [xs, us], [cs.jacobian(model.h(xs, us), xs)])(x, u).full()
+    Q = np.diag(np.square(settings.process_std))
+    R = np.diag(np.square(settings.measurement_std))
+    try:
+        P = solve_discrete_are(A.T, C.T, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ValueError(f"steady-state arrival cost: the Riccati equation of {system.name!r} "
+                         f"linearised at x={x.tolist()} has no stabilising solution ({exc}); "
+                         "set MHESettings.arrival_std instead") from exc
+    return dataclasses.replace(settings, arrival_covariance=0.5 * (P + P.T))
 
 
 @dataclass(frozen=True)
