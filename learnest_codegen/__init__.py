@@ -5,9 +5,9 @@ codegen -> toolchain -> runtime -> evaluation -> CLI.
 """
 
 from .errors import LearnestError as LearnestError
-from .systems import System as System
-from .systems import Signal as Signal
 from .systems import NoiseModel as NoiseModel
+from .systems import Signal as Signal
+from .systems import System as System
 from .systems import get_system as get_system
 
 __version__ = "0.1.0"

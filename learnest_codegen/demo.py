@@ -59,7 +59,8 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
 
     say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
         f"{refine} refinement rounds)")
-    trained = train_on_run(train_run, system, TrainingSettings(epochs=epochs, refine=refine), observer=observer)
+    settings = TrainingSettings(epochs=epochs, refine=refine)
+    trained = train_on_run(train_run, system, settings, observer=observer)
     trained.save(out / "model")
     report.figures.append(str(plot_loss(trained.meta["loss_history"], trained.meta["prior_loss"],
                                         out / "training_loss.png")))
@@ -78,7 +79,8 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
         report.meta[f"build_{model.kind}"] = {k: _build_info(v) for k, v in built.items()}
         for name in ("mhe", "ukf"):
             kind = estimator_kind(name)
-            label = f"{LABELS[model.kind]}{name.upper()}" + (" (true dynamics)" if model.kind == "true" else "")
+            suffix = " (true dynamics)" if model.kind == "true" else ""
+            label = f"{LABELS[model.kind]}{name.upper()}{suffix}"
             compiled = kind.compiled(estimator_dir(out / "compiled", model, name))
             results[(model.kind, name, "C")] = run_estimator(compiled, test_run, x0, label)
             if name == "ukf" or python_mhe:
@@ -86,7 +88,7 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
                 python = kind.python(model, kind.default_settings(model))
                 results[(model.kind, name, "python")] = run_estimator(python, test_run, x0, label)
 
-    for (kind, name, backend), res in results.items():
+    for (_, name, backend), res in results.items():
         nominal = results.get(("nominal", name, backend))
         mse = res.mse(test_run.x)
         report.rows.append({

@@ -69,7 +69,8 @@ def test_estimate_compiles_on_demand_and_nominal_compile(workdir):
 def test_errors_are_one_clear_line(workdir, tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("t,u_F\n0,1\n")
-    r = CliRunner().invoke(cli, ["estimate", "--data", str(bad), "--estimator", "ukf", "--out", str(tmp_path / "o.csv")])
+    r = CliRunner().invoke(cli, ["estimate", "--data", str(bad), "--estimator", "ukf",
+                                 "--out", str(tmp_path / "o.csv")])
     assert r.exit_code != 0 and "missing columns" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(cli, ["simulate", "--system", "nope", "--out", str(tmp_path / "x.csv")])
     assert r.exit_code != 0 and "unknown system" in r.output

@@ -315,7 +315,7 @@ def test_bad_shapes_and_nan_raise(any_mhe, cartpole, data):
     with pytest.raises(ValueError, match="not positive definite"):
         any_mhe.reset(cartpole.x0, -np.eye(4))
     with pytest.raises(AttributeError, match="no state covariance"):
-        any_mhe.P
+        _ = any_mhe.P
 
 
 def test_failed_solve_raises_and_keeps_state(any_mhe, cartpole, data):

@@ -32,7 +32,7 @@ def test_simulated_truth_matches_independent_integrator(cartpole, cartpole_run):
     run, n = cartpole_run, 250
     x = run.x[0]
     for k in range(n):
-        sol = solve_ivp(lambda _t, s: cartpole.f(s, run.u[k], variant="true"), (0, run.dt), x,
+        sol = solve_ivp(lambda _t, s, u=run.u[k]: cartpole.f(s, u, variant="true"), (0, run.dt), x,
                         method="DOP853", rtol=1e-12, atol=1e-12)
         x = sol.y[:, -1]
     np.testing.assert_allclose(run.x[n], x, atol=1e-8)
@@ -68,7 +68,8 @@ def test_csv_roundtrip_is_exact(cartpole, tmp_path):
 
 @pytest.mark.parametrize("mutate, message", [
     (lambda lines: [lines[0].replace("y_alpha", "y_beta")] + lines[1:], "missing columns"),
-    (lambda lines: lines[:2] + [lines[2].replace(lines[2].split(",")[2], "nan", 1)] + lines[3:], "non-finite"),
+    (lambda lines: lines[:2] + [lines[2].replace(lines[2].split(",")[2], "nan", 1)] + lines[3:],
+     "non-finite"),
     (lambda lines: [lines[0], lines[2], lines[1]] + lines[3:], "increase strictly"),
     (lambda lines: [lines[0]], "at least 2 samples"),
     (lambda lines: lines[:2] + ["0.5,abc,1,2,3,4,5,6"] + lines[3:], "non-numeric"),

@@ -19,8 +19,7 @@ import torch
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
-from learnest_codegen.codegen.ukf import (generate_ukf, merwe_weights, ukf_step_function,
-                                          ukf_update_function)
+from learnest_codegen.codegen.ukf import generate_ukf, merwe_weights, ukf_step_function, ukf_update_function
 from learnest_codegen.errors import BuildError, ModelMismatchError, ShapeError, SolverError
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model

@@ -20,8 +20,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import ModelMismatchError, SolverError
-from ..estimators.mhe import (NO_COVARIANCE, arrival_weight_from_covariance, check_run_arrays,
-                              check_vector)
+from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance, check_run_arrays, check_vector
 from ..estimators.mhe_problem import MHESettings
 from .manifest import check_manifest, read_manifest
 
