@@ -39,8 +39,10 @@ def plot_errors(run: Run, system: System, results: Sequence[EstimateResult], pat
     """Absolute estimation error per state on a log scale: where each estimator is wrong."""
     fig, axes = plt.subplots(system.nx, 1, figsize=(10, 2.2 * system.nx), sharex=True)
     for i, (ax, sig) in enumerate(zip(np.atleast_1d(axes), system.states)):
-        for res in results:
-            ax.semilogy(run.t, np.abs(res.x_hat[:, i] - run.x[:, i]) + 1e-12, lw=0.8, label=res.label)
+        errors = [np.abs(res.x_hat[:, i] - run.x[:, i]) + 1e-15 for res in results]
+        for res, err in zip(results, errors):
+            ax.semilogy(run.t, err, lw=0.8, label=res.label)
+        ax.set_ylim(bottom=np.percentile(np.concatenate(errors), 1))  # the exact x0 is no signal
         ax.set_ylabel(f"|err {sig.name}| [{sig.unit}]")
     np.atleast_1d(axes)[0].legend(loc="upper right", fontsize=7, ncol=2)
     np.atleast_1d(axes)[-1].set_xlabel("t [s]")
