@@ -164,7 +164,7 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators) -> None
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
 @_friendly
 def estimate(system_name, data, estimator, model, backend, compiled, out) -> None:
-    """Run an estimator over a run and write ``t`` and ``xhat_<state>`` columns."""
+    """Run an estimator over a run; write t and one xhat_<state> column per state."""
     from .compilation import compile_estimators, estimator_dir, estimator_kind, resolve_model
     from .data import read_run
     from .evaluation import mse, run_estimator
