@@ -123,7 +123,7 @@ def _model_ukf(run: Run, system: System) -> Observations:
     for k in range(len(run)):
         if k:
             ukf.predict(dt=run.t[k] - run.t[k - 1], u=run.u[k - 1])
-        ukf.update(run.y[k], u=run.u[k])
+        ukf.update(run.y[k], u=run.u[k - 1] if k else run.u[0])  # same convention as estimators
         zeta[k], var[k] = ukf.x, np.diag(ukf.P)
     return Observations(zeta, var, "ukf", {})
 
