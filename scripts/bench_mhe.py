@@ -25,8 +25,9 @@ import torch
 
 from learnest_codegen import get_system
 from learnest_codegen.codegen.mhe import generate_mhe
+from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.estimators.mhe import MHE
-from learnest_codegen.estimators.mhe_problem import IPOPT_OPTIONS, MHESettings
+from learnest_codegen.estimators.mhe_problem import IPOPT_OPTIONS
 from learnest_codegen.export import hybrid_model, prior_model
 from learnest_codegen.network import ResidualNet
 from learnest_codegen.runtime.mhe import CompiledMHE
@@ -55,7 +56,7 @@ def steps(estimator, U, Y, x0, record=None) -> np.ndarray:
 
 
 def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
-    settings = MHESettings.from_system(model.system)
+    settings = estimator_kind("mhe").default_settings(model)  # what compile/estimate use
     x0 = np.asarray(model.system.x0, dtype=float)
     start = time.perf_counter()
     gen = generate_mhe(model, settings, build_dir / model.kind)  # a fresh folder: a real build

@@ -24,7 +24,8 @@ import torch
 
 from learnest_codegen import get_system
 from learnest_codegen.codegen.ukf import generate_ukf
-from learnest_codegen.estimators.ukf import UKF, UKFSettings
+from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.estimators.ukf import UKF
 from learnest_codegen.export import hybrid_model, prior_model
 from learnest_codegen.network import ResidualNet
 from learnest_codegen.runtime.ukf import CompiledUKF
@@ -42,7 +43,7 @@ def best_seconds(fn, repeat: int) -> float:
 
 
 def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
-    settings = UKFSettings.from_system(model.system)
+    settings = estimator_kind("ukf").default_settings(model)  # what compile/estimate use
     gen = generate_ukf(model, settings, build_dir / model.kind, force=True)
     x0, T = model.system.x0, len(Y)
     compiled, reference = CompiledUKF(gen.directory), UKF(model, settings)
