@@ -73,8 +73,9 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
 @click.option("--layers", default=2, show_default=True, help="linear layers (2 = one hidden layer)")
 @click.option("--activation", default="Tanh", show_default=True,
               type=click.Choice(["Tanh", "Sigmoid", "ReLU", "LeakyReLU"]))
-@click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]),
-              help="pre-training observer turning (y, u) into state observations")
+@click.option("--observer", default=None,
+              help="pre-training observer turning (y, u) into state observations "
+                   "(default: the system's own; see `learnest_codegen.observers.OBSERVERS`)")
 @click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
 @click.option("--refine", default=2, show_default=True,
               help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
@@ -196,7 +197,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
 @click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
 @click.option("--epochs", default=250, show_default=True)
-@click.option("--observer", default="rts", show_default=True, type=click.Choice(["rts", "kf", "ukf"]))
+@click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
 @click.option("--refine", default=2, show_default=True, help="model-based smoothing rounds (0 = paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")

@@ -43,7 +43,7 @@ class DemoReport:
         ])
 
 
-def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: str = "rts",
+def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: str | None = None,
              train_seed: int = 0, test_seed: int = 1, include_true: bool = True,
              python_mhe: bool = True, duration: float | None = None, refine: int = 2) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``."""
@@ -57,6 +57,7 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
     write_run(train_run, system, out / "train.csv")
     write_run(test_run, system, out / "test.csv")
 
+    observer = observer or system.default_observer
     say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
         f"{refine} refinement rounds)")
     settings = TrainingSettings(epochs=epochs, refine=refine)

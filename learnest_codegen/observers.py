@@ -52,8 +52,12 @@ class Observations:
     info: dict
 
 
-def observe(run: Run, system: System, method: str = "rts") -> Observations:
-    """Turn a run's ``(y, u)`` into state observations with the named observer."""
+def observe(run: Run, system: System, method: str | None = None) -> Observations:
+    """Turn a run's ``(y, u)`` into state observations with the named observer.
+
+    ``method`` defaults to the system's ``default_observer``.
+    """
+    method = method or system.default_observer
     if method not in OBSERVERS:
         raise UnknownNameError(f"unknown observer {method!r}; choose from {sorted(OBSERVERS)}")
     return OBSERVERS[method](run, system)

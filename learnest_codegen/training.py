@@ -191,8 +191,13 @@ def load_model(directory: str | Path, system: System) -> TrainedModel:
 
 
 def train_on_run(run: Run, system: System, settings: TrainingSettings = TrainingSettings(), *,
-                 observer: str = "rts", full_state: bool = False, progress: bool = True) -> TrainedModel:
-    """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train."""
+                 observer: str | None = None, full_state: bool = False,
+                 progress: bool = True) -> TrainedModel:
+    """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train.
+
+    ``observer`` defaults to the system's ``default_observer``.
+    """
+    observer = observer or system.default_observer
     from .observers import ekf_rts, observe
     from .simulation import noisy_states
 

@@ -90,6 +90,7 @@ class System:
     true_dynamics: DynamicsFn | None = None
     kinematic_chains: tuple[KinematicChain, ...] = ()
     periodic_states: tuple[str, ...] = ()  # angles: learned models see their sin and cos
+    default_observer: str = "rts"  # pre-training observer used when none is named
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
