@@ -12,8 +12,9 @@ from .base import NoiseModel as NoiseModel
 from .base import Signal as Signal
 from .base import System as System
 from .cartpole import CARTPOLE
+from .ground_robot import GROUND_ROBOT
 
-SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE}
+SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND_ROBOT}
 
 
 def register(system: System) -> System:
