@@ -50,14 +50,22 @@ class ResidualNet(torch.nn.Module):
     ``features`` is ``concat(x, u)`` with every periodic state (an angle, index in ``periodic``)
     replaced by its sine and cosine, so the net sees the same input for ``alpha`` and
     ``alpha + 2 pi`` and never extrapolates in an unwrapped angle.
+
+    ``outputs`` lists the states whose derivative the residual acts on (default: all); the
+    others get an exact zero. A position whose derivative is a velocity state is kinematics,
+    not physics to be learned: a free residual there only fits observation noise.
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
-                 periodic: tuple[int, ...] = ()):
+                 periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None):
         super().__init__()
         self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
+        self.outputs = tuple(range(nx)) if outputs is None else tuple(outputs)
+        if not self.outputs or any(not 0 <= i < nx for i in self.outputs):
+            raise ValueError(f"ResidualNet: outputs must be a non-empty subset of range({nx}), "
+                             f"got {self.outputs}")
         n_in = nx + nu + len(self.periodic)
-        self.mlp = MultiLayerPerceptron(n_in, settings.hidden, nx, settings.layers - 1,
+        self.mlp = MultiLayerPerceptron(n_in, settings.hidden, len(self.outputs), settings.layers - 1,
                                         settings.activation).double()
         self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
         self.register_buffer("in_scale", torch.ones(n_in, dtype=torch.float64))
@@ -81,11 +89,20 @@ class ResidualNet(torch.nn.Module):
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         xu = torch.cat([x, u], dim=-1)
         feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos)
-        return self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        if len(self.outputs) == self.nx:
+            return out
+        zero = torch.zeros_like(out[..., 0])
+        rows = [out[..., self.outputs.index(i)] if i in self.outputs else zero for i in range(self.nx)]
+        return torch.stack(rows, dim=-1)
 
     def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
         xu = cs.vertcat(x, u)
         feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos))
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
-        return self.mlp(z.T).T  # the naive MLP works on row vectors
+        out = self.mlp(z.T).T  # the naive MLP works on row vectors
+        if len(self.outputs) == self.nx:
+            return out
+        return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)
+                            for i in range(self.nx)])

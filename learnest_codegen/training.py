@@ -92,9 +92,12 @@ class TrainedModel:
 
 
 def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> ResidualNet:
-    """An untrained residual net for ``system`` (its angles enter as sine and cosine)."""
-    periodic = tuple(system.state_names.index(n) for n in system.periodic_states)
-    return ResidualNet(system.nx, system.nu, settings, periodic)
+    """An untrained residual net for ``system``: its angles enter as sine and cosine, and it acts
+    only on the derivatives of ``system.residual_state_names``."""
+    names = system.state_names
+    periodic = tuple(names.index(n) for n in system.periodic_states)
+    outputs = tuple(names.index(n) for n in system.residual_state_names)
+    return ResidualNet(system.nx, system.nu, settings, periodic, outputs)
 
 
 def data_hash(*arrays: np.ndarray) -> str:
@@ -198,11 +201,12 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
     ``observer`` defaults to the system's ``default_observer``.
     """
     observer = observer or system.default_observer
-    from .observers import ekf_rts, observe
+    from .observers import ekf_rts, observe, smooth_states
     from .simulation import noisy_states
 
-    if full_state:
-        zeta, source = noisy_states(run, system, settings.seed), "full_state"
+    if full_state:  # every state measured with noise.state_std, smoothed state by state
+        noisy = noisy_states(run, system, settings.seed)
+        zeta, source = smooth_states(noisy, run.dt, system.noise.state_std), "full_state+rts"
     else:
         zeta, source = observe(run, system, observer).zeta, observer
     model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress)

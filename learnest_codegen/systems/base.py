@@ -91,6 +91,7 @@ class System:
     kinematic_chains: tuple[KinematicChain, ...] = ()
     periodic_states: tuple[str, ...] = ()  # angles: learned models see their sin and cos
     default_observer: str = "rts"  # pre-training observer used when none is named
+    residual_states: tuple[str, ...] | None = None  # see residual_state_names
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -109,9 +110,11 @@ class System:
                 raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
         if not self.dt > 0 or not self.duration > self.dt:
             raise ValueError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, {self.duration}")
-        unknown = [n for n in self.periodic_states if n not in self.state_names]
+        unknown = [n for n in (*self.periodic_states, *(self.residual_states or ()))
+                   if n not in self.state_names]
         if unknown:
-            raise ValueError(f"system {self.name!r}: periodic_states {unknown} are not states")
+            raise ValueError(f"system {self.name!r}: periodic_states/residual_states {unknown} "
+                             "are not states")
         for chain in self.kinematic_chains:
             unknown = [n for n in chain.states if n not in self.state_names]
             if chain.output not in self.output_names or unknown:
@@ -134,6 +137,18 @@ class System:
     @property
     def state_names(self) -> list[str]:
         return [s.name for s in self.states]
+
+    @property
+    def residual_state_names(self) -> list[str]:
+        """States whose derivative a learned residual may change.
+
+        ``residual_states`` when given; otherwise every state except those whose derivative is
+        by definition the next state of a kinematic chain (``pdot`` is the derivative of ``p``).
+        """
+        if self.residual_states is not None:
+            return list(self.residual_states)
+        exact = {n for chain in self.kinematic_chains for n in chain.states[:-1]}
+        return [n for n in self.state_names if n not in exact]
 
     @property
     def input_names(self) -> list[str]:
