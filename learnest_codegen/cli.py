@@ -1,8 +1,9 @@
 """The ``learnest`` command line (and ``learnest-compile``).
 
-Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``. Every ``--system``
-accepts a built-in name or the path of a Python file defining ``SYSTEM``. Errors of the package
-(:class:`LearnestError`) and missing files are printed as one clear line (exit code 1) instead of a traceback.
+Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``, ``reproduce table1``.
+Every ``--system`` accepts a built-in name or the path of a Python file defining ``SYSTEM``.
+Errors of the package (:class:`LearnestError`) and missing files are printed as one clear line
+(exit code 1) instead of a traceback.
 """
 
 from __future__ import annotations
@@ -210,6 +211,64 @@ def demo(system_name, out, epochs, observer, duration, refine, no_python_mhe) ->
                       python_mhe=not no_python_mhe, duration=duration, refine=refine)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
+
+
+@cli.group()
+def reproduce() -> None:
+    """Reproduce the paper's experiments (resumable sweeps over seeds)."""
+
+
+@reproduce.command("table1")
+@click.option("--tasks", default="cartpole,ground_robot", show_default=True,
+              help="comma-separated tasks (see learnest_codegen.reproduce.DEFAULT_TASKS)")
+@click.option("--seeds", default=15, show_default=True, type=click.IntRange(min=1),
+              help="jobs per task; job s trains on seed 2s and tests on seed 2s+1")
+@click.option("--epochs", type=click.IntRange(min=1), default=None,
+              help="training epochs of both KNODE models (default: per task)")
+@click.option("--refine", type=click.IntRange(min=0), default=None,
+              help="EKF-RTS refinement rounds of the partial-measurement model (default: per task)")
+@click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
+@click.option("--jobs", type=click.IntRange(min=1), default=None, help="parallel jobs (default: all cores)")
+@click.option("--executor", type=click.Choice(["local", "ray", "dask"]), default="local", show_default=True)
+@click.option("--backend", type=click.Choice(["c", "python"]), default="c", show_default=True,
+              help="compiled C estimators, or the Python references")
+@click.option("--out", default="results/table1", show_default=True, type=click.Path(file_okay=False))
+@click.option("--force", is_flag=True, help="redo jobs whose results already exist")
+@click.option("--combine-only", is_flag=True, help="only remake the table and figure from existing results")
+@click.option("--no-progress", is_flag=True, help="no progress bar (one line per finished job only)")
+@_friendly
+def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out, force, combine_only,
+           no_progress) -> None:
+    """Table I of the paper: 8 estimators on every task and seed.
+
+    One job per (task, seed) writes OUT/runs/<task>/seed_<s>.json; finished jobs of the same
+    configuration are skipped (resume), --force redoes them. All results present are combined
+    into OUT/table1.md, table1.csv, table1.png and summary.json. A failed job is recorded in
+    seed_<s>.error.json and the command exits non-zero after the others have run.
+    """
+    import os
+    import time
+
+    from . import reproduce as rep
+
+    start = time.perf_counter()
+    if combine_only:
+        table = rep.combine(out)
+        failed = {}
+    else:
+        configs = rep.task_configs([t.strip() for t in tasks.split(",") if t.strip()], epochs=epochs,
+                                   duration=duration, refine=refine)
+        click.echo(rep.config_summary(configs))
+        report = rep.run_sweep(configs, seeds=seeds, out=out, jobs=jobs or os.cpu_count(), executor=executor,
+                               backend=backend, force=force, progress=not no_progress, echo=click.echo)
+        table, failed = report.table, report.failed
+    click.echo("\n" + table.markdown)
+    click.echo(f"wrote {', '.join(table.files)}")
+    click.echo(f"wall time {time.perf_counter() - start:.1f} s")
+    if failed:
+        listing = "; ".join(f"{t} seed {s}: {e.splitlines()[0]}" for (t, s), e in sorted(failed.items()))
+        raise click.ClickException(f"{len(failed)} job(s) failed (tracebacks in "
+                                   f"{Path(out) / 'runs'}/<task>/seed_<s>.error.json): {listing}")
 
 
 def main() -> None:
