@@ -201,6 +201,7 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
     ``observer`` defaults to the system's ``default_observer``.
     """
     observer = observer or system.default_observer
+    start = time.perf_counter()
     from .observers import ekf_rts, observe, smooth_states
     from .simulation import noisy_states
 
@@ -215,4 +216,5 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
         zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
         model = train(system, zeta, run.u, run.dt, settings, observer=f"{source}+ekf_rts*{k + 1}",
                       progress=progress)
+    model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
     return model
