@@ -252,3 +252,16 @@ def test_missing_executor_is_one_clear_line(tmp_path):
         assert "Traceback" not in r.output and not (tmp_path / "compiled").exists()
     r = invoke(["--tasks", "nope", "--out", tmp_path])
     assert r.exit_code != 0 and "unknown task" in r.output
+
+
+def test_quick_ground_robot_job(tmp_path):
+    """The second task of Table I through the same sweep: one short ground-robot job (5 s runs)."""
+    report = rep.run_sweep(rep.task_configs(["ground_robot"], epochs=3, duration=5.0), seeds=1,
+                           out=tmp_path, jobs=1, progress=False)
+    assert not report.failed
+    res = load(rep.result_path(tmp_path, "ground_robot", 0))
+    mse = {k: v["mse"] for k, v in res["methods"].items()}
+    assert set(mse) == set(rep.METHOD_LABELS) and all(np.isfinite(v) and v > 0 for v in mse.values())
+    # the drag the prior leaves out already costs the nominal UKF > 3x in 5 s
+    assert 3 * mse["UKF (true dynamics)"] < mse["UKF"]
+    assert res["training"]["knode"]["observer"].startswith("ukf_rts")
