@@ -54,25 +54,35 @@ class ResidualNet(torch.nn.Module):
     ``outputs`` lists the states whose derivative the residual acts on (default: all); the
     others get an exact zero. A position whose derivative is a velocity state is kinematics,
     not physics to be learned: a free residual there only fits observation noise.
+
+    ``inputs`` lists the entries of ``concat(x, u)`` the residual may depend on (default: all).
+    Leaving out a coordinate the physics is invariant to (a ground robot's position and
+    heading, a cart's position) keeps the net from keying on where the training run went and
+    failing wherever the test run goes.
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
-                 periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None):
+                 periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None,
+                 inputs: tuple[int, ...] | None = None):
         super().__init__()
         self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
         self.outputs = tuple(range(nx)) if outputs is None else tuple(outputs)
+        self.inputs = tuple(range(nx + nu)) if inputs is None else tuple(inputs)
         if not self.outputs or any(not 0 <= i < nx for i in self.outputs):
             raise ValueError(f"ResidualNet: outputs must be a non-empty subset of range({nx}), "
                              f"got {self.outputs}")
-        n_in = nx + nu + len(self.periodic)
+        if not self.inputs or any(not 0 <= i < nx + nu for i in self.inputs):
+            raise ValueError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
+                             f"got {self.inputs}")
+        n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs)
         self.mlp = MultiLayerPerceptron(n_in, settings.hidden, len(self.outputs), settings.layers - 1,
                                         settings.activation).double()
         self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
         self.register_buffer("in_scale", torch.ones(n_in, dtype=torch.float64))
 
     def _features(self, parts: list, sin, cos) -> list:
-        keep = [p for i, p in enumerate(parts) if i not in self.periodic]
-        return keep + [f(parts[i]) for i in self.periodic for f in (sin, cos)]
+        keep = [parts[i] for i in self.inputs if i not in self.periodic]
+        return keep + [f(parts[i]) for i in self.periodic if i in self.inputs for f in (sin, cos)]
 
     def features_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Network input features of ``x (M, nx)``, ``u (M, nu)`` before standardisation."""

@@ -92,12 +92,14 @@ class TrainedModel:
 
 
 def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> ResidualNet:
-    """An untrained residual net for ``system``: its angles enter as sine and cosine, and it acts
-    only on the derivatives of ``system.residual_state_names``."""
+    """An untrained residual net for ``system``: it sees ``system.residual_input_names`` (angles
+    as sine and cosine) and acts only on the derivatives of ``system.residual_state_names``."""
     names = system.state_names
     periodic = tuple(names.index(n) for n in system.periodic_states)
     outputs = tuple(names.index(n) for n in system.residual_state_names)
-    return ResidualNet(system.nx, system.nu, settings, periodic, outputs)
+    signals = [*names, *system.input_names]
+    inputs = tuple(signals.index(n) for n in system.residual_input_names)
+    return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs)
 
 
 def data_hash(*arrays: np.ndarray) -> str:

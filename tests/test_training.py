@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import casadi as cs
 import numpy as np
 import pytest
 import torch
@@ -9,7 +12,7 @@ import torch
 from learnest_codegen.errors import ModelMismatchError, ShapeError, UnknownNameError
 from learnest_codegen.export import hybrid_model, prior_model, true_model
 from learnest_codegen.integrators import rk4_step
-from learnest_codegen.network import NetworkSettings
+from learnest_codegen.network import NetworkSettings, ResidualNet
 from learnest_codegen.simulation import simulate
 from learnest_codegen.systems import get_system
 from learnest_codegen.training import TrainingSettings, load_model, make_net, train, train_on_run
@@ -130,3 +133,33 @@ def test_bad_inputs(cartpole):
 def test_true_model_differs_from_prior(cartpole):
     x, u = np.array([0.0, 0.0, 0.2, 0.0]), np.array([3.0])
     assert not np.allclose(true_model(cartpole).step(x, u), prior_model(cartpole).step(x, u))
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot"])
+def test_residual_ignores_the_coordinates_the_physics_is_invariant_to(name):
+    """Moving an excluded input (the cart's position; the robot's position and heading) leaves
+    the residual unchanged, in torch and in the exported CasADi graph, which agree to 1e-12."""
+    system = get_system(name)
+    torch.manual_seed(0)
+    net = make_net(system)
+    rng = np.random.default_rng(3)
+    x, u = rng.normal(size=(50, system.nx)), rng.normal(size=(50, system.nu))
+    excluded = [i for i, n in enumerate(system.state_names) if n not in system.residual_input_names]
+    assert excluded, f"{name} should exclude an invariant coordinate"
+    moved = x.copy()
+    moved[:, excluded] += rng.normal(size=(50, len(excluded))) * 10
+    with torch.no_grad():
+        a, b = (net(torch.tensor(s), torch.tensor(u)).numpy() for s in (x, moved))
+    np.testing.assert_array_equal(a, b)
+    xs, us = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
+    np.testing.assert_allclose(fn.map(50)(moved.T, u.T).full().T, b, rtol=1e-12, atol=1e-14)
+    assert net.mlp.input_layer.in_features == len(system.residual_input_names) + sum(
+        1 for n in system.periodic_states if n in system.residual_input_names)
+
+
+def test_residual_inputs_must_name_signals(cartpole):
+    with pytest.raises(ValueError, match="residual_inputs"):
+        dataclasses.replace(cartpole, residual_inputs=("p", "nonsense"))
+    with pytest.raises(ValueError, match="inputs must be a non-empty subset"):
+        ResidualNet(4, 1, inputs=(7,))

@@ -92,6 +92,7 @@ class System:
     periodic_states: tuple[str, ...] = ()  # angles: learned models see their sin and cos
     default_observer: str = "rts"  # pre-training observer used when none is named
     residual_states: tuple[str, ...] | None = None  # see residual_state_names
+    residual_inputs: tuple[str, ...] | None = None  # see residual_input_names
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -115,6 +116,11 @@ class System:
         if unknown:
             raise ValueError(f"system {self.name!r}: periodic_states/residual_states {unknown} "
                              "are not states")
+        signals = {*self.state_names, *self.input_names}
+        unknown = [n for n in (self.residual_inputs or ()) if n not in signals]
+        if unknown or self.residual_inputs == ():
+            raise ValueError(f"system {self.name!r}: residual_inputs {unknown or '()'} must name "
+                             f"states or inputs ({sorted(signals)})")
         for chain in self.kinematic_chains:
             unknown = [n for n in chain.states if n not in self.state_names]
             if chain.output not in self.output_names or unknown:
@@ -149,6 +155,17 @@ class System:
             return list(self.residual_states)
         exact = {n for chain in self.kinematic_chains for n in chain.states[:-1]}
         return [n for n in self.state_names if n not in exact]
+
+    @property
+    def residual_input_names(self) -> list[str]:
+        """States and inputs a learned residual may depend on (default: all of them, in order).
+
+        A system leaves out the coordinates its physics is invariant to, e.g. a ground robot's
+        position and heading (no force depends on where the robot is or which way it points).
+        """
+        if self.residual_inputs is not None:
+            return list(self.residual_inputs)
+        return [*self.state_names, *self.input_names]
 
     @property
     def input_names(self) -> list[str]:

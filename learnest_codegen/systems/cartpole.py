@@ -74,4 +74,6 @@ CARTPOLE = System(
     excitation=excitation,
     periodic_states=("alpha",),
     kinematic_chains=(KinematicChain("p", ("p", "pdot")), KinematicChain("alpha", ("alpha", "alphadot"))),
+    # Translation invariance: no force depends on where the cart is on the rail.
+    residual_inputs=("pdot", "alpha", "alphadot", "F"),
 )

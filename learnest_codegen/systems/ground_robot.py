@@ -159,5 +159,8 @@ GROUND_ROBOT = System(
     default_observer="ukf_rts",
     # x, y are kinematics of (v, psi) through the slip angle; unknown forces act on v and psi.
     residual_states=("v", "psi"),
+    # Invariance to translation and rotation: without wind or slopes no force depends on where
+    # the robot is or which way it points, so the residual sees speed and inputs only.
+    residual_inputs=("v", "a", "delta"),
     extra={"planar_pose": ("x", "y", "v", "psi")},
 )
