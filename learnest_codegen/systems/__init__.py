@@ -13,8 +13,11 @@ from .base import Signal as Signal
 from .base import System as System
 from .cartpole import CARTPOLE
 from .ground_robot import GROUND_ROBOT
+from .quadrotor import QUADROTOR
+from .rc_car import RC_CAR
 
-SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND_ROBOT}
+SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND_ROBOT,
+                             QUADROTOR.name: QUADROTOR, RC_CAR.name: RC_CAR}
 
 
 def register(system: System) -> System:

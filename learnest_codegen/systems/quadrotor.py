@@ -1,0 +1,183 @@
+"""Quadrotor translational states, the paper's section V-C (Crazyflie 2.1 with Vicon).
+
+State ``[px, py, pz, vx, vy, vz, ax, ay, az]`` (world-frame position [m], velocity [m/s] and
+acceleration [m/s^2], z up); measurements ``[px, py, pz, ax, ay, az]``: motion-capture position
+and the world-frame acceleration from the onboard accelerometer,
+``a_world = R(q) (9.81 acc_g) - [0, 0, 9.81]`` (the accelerometer measures the specific force,
+thrust plus drag over mass, in the body frame, in g).
+
+Prior (the paper's): ``f_prior(x) = A x``, a triple integrator per axis, ``pdot = v``,
+``vdot = a``, ``adot = 0``. It ignores the inputs.
+
+Inputs ``[Tx, Ty, Tz, vbat]``: the collective thrust command as a world-frame vector in units
+of full throttle (the mean motor PWM over 65535 along the body z axis ``R(q) e3``) and the
+battery voltage [V]. Nothing in the prior uses them; they are there for the learned residual,
+which acts on ``adot`` (``residual_state_names`` are the chains' last states ``ax, ay, az``).
+A residual of ``(p, v, a)`` alone can only learn what the acceleration of *this* trajectory
+does next (on a circle of angular rate ``w``: ``adot = -w^2 v``), which does not carry over to
+other speeds or shapes; with the thrust and the battery voltage it can learn the physics below.
+:mod:`learnest_codegen.flight_study` measures both (``features="state"`` zeroes the inputs,
+so the net sees constants there).
+
+True system (simulation only). Thrust acceleration ``f`` follows the command through a
+first-order motor lag ``tau``, its gain falls with the battery voltage, and rotor drag ``k_D v``
+opposes the velocity::
+
+    a = f - g e3 - k_D v,       fdot = (k_T (vbat / V_NOM) T - f) / tau
+    =>  adot = (k_T (vbat / V_NOM) T - g e3 - k_D v - a) / tau - k_D a.
+
+Parameters: ``k_T = 11.4 m/s^2`` per unit throttle at ``V_NOM = 3.5 V`` (hover at 0.86 of full
+throttle, what the NanoBench Crazyflies with markers fly at), ``tau = 0.05 s`` (a Crazyflie
+brushed-motor time constant), ``k_D = 0.35 1/s`` (rotor drag of a 30 g quadrotor: 0.35 m/s^2
+at 1 m/s, in line with identified Crazyflie drag). The prior has none of this: ``adot = 0``.
+
+Noise (per sample, ``dt = 0.01 s``, the NanoBench logs' 100 Hz): Vicon position 1 mm; world
+acceleration 0.25 m/s^2 horizontally and 0.12 m/s^2 vertically. The latter are the total error
+of the accelerometer-derived acceleration against a 0.3 s Savitzky-Golay second derivative of
+Vicon position on the real flights: a slowly varying part (attitude misalignment, bias: 0.1-0.2
+m/s^2) and motor vibration (0.06-0.12 m/s^2). Full-state training noise ``[1 mm, 0.01 m/s,
+0.05 m/s^2]``. Estimator tuning (``process_std`` per RK4 step): 1e-4 m on position and 1e-3
+m/s on velocity (kinematics, exact up to the RK4 step) and 0.02 m/s^2 on acceleration: a white
+jerk of 2 m/s^3 rms, the size of the jerk of a 1 m/s figure-eight. ``initial_std`` ``(1 cm,
+0.2 m/s, 0.5 m/s^2)``; estimators start from the first measurements, not from ``x0``.
+
+Excitation (:func:`excitation`): a feed-forward that flies a circle or a figure-eight of radius
+1 m at 1 m altitude (chosen per seed with equal odds), at 0.5-1.0 m/s, with a 0.1 m altitude
+wobble; the path parameter ramps up from hover over 3 s with a quintic smoothstep so the
+reference starts at rest with zero acceleration and jerk at ``x0``. The commanded thrust is the
+exact inverse of the true model along the reference, ``T = (f_ref + tau fdot_ref) / (k_T vbat /
+V_NOM)`` with ``f_ref = a_ref + g e3 + k_D v_ref``, so the truth flies the reference (the
+low-level controller knows its own vehicle; the estimator's prior does not). The battery sags
+linearly from 3.5-3.7 V by 0.01 V/s, as in the real flights.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import KinematicChain, NoiseModel, Signal, System
+
+GRAVITY = 9.81  # [m/s^2]
+V_NOM = 3.5  # battery voltage at which k_T is given [V]
+K_T, TAU_MOTOR, K_DRAG = 11.4, 0.05, 0.35  # [m/s^2 per unit throttle], [s], [1/s]
+AXES = ("x", "y", "z")
+
+_TRUE = {"k_T": K_T, "tau": TAU_MOTOR, "k_D": K_DRAG, "g": GRAVITY, "v_nom": V_NOM}
+
+
+def dynamics(ops, x, u, p):
+    """Triple integrator per axis: ``pdot = v``, ``vdot = a``, ``adot = 0`` (the paper's A x)."""
+    return [*x[3:9], 0.0 * x[6], 0.0 * x[7], 0.0 * x[8]]
+
+
+def true_dynamics(ops, x, u, p):
+    """Triple integrator whose ``adot`` has motor lag, battery-dependent thrust and rotor drag."""
+    v, a = x[3:6], x[6:9]
+    thrust, vbat = u[0:3], u[3]
+    gain = p["k_T"] * vbat / p["v_nom"]
+    gravity = (0.0, 0.0, p["g"])
+    adot = [(gain * thrust[i] - gravity[i] - p["k_D"] * v[i] - a[i]) / p["tau"] - p["k_D"] * a[i]
+            for i in range(3)]
+    return [*v, *a, *adot]
+
+
+def measurement(ops, x, u, p):
+    """Motion-capture position and world-frame acceleration: ``[p, a]``."""
+    return [*x[0:3], *x[6:9]]
+
+
+# -- excitation -----------------------------------------------------------------------------
+RADIUS_M, ALTITUDE_M, WOBBLE_M = 1.0, 1.0, 0.1
+SPEED_RANGE = (0.5, 1.0)  # [m/s] along the path's x swing at full speed
+RAMP_S = 3.0
+VBAT_RANGE, VBAT_SAG = (3.5, 3.7), 0.01  # [V], [V/s]
+X0 = (0.0, 0.0, ALTITUDE_M, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+# Reference shapes as sums of r sin(k theta + phi) per axis (offsets separate), so every
+# derivative in theta is exact: d^n/dtheta^n sin(k theta + phi) = k^n sin(k theta + phi + n pi/2).
+SHAPES = {
+    "circle": {"x": [(RADIUS_M, 1, 0.0)], "y": [(RADIUS_M, 1, -0.5 * np.pi)],
+               "z": [(WOBBLE_M, 2, 0.0)]},
+    "figure8": {"x": [(RADIUS_M, 1, 0.0)], "y": [(0.5 * RADIUS_M, 2, 0.0)],
+                "z": [(WOBBLE_M, 1, 0.0)]},
+}
+
+
+def _phase(t: np.ndarray, rate: float) -> np.ndarray:
+    """``theta`` and its first three time derivatives, ``(4, T)``: a quintic smoothstep ramp."""
+    s = np.clip(t / RAMP_S, 0.0, 1.0)
+    ramp = [10 * s**3 - 15 * s**4 + 6 * s**5,  # theta' / rate
+            (30 * s**2 - 60 * s**3 + 30 * s**4) / RAMP_S,
+            (60 * s - 180 * s**2 + 120 * s**3) / RAMP_S**2]
+    integral = np.where(t < RAMP_S, RAMP_S * (2.5 * s**4 - 3 * s**5 + s**6), t - 0.5 * RAMP_S)
+    return rate * np.stack([integral, *ramp])
+
+
+def reference(shape: str, rate: float, t: np.ndarray) -> np.ndarray:
+    """Reference position, velocity, acceleration and jerk, ``(4, T, 3)``, of a named shape.
+
+    The path starts at ``x0``'s position (theta = 0) and is flown at ``rate`` [rad/s] of the
+    path parameter after the ramp.
+    """
+    th = _phase(t, rate)
+    out = np.zeros((4, t.size, 3))
+    out[0] = X0[:3]
+    for axis, terms in enumerate(SHAPES[shape][a] for a in AXES):
+        for r, k, phi in terms:
+            d = [k**n * r * np.sin(k * th[0] + phi + n * np.pi / 2) for n in range(4)]  # d^n/dtheta^n
+            out[0, :, axis] += d[0] - r * np.sin(phi)
+            out[1, :, axis] += d[1] * th[1]
+            out[2, :, axis] += d[2] * th[1] ** 2 + d[1] * th[2]
+            out[3, :, axis] += d[3] * th[1] ** 3 + 3 * d[2] * th[1] * th[2] + d[1] * th[3]
+    return out
+
+
+def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Inputs ``[Tx, Ty, Tz, vbat]`` of shape ``(len(t), 4)`` that fly the seeded reference."""
+    shape = str(rng.choice(sorted(SHAPES)))
+    rate = rng.uniform(*SPEED_RANGE) / RADIUS_M * rng.choice([-1.0, 1.0])  # [rad/s]
+    vbat = rng.uniform(*VBAT_RANGE) - VBAT_SAG * t
+    _, v, a, j = reference(shape, rate, t)
+    e3 = np.array([0.0, 0.0, GRAVITY])
+    f_ref, fdot_ref = a + e3 + K_DRAG * v, j + K_DRAG * a
+    thrust = (f_ref + TAU_MOTOR * fdot_ref) / (K_T * vbat / V_NOM)[:, None]
+    return np.hstack([thrust, vbat[:, None]])
+
+
+QUADROTOR = System(
+    name="quadrotor",
+    description="Quadrotor translational states (paper sec. V-C): triple-integrator prior "
+                "A x; y = [Vicon p, world accel]; true: motor lag, battery-dependent thrust, "
+                "rotor drag.",
+    states=(
+        *(Signal(f"p{a}", "m", f"position, world {a}") for a in AXES),
+        *(Signal(f"v{a}", "m/s", f"velocity, world {a}") for a in AXES),
+        *(Signal(f"a{a}", "m/s^2", f"acceleration, world {a}") for a in AXES),
+    ),
+    inputs=(
+        *(Signal(f"T{a}", "1", f"thrust command along world {a} (fraction of full throttle)")
+          for a in AXES),
+        Signal("vbat", "V", "battery voltage"),
+    ),
+    outputs=(
+        *(Signal(f"p{a}", "m", f"motion-capture position, world {a}") for a in AXES),
+        *(Signal(f"a{a}", "m/s^2", f"accelerometer acceleration, world {a}") for a in AXES),
+    ),
+    params={},
+    true_params=_TRUE,
+    dynamics=dynamics,
+    true_dynamics=true_dynamics,
+    measurement=measurement,
+    noise=NoiseModel(
+        measurement_std=(1e-3, 1e-3, 1e-3, 0.25, 0.25, 0.12),
+        state_std=(1e-3,) * 3 + (0.01,) * 3 + (0.05,) * 3,
+        process_std=(1e-4,) * 3 + (1e-3,) * 3 + (0.02,) * 3,
+        initial_std=(0.01,) * 3 + (0.2,) * 3 + (0.5,) * 3,
+    ),
+    dt=0.01,
+    duration=20.0,
+    x0=X0,
+    excitation=excitation,
+    kinematic_chains=tuple(KinematicChain(f"p{a}", (f"p{a}", f"v{a}", f"a{a}")) for a in AXES),
+    default_observer="rts",
+)
