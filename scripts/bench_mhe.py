@@ -12,47 +12,18 @@ size of a fresh build. Usage::
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import tempfile
 import time
 from pathlib import Path
 
+import bench_common
 import numpy as np
-import torch
+from bench_common import best_seconds, steps
 
-from learnest_codegen import get_system
 from learnest_codegen.codegen.mhe import generate_mhe
 from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_problem import IPOPT_OPTIONS
-from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.network import ResidualNet
 from learnest_codegen.runtime.mhe import CompiledMHE
-from learnest_codegen.simulation import simulate
-
-
-def best_seconds(fn, repeat: int) -> float:
-    """Shortest wall time of ``repeat`` calls (the least disturbed by the machine)."""
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
-def steps(estimator, U, Y, x0, record=None) -> np.ndarray:
-    """The run sample by sample (``run``'s convention); ``record(estimator)`` after each step."""
-    estimator.reset(x0)
-    X = np.empty((len(Y), len(x0)))
-    for k in range(len(Y)):
-        X[k] = estimator.step(U[k - 1] if k else np.zeros(U.shape[1]), Y[k])
-        if record:
-            record(estimator)
-    return X
 
 
 def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
@@ -84,28 +55,8 @@ def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("bench_mhe.json"))
-    parser.add_argument("--models", nargs="+", choices=["nominal", "knode"],
-                        default=["nominal", "knode"])
-    parser.add_argument("--steps", type=int, default=None, help="default: one full run")
-    parser.add_argument("--repeat", type=int, default=5, help="repeats of the C timings")
-    parser.add_argument("--build-dir", type=Path, default=None, help="default: a temporary folder")
-    args = parser.parse_args(argv)
-    system = get_system("cartpole")
-    run = simulate(system, seed=0, duration=(args.steps or system.n_samples) * system.dt)
-    torch.manual_seed(0)  # random KNODE weights: timing depends on the size, not the values
-    models = {"nominal": lambda: prior_model(system),
-              "knode": lambda: hybrid_model(system, ResidualNet(system.nx, system.nu))}
-    with tempfile.TemporaryDirectory() as tmp:
-        build_dir = args.build_dir or Path(tmp)
-        results = [bench_model(models[kind](), run.u, run.y, build_dir, args.repeat)
-                   for kind in args.models]
-    report = {"system": system.name, "machine": platform.platform(), "cpus": os.cpu_count(),
-              "python": platform.python_version(), "ipopt_options": dict(IPOPT_OPTIONS),
-              "results": results}
-    args.out.write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
+    bench_common.main("mhe", __doc__.splitlines()[0], bench_model, repeat=5,
+                      extra={"ipopt_options": dict(IPOPT_OPTIONS)}, argv=argv)
 
 
 if __name__ == "__main__":

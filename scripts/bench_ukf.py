@@ -11,35 +11,17 @@ in C (``CompiledUKF.run``, one ctypes call) and sample-by-sample ctypes calls
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import tempfile
 import time
 from pathlib import Path
 
+import bench_common
 import numpy as np
-import torch
+from bench_common import best_seconds
 
-from learnest_codegen import get_system
 from learnest_codegen.codegen.ukf import generate_ukf
 from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.estimators.ukf import UKF
-from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.network import ResidualNet
 from learnest_codegen.runtime.ukf import CompiledUKF
-from learnest_codegen.simulation import simulate
-
-
-def best_seconds(fn, repeat: int) -> float:
-    """Shortest wall time of ``repeat`` calls (the least disturbed by the machine)."""
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
@@ -73,27 +55,7 @@ def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("bench_ukf.json"))
-    parser.add_argument("--models", nargs="+", choices=["nominal", "knode"],
-                        default=["nominal", "knode"])
-    parser.add_argument("--steps", type=int, default=None, help="default: one full run")
-    parser.add_argument("--repeat", type=int, default=20, help="repeats of the C timings")
-    parser.add_argument("--build-dir", type=Path, default=None, help="default: a temporary folder")
-    args = parser.parse_args(argv)
-    system = get_system("cartpole")
-    run = simulate(system, seed=0, duration=(args.steps or system.n_samples) * system.dt)
-    U, Y = run.u, run.y
-    torch.manual_seed(0)  # random KNODE weights: timing depends on the size, not the values
-    models = {"nominal": lambda: prior_model(system),
-              "knode": lambda: hybrid_model(system, ResidualNet(system.nx, system.nu))}
-    with tempfile.TemporaryDirectory() as tmp:
-        build_dir = args.build_dir or Path(tmp)
-        results = [bench_model(models[kind](), U, Y, build_dir, args.repeat) for kind in args.models]
-    report = {"system": system.name, "machine": platform.platform(), "cpus": os.cpu_count(),
-              "python": platform.python_version(), "results": results}
-    args.out.write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
+    bench_common.main("ukf", __doc__.splitlines()[0], bench_model, repeat=20, argv=argv)
 
 
 if __name__ == "__main__":
