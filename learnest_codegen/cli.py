@@ -1,6 +1,7 @@
 """The ``learnest`` command line (and ``learnest-compile``).
 
-Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``, ``reproduce table1``.
+Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``, ``reproduce table1``,
+``reproduce quadrotor``, ``diagnose``.
 Every ``--system`` accepts a built-in name or the path of a Python file defining ``SYSTEM``.
 Errors of the package (:class:`LearnestError`) and missing files are printed as one clear line
 (exit code 1) instead of a traceback.
@@ -269,6 +270,137 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
         listing = "; ".join(f"{t} seed {s}: {e.splitlines()[0]}" for (t, s), e in sorted(failed.items()))
         raise click.ClickException(f"{len(failed)} job(s) failed (tracebacks in "
                                    f"{Path(out) / 'runs'}/<task>/seed_<s>.error.json): {listing}")
+
+
+@reproduce.command("quadrotor")
+@click.option("--data", type=click.Path(file_okay=False), default=None,
+              help="data root or nanobench folder (default: ../shared/data or $LEARNEST_DATA)")
+@click.option("--simulated", type=click.IntRange(min=2), default=None,
+              help="use this many simulated quadrotor runs (seeds 0..N-1) instead of flights")
+@click.option("--train", "train_names", default=None,
+              help="comma-separated training flight(s) (default: B2_circle_medium_rep1, or sim_seed0)")
+@click.option("--all-train", is_flag=True, help="repeat with every flight as the training flight")
+@click.option("--features", default="state,thrust", show_default=True,
+              help="residual inputs: state (v, a: system quadrotor_state, the paper's) and/or "
+                   "thrust (v, a, thrust, vbat: system quadrotor)")
+@click.option("--matrix", default="", show_default=True,
+              help="more training flights, tested with the UKF only (comma-separated, or 'default' "
+                   "for a slow and a fast circle and figure-eight)")
+@click.option("--estimators", default="mhe,ukf", show_default=True, help="mhe and/or ukf")
+@click.option("--epochs", default=150, show_default=True, type=click.IntRange(min=1))
+@click.option("--observer", default="linear_rts", show_default=True,
+              help="pre-training observer (rts: position only, per axis)")
+@click.option("--savgol-window", default=151, show_default=True, type=click.IntRange(min=3),
+              help="Savitzky-Golay window of the reference [samples]")
+@click.option("--out", default="results/quadrotor", show_default=True, type=click.Path(file_okay=False))
+@click.option("--force", is_flag=True, help="redo studies whose results already exist")
+@_friendly
+def quadrotor(data, simulated, train_names, all_train, features, matrix, estimators, epochs,
+              observer, savgol_window, out, force) -> None:
+    """The paper's quadrotor experiment (Fig. 3) on NanoBench Crazyflie flights.
+
+    Trains KNODE on one flight, compiles KNODE-MHE and KNODE-UKF, and compares them with the
+    nominal MHE and UKF (and the onboard EKF's velocity) on every other flight against
+    Savitzky-Golay reference states. Writes OUT/quadrotor.{md,json,png}.
+    """
+    from dataclasses import replace
+
+    from . import flight_study as fs
+    from .recordings import data_root
+
+    split = lambda text: [p.strip() for p in text.split(",") if p.strip()]  # noqa: E731
+    if simulated:
+        cases, default = fs.simulated_cases(range(simulated)), "sim_seed0"
+    else:
+        root = data_root(data)
+        if root is None:
+            raise click.ClickException("no data folder found: pass --data DIR or set $LEARNEST_DATA")
+        cases, default = fs.flight_cases(root, savgol_window=savgol_window), fs.DEFAULT_TRAIN
+    train = [c.name for c in cases] if all_train else split(train_names or default)
+    base = fs.StudySettings()
+    settings = fs.StudySettings(training=replace(base.training, epochs=epochs), observer=observer,
+                                estimators=tuple(split(estimators)))
+    matrix = list(fs.DEFAULT_MATRIX) if matrix.strip() == "default" else split(matrix)
+    summaries = fs.run_study(cases, out, train=train, features=split(features), settings=settings,
+                             matrix=matrix, force=force)
+    click.echo("\n" + fs.markdown(summaries).split("### medians")[-1])
+    click.echo(f"wrote {Path(out) / 'quadrotor.md'}, quadrotor.json, quadrotor.png")
+
+
+@cli.command()
+@click.option("--system", "system_name", default=None, help=SYSTEM_HELP)
+@click.option("--data", type=click.Path(exists=True), default=None,
+              help="a run CSV or a folder of them (project run format, or --format)")
+@click.option("--format", "data_format", default="run", show_default=True,
+              help="format of --data: run, or a reader in learnest_codegen.recordings (nanobench, dart)")
+@click.option("--model", default=None, type=click.Path(file_okay=False),
+              help="trained KNODE model directory to compare with")
+@click.option("--out", default=None, type=click.Path(file_okay=False),
+              help="folder for diagnosis.json, report.md and figures")
+@click.option("--source", type=click.Choice(["auto", "truth", "observer"]), default="auto", show_default=True,
+              help="state observations: the truth (x_ columns) when present, else the pre-training observer")
+@click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
+@click.option("--estimators", default="mhe,ukf", show_default=True,
+              help="nominal estimators run with the corrected prior ('' for none)")
+@click.option("--backend", type=click.Choice(["c", "python"]), default="c", show_default=True)
+@click.option("--kinds", default=None, help="comma-separated effect kinds to consider (default: all)")
+@click.option("--list-effects", is_flag=True, help="list the effect library of --system and exit")
+@click.option("--selftest", is_flag=True, help="diagnose simulated runs with withheld effects; print a table")
+@click.option("--case", "cases", multiple=True, help="self-test case key (repeatable; default: all)")
+@click.option("--no-progress", is_flag=True)
+@_friendly
+def diagnose(system_name, data, data_format, model, out, source, observer, estimators, backend, kinds,
+             list_effects, selftest, cases, no_progress) -> None:
+    """Diagnose the sim-to-real gap of a prior: where it lies, which effect, how far it shrinks.
+
+    Writes OUT/diagnosis.json and OUT/report.md with PNG figures. --list-effects prints the
+    library; --selftest runs the withheld-effect self-test.
+    """
+    import dataclasses
+
+    from . import diagnosis as dg
+
+    kinds_t = tuple(k.strip() for k in kinds.split(",") if k.strip()) if kinds else None
+    settings = dg.DiagnosisSettings(source=source, observer=observer, backend=backend, kinds=kinds_t,
+                                    estimators=tuple(e.strip() for e in estimators.split(",") if e.strip()))
+    if list_effects:
+        from .effects import describe_library, library
+
+        click.echo(describe_library(library(_system(system_name or "cartpole"), kinds=kinds_t)))
+        return
+    if selftest:
+        from . import diagnosis_selftest as st
+
+        systems = [system_name] if system_name else None
+        rows = st.run_selftest(st.select_cases(list(cases) or None, systems),
+                               settings=dataclasses.replace(settings, estimators=()),
+                               progress=not no_progress)
+        click.echo(st.table(rows))
+        if out:
+            Path(out).mkdir(parents=True, exist_ok=True)
+            (Path(out) / "selftest.json").write_text(json.dumps(rows, indent=2))
+            (Path(out) / "selftest.md").write_text(st.table(rows) + "\n")
+        failed = [r["case"] for r in rows if not r["pass"]]
+        if failed:
+            raise click.ClickException(f"{len(failed)} self-test case(s) failed: {'; '.join(failed)}")
+        return
+    if data is None or out is None or (system_name is None and data_format == "run"):
+        raise click.UsageError("give --system (unless --format names it), --data and --out "
+                               "(or --list-effects / --selftest)")
+    from .diagnosis_report import write_report
+
+    system, runs = dg.load(system_name, data, data_format)
+    trained = None
+    if model is not None:
+        from .training import load_model
+
+        trained = load_model(model, system)
+    result = dg.diagnose(system, runs, model=trained, settings=settings, work_dir=Path(out) / "work",
+                         progress=not no_progress)
+    result.write(out)
+    report = write_report(result, out)
+    click.echo(dg.summary(result.report))
+    click.echo(f"wrote {Path(out) / 'diagnosis.json'} and {report}")
 
 
 def main() -> None:

@@ -1,0 +1,460 @@
+"""A library of named unmodelled effects, built from a :class:`System` description.
+
+An *effect* is a physically meaningful term that a first-principles prior commonly leaves out,
+with one parameter (value and unit) and a *channel* through which it enters the dynamics:
+
+* ``input:<u>`` - a perturbation of input ``u`` (a generalised force), mapped through the prior's
+  own input path. A friction force on a cart enters where the motor force does, so it changes
+  every derivative the force changes (in the cartpole both ``pdot'`` and ``alphadot'``, through
+  the mass matrix) with a single parameter.
+* ``param:<p>`` - a change of a prior parameter (``m_c + dm``): "scaling of the prior's own
+  terms" for masses and inertias, exact and nonlinear in the parameter.
+* ``direct:<s>`` - a term added to the derivative of state ``s`` only (a bias, or a damping of a
+  velocity that no input drives).
+
+The corrected dynamics are ``f(x, u + sum du, p + sum dp) + sum direct``, written once against the
+``ops`` backend (:func:`corrected_dynamics`), so a corrected prior runs in numpy, torch and CasADi
+like any system, and an effect's regression feature is an exact CasADi derivative.
+
+Generic kinds (:data:`KINDS`) and where they are placed:
+
+===================  =========================================  =======================
+kind                 term (parameter ``theta`` >= 0 physical)   channels
+===================  =========================================  =======================
+mass                 ``dp = theta``  (mass / inertia params)    ``param:<p>``
+parameter            ``dp = theta``  (other prior params)       ``param:<p>``
+viscous_friction     ``-theta v``                               velocity states
+coulomb_friction     ``-theta tanh(v / v_s)``                   velocity states
+quadratic_drag       ``-theta v |v|``                           velocity states
+actuator_gain        ``du = theta u``                           ``input:<u>``
+actuator_offset      ``du = theta``                             ``input:<u>``
+bias                 ``ds' = theta``                            ``direct:<s>`` (residual states)
+===================  =========================================  =======================
+
+*Velocity states* are the residual states whose unit is a rate (``.../s`` but not ``.../s^2``),
+or ``System.extra["velocity_states"]`` when a system declares them. A velocity-dependent force
+on velocity ``v`` is offered directly on ``v'`` and through every input whose prior path reaches
+``v'`` (structurally, ``casadi.depends_on``); which one fits is for the data to decide.
+*Mass parameters* are those named like masses or inertias (``m``, ``m_*``, ``mass*``, ``I*``,
+``J*``, ``inertia*``) or listed in ``System.extra["mass_params"]``.
+
+Systems may add their own kinds: :func:`register_system_effects` (built-in systems) or
+``System.extra["effects"] = fn(system, context) -> list[Effect]`` in a user's system file.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import casadi as cs
+
+from .errors import UnknownNameError
+from .systems import System
+from .systems.backends import CasadiOps
+
+# term(ops, x: list, u: list, theta) -> value added to the channel's target
+Term = Callable[..., object]
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One candidate effect with a single parameter.
+
+    Attributes
+    ----------
+    kind : a key of :data:`KINDS` or a system-specific kind.
+    state : the state whose derivative it primarily acts on.
+    channel : ``"input:<u>"``, ``"param:<p>"`` or ``"direct:<s>"``.
+    param : name of its parameter (``"c"``, ``"k"``, ``"gain"``, ``"dm_c"`` ...).
+    unit : unit of the parameter.
+    term : ``term(ops, x, u, theta)``, the value added to the channel's target.
+    description : one line for reports.
+    """
+
+    kind: str
+    state: str
+    channel: str
+    param: str
+    unit: str
+    term: Term = field(compare=False, repr=False)
+    description: str = ""
+    variable: str = ""  # the state it depends on, when not ``state`` (drag on vx acting on ax')
+
+    @property
+    def name(self) -> str:
+        """A unique, readable key, e.g. ``viscous_friction(pdot via F)``, ``quadratic_drag(vx on ax)``."""
+        how, target = self.channel.split(":", 1)
+        via = {"input": f" via {target}", "param": f" via {target}", "direct": ""}[how]
+        on = f"{self.variable} on " if self.variable and self.variable != self.state else ""
+        return f"{self.kind}({on}{self.state}{via})"
+
+    def to_json(self) -> dict:
+        return {"kind": self.kind, "state": self.state, "channel": self.channel, "param": self.param,
+                "unit": self.unit, "name": self.name, "description": self.description}
+
+
+@dataclass(frozen=True)
+class LibraryContext:
+    """What the library builders need to know beyond the system.
+
+    Attributes
+    ----------
+    velocity_states : states that friction and drag depend on.
+    targets : per velocity state, the state whose derivative the force changes: itself when it
+        is a residual state, else the residual state ending its kinematic chain (a quadrotor's
+        drag on ``vx`` changes ``ax'`` when the model carries the acceleration as a state).
+    coulomb_scale : per velocity state, the smoothing speed ``v_s`` of ``tanh(v / v_s)``
+        (units of the state); :func:`default_context` takes 2 % of a typical speed.
+    """
+
+    velocity_states: tuple[str, ...]
+    coulomb_scale: Mapping[str, float]
+    targets: Mapping[str, str] = field(default_factory=dict)
+
+
+KindBuilder = Callable[[System, LibraryContext], list]
+KINDS: dict[str, KindBuilder] = {}
+_SYSTEM_EFFECTS: dict[str, KindBuilder] = {}
+
+
+def _kind(name: str):
+    def register(fn: KindBuilder) -> KindBuilder:
+        KINDS[name] = fn
+        return fn
+    return register
+
+
+def register_system_effects(system_name: str, builder: KindBuilder) -> KindBuilder:
+    """Add system-specific effects to the library of ``system_name`` (e.g. a battery thrust loss)."""
+    _SYSTEM_EFFECTS[system_name] = builder
+    return builder
+
+
+# -- structure of the prior ------------------------------------------------------------------------
+_RATE = re.compile(r"/\s*s$|/\s*sec$|per\s*s$")
+_MASS = re.compile(r"^(m|mass.*|m_.*|inertia.*|i|i_.*|j|j_.*|i[xyz]{1,2}|j[xyz]{1,2})$", re.IGNORECASE)
+
+
+def velocity_states(system: System) -> dict[str, str]:
+    """Velocity states (unit a rate, ``m/s``, ``rad/s``; or ``extra["velocity_states"]``) that a
+    residual can act on, each mapped to the state whose derivative a force on it changes: itself
+    if it is a residual state, else the residual state that ends its kinematic chain."""
+    residual = system.residual_state_names
+    chain_end = {n: c.states[-1] for c in system.kinematic_chains for n in c.states
+                 if c.states[-1] in residual}
+    declared = system.extra.get("velocity_states")
+    units = {s.name: s.unit.strip() for s in system.states}
+    names = declared if declared is not None else [n for n in system.state_names if _RATE.search(units[n])]
+    out = {}
+    for n in names:
+        if n in residual:
+            out[n] = n
+        elif n in chain_end:
+            out[n] = chain_end[n]
+    return out
+
+
+def mass_params(system: System) -> tuple[str, ...]:
+    """Prior parameters that are masses or inertias (by name, or ``extra["mass_params"]``)."""
+    declared = system.extra.get("mass_params")
+    if declared is not None:
+        return tuple(declared)
+    return tuple(p for p in system.params if _MASS.match(p))
+
+
+def input_reach(system: System) -> dict[str, tuple[str, ...]]:
+    """For each state, the inputs whose prior path structurally reaches its derivative."""
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    f = system.f(x, u)
+    return {s: tuple(n for j, n in enumerate(system.input_names) if cs.depends_on(f[i], u[j]))
+            for i, s in enumerate(system.state_names)}
+
+
+def default_context(system: System, speed_scale: Mapping[str, float] | None = None) -> LibraryContext:
+    """Context from the system; ``speed_scale`` (typical |v| per velocity state, e.g. the RMS
+    over the data) sets the Coulomb smoothing ``v_s = 0.02 * scale`` (default scale 1)."""
+    vel = velocity_states(system)
+    scale = {v: 0.02 * float((speed_scale or {}).get(v, 1.0)) or 0.02 for v in vel}
+    return LibraryContext(tuple(vel), scale, vel)
+
+
+# -- the generic kinds -----------------------------------------------------------------------------
+def _index(system: System, name: str) -> int:
+    return system.state_names.index(name)
+
+
+def _unit(system: System, state: str) -> str:
+    return next(s.unit for s in system.states if s.name == state)
+
+
+def _input_unit(system: System, name: str) -> str:
+    return next(s.unit for s in system.inputs if s.name == name)
+
+
+def _velocity_kinds(system: System, ctx: LibraryContext, kind: str, shape, power: int, label: str):
+    """One effect per velocity state and channel (direct, then each input reaching it).
+
+    ``shape(ctx, v)`` gives ``g(ops, v)``; the term is ``-theta g(v)``. ``power`` is the power of
+    ``v``'s unit in ``g`` (1 viscous, 0 Coulomb, 2 drag), which fixes the parameter's unit.
+    """
+    reach = input_reach(system)
+    out = []
+    for v in ctx.velocity_states:
+        target = ctx.targets.get(v, v)
+        i, vu, tu = _index(system, v), _unit(system, v), _unit(system, target)
+        per_v = {0: "", 1: f"/({vu})", 2: f"/({vu})^2"}[power]
+        shaped = shape(ctx, v)
+        term = lambda ops, x, u, th, i=i, shaped=shaped: -th * shaped(ops, x[i])  # noqa: E731
+        text = kind.replace("_", " ")
+        out.append(Effect(kind, target, f"direct:{target}", label, f"({tu})/s{per_v}", term,
+                          f"{text} on {v}, acting on {target}' directly", v))
+        for name in reach[target]:
+            out.append(Effect(kind, target, f"input:{name}", label, f"{_input_unit(system, name)}{per_v}",
+                              term, f"{text} on {v} as a force on input {name}", v))
+    return out
+
+
+@_kind("viscous_friction")
+def _viscous(system: System, ctx: LibraryContext) -> list:
+    return _velocity_kinds(system, ctx, "viscous_friction", lambda c, v: lambda ops, s: s, 1, "c")
+
+
+@_kind("coulomb_friction")
+def _coulomb(system: System, ctx: LibraryContext) -> list:
+    def shape(c, v):
+        vs = c.coulomb_scale[v]
+        return lambda ops, s: ops.tanh(s / vs)
+    return _velocity_kinds(system, ctx, "coulomb_friction", shape, 0, "F_c")
+
+
+@_kind("quadratic_drag")
+def _drag(system: System, ctx: LibraryContext) -> list:
+    return _velocity_kinds(system, ctx, "quadratic_drag", lambda c, v: lambda ops, s: s * ops.abs(s), 2,
+                           "k")
+
+
+def _primary_state(system: System, reach_of_input: str) -> str:
+    """The residual state an input acts on first (for reporting an input-channel effect)."""
+    reach = input_reach(system)
+    for s in system.residual_state_names:
+        if reach_of_input in reach[s]:
+            return s
+    return system.residual_state_names[0]
+
+
+def _driving_inputs(system: System) -> list[tuple[int, str]]:
+    """Inputs whose prior path reaches some residual state (a prior that ignores an input, like
+    the quadrotor's triple integrator, cannot have a gain error on it)."""
+    reach = input_reach(system)
+    used = {n for s in system.residual_state_names for n in reach[s]}
+    return [(j, n) for j, n in enumerate(system.input_names) if n in used]
+
+
+@_kind("actuator_gain")
+def _gain(system: System, ctx: LibraryContext) -> list:
+    return [Effect("actuator_gain", _primary_state(system, n), f"input:{n}", "gain", "1",
+                   lambda ops, x, u, th, j=j: th * u[j], f"input {n} scaled by (1 + gain)")
+            for j, n in _driving_inputs(system)]
+
+
+@_kind("actuator_offset")
+def _offset(system: System, ctx: LibraryContext) -> list:
+    return [Effect("actuator_offset", _primary_state(system, n), f"input:{n}", "offset",
+                   _input_unit(system, n), lambda ops, x, u, th: th, f"input {n} shifted by offset")
+            for _, n in _driving_inputs(system)]
+
+
+@_kind("bias")
+def _bias(system: System, ctx: LibraryContext) -> list:
+    return [Effect("bias", s, f"direct:{s}", "b", f"{_unit(system, s)}/s",
+                   lambda ops, x, u, th: th, f"constant term on {s}'")
+            for s in system.residual_state_names]
+
+
+def _param_effects(system: System, kind: str, names: Sequence[str]) -> list:
+    reach = _param_reach(system)
+    out = []
+    for p in names:
+        if not reach.get(p):
+            continue  # the prior does not depend on it: no signature to find
+        out.append(Effect(kind, reach[p][0], f"param:{p}", f"d{p}", f"unit of {p}",
+                          lambda ops, x, u, th: th, f"prior parameter {p} changed by d{p}"))
+    return out
+
+
+def _param_reach(system: System, points: int = 8) -> dict[str, list[str]]:
+    """For each prior parameter, the residual states whose derivative depends on it.
+
+    A structural dependence is not enough: the ground robot's mass ``m`` enters only through the
+    drag, which the prior switches off with ``C_D = 0``. So the Jacobian is evaluated at the
+    prior's parameter values on a few random points (seeded) and must be non-zero somewhere.
+    """
+    import numpy as np
+
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    names = list(system.params)
+    syms = cs.SX.sym("p", len(names))
+    f = cs.vertcat(*system.dynamics(CasadiOps, [x[i] for i in range(system.nx)],
+                                    [u[j] for j in range(system.nu)],
+                                    {n: syms[k] for k, n in enumerate(names)}))
+    jac = cs.Function("dfdp", [x, u, syms], [cs.jacobian(f, syms)])
+    rng = np.random.default_rng(0)
+    values = [system.params[n] for n in names]
+    size = np.zeros((system.nx, len(names)))
+    for _ in range(points):
+        J = np.asarray(jac(rng.uniform(0.2, 1.0, system.nx), rng.uniform(0.2, 1.0, system.nu), values))
+        size = np.maximum(size, np.nan_to_num(np.abs(J)))
+    states = system.state_names
+    return {n: [s for s in system.residual_state_names if size[states.index(s), k] > 0]
+            for k, n in enumerate(names)}
+
+
+@_kind("mass")
+def _mass(system: System, ctx: LibraryContext) -> list:
+    return _param_effects(system, "mass", mass_params(system))
+
+
+@_kind("parameter")
+def _parameter(system: System, ctx: LibraryContext) -> list:
+    masses = set(mass_params(system))
+    return _param_effects(system, "parameter", [p for p in system.params if p not in masses])
+
+
+# Order matters only for ties: of two candidates with the same signature on the data the first
+# is kept and the other reported as its alias (e.g. the ground robot's drag coefficient C_D
+# aliases quadratic drag on v), so the physical kinds come before raw parameters.
+KIND_ORDER = ("viscous_friction", "coulomb_friction", "quadratic_drag", "actuator_gain",
+              "actuator_offset", "bias", "mass", "parameter")
+
+
+def library(system: System, context: LibraryContext | None = None,
+            kinds: Sequence[str] | None = None) -> list[Effect]:
+    """All candidate effects of ``system``: the generic kinds, then the system's own.
+
+    Parameters
+    ----------
+    system : the system whose prior the effects modify.
+    context : velocity states and Coulomb smoothing (default: :func:`default_context`).
+    kinds : restrict to these kinds (default: all, including system-specific ones).
+    """
+    context = context or default_context(system)
+    unknown = [k for k in (kinds or ()) if k not in KINDS and k not in _system_kinds(system, context)]
+    if unknown:
+        raise UnknownNameError(f"unknown effect kinds {unknown}; choose from {list(KIND_ORDER)} "
+                               f"or the system's own")
+    effects = [e for k in KIND_ORDER for e in KINDS[k](system, context)]
+    effects += _system_effects(system, context)
+    if kinds:
+        effects = [e for e in effects if e.kind in kinds]
+    seen, unique = set(), []
+    for e in effects:
+        if e.name not in seen:
+            seen.add(e.name)
+            unique.append(e)
+    return unique
+
+
+def _system_effects(system: System, context: LibraryContext) -> list[Effect]:
+    out = []
+    if system.name in _SYSTEM_EFFECTS:
+        out += list(_SYSTEM_EFFECTS[system.name](system, context))
+    user = system.extra.get("effects")
+    if callable(user):
+        out += list(user(system, context))
+    return out
+
+
+def _system_kinds(system: System, context: LibraryContext) -> set[str]:
+    return {e.kind for e in _system_effects(system, context)}
+
+
+def corrected_dynamics(system: System, effects: Sequence[Effect], thetas: Sequence) -> Callable:
+    """The prior plus ``effects`` with parameters ``thetas``, as a backend-generic dynamics fn.
+
+    ``thetas`` may be floats (a corrected model) or CasADi symbols (regression features). Returns
+    ``fn(ops, x, u, p) -> list`` suitable for ``System.dynamics``.
+    """
+    if len(effects) != len(thetas):
+        raise ValueError(f"corrected_dynamics: {len(effects)} effects but {len(thetas)} parameters")
+    states, inputs, prior = system.state_names, system.input_names, system.dynamics
+    effects, thetas = list(effects), list(thetas)
+
+    def dynamics(ops, x, u, p):
+        u2, p2, extra = list(u), dict(p), [0.0] * len(states)
+        for effect, theta in zip(effects, thetas):
+            how, target = effect.channel.split(":", 1)
+            value = effect.term(ops, x, u, theta)
+            if how == "input":
+                j = inputs.index(target)
+                u2[j] = u2[j] + value
+            elif how == "param":
+                p2[target] = p2[target] + value
+            else:
+                i = states.index(target)
+                extra[i] = extra[i] + value
+        return [a + b for a, b in zip(prior(ops, x, u2, p2), extra)]
+
+    return dynamics
+
+
+# -- system-specific additions ------------------------------------------------------------------------
+def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
+    """The quadrotor's prior (a triple integrator, ``adot = 0``) has no thrust path at all, so the
+    generic input effects do not apply. Per axis ``i`` (acting on ``a_i'``):
+
+    * ``thrust``: ``theta T_i`` - the commanded thrust the prior ignores [m/s^3 per unit throttle];
+    * ``battery_thrust_loss``: ``theta T_i (vbat - V_NOM)`` - thrust per command falls as the
+      battery drains (``V_NOM = 3.5 V``) [m/s^3 per unit throttle per V];
+    * ``motor_lag``: ``-theta a_i`` - the acceleration relaxing towards the command with the
+      motors' time constant, ``theta = 1 / tau`` [1/s].
+    """
+    try:
+        from .systems.quadrotor import V_NOM
+    except ImportError:  # the system file may be a user's copy; the nominal voltage is the same
+        V_NOM = 3.5
+    out = []
+    names = system.state_names
+    axes = [(f"a{a}", f"T{a}") for a in ("x", "y", "z")]
+    if not all(s in names for s, _ in axes) or not all(t in system.input_names for _, t in axes) \
+            or "vbat" not in system.input_names:
+        return out
+    jb = system.input_names.index("vbat")
+    for s, t in axes:
+        i, j = names.index(s), system.input_names.index(t)
+        out += [
+            Effect("thrust", s, f"direct:{s}", "k", "(m/s^2)/s", lambda ops, x, u, th, j=j: th * u[j],
+                   f"commanded thrust {t} on {s}'", t),
+            Effect("battery_thrust_loss", s, f"direct:{s}", "k_V", "(m/s^2)/s/V",
+                   lambda ops, x, u, th, j=j: th * u[j] * (u[jb] - V_NOM),
+                   f"thrust {t} scaled by the battery voltage's deviation from {V_NOM} V", "vbat"),
+            Effect("motor_lag", s, f"direct:{s}", "1/tau", "1/s", lambda ops, x, u, th, i=i: -th * x[i],
+                   f"{s} relaxes with the motors' time constant"),
+        ]
+    return out
+
+
+register_system_effects("quadrotor", _quadrotor_effects)
+
+
+def corrected_system(system: System, effects: Sequence[Effect], thetas: Sequence[float]) -> System:
+    """``system`` whose prior includes ``effects`` with parameters ``thetas`` (floats).
+
+    The true dynamics (for simulation) are unchanged.
+    """
+    import dataclasses
+
+    dynamics = corrected_dynamics(system, effects, [float(t) for t in thetas])
+    true = system.true_dynamics or system.dynamics
+    return dataclasses.replace(system, dynamics=dynamics, true_dynamics=true)
+
+
+def describe_library(effects: Sequence[Effect]) -> str:
+    """A plain-text listing (for ``learnest diagnose --list-effects``)."""
+    rows = [("effect", "kind", "acts on", "channel", "parameter [unit]")]
+    rows += [(e.name, e.kind, f"{e.state}'", e.channel, f"{e.param} [{e.unit}]") for e in effects]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)

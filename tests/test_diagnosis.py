@@ -1,0 +1,241 @@
+"""`learnest diagnose`: where the gap lies, which effect, how far it shrinks; self-test; real data."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from learnest_codegen import get_system
+from learnest_codegen.cli import cli
+from learnest_codegen.data import write_run
+from learnest_codegen.diagnosis import DiagnosisSettings, diagnose, load, regimes, white_floor
+from learnest_codegen.diagnosis_selftest import CASES, QUICK, case_key, run_case, select_cases, table
+from learnest_codegen.effect_fit import Pairs
+from learnest_codegen.errors import DataError, UnknownNameError
+from learnest_codegen.recordings import data_root
+from learnest_codegen.simulation import simulate
+
+QUICK_SETTINGS = DiagnosisSettings(estimators=())
+
+
+@pytest.mark.parametrize("key", QUICK)
+def test_selftest_quick_cases(key):
+    """One effect per system, the exact prior ("no gap") and an outside effect ("unexplained")."""
+    (case,) = select_cases([key])
+    row = run_case(case, QUICK_SETTINGS)
+    assert row["pass"], row
+    if case.expect == "effects":
+        assert row["param_error"] < 0.01  # truth, exact forms: only the integrator differs
+        assert row["gap_closed"] > 0.99
+    else:
+        assert row["found"] == "-"
+
+
+def test_exact_prior_through_the_observer_is_no_gap():
+    """Pure observer noise must not be called a gap, nor explained by an effect."""
+    cartpole = get_system("cartpole")
+    exact = dataclasses.replace(cartpole, true_dynamics=cartpole.dynamics, true_params=cartpole.params)
+    run = simulate(exact, seed=5, duration=6.0)
+    d = diagnose(exact, [run], settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    assert d.report["source"] == "observer" and d.report["verdict"] == "no gap"
+    assert d.report["effects"] == []
+    assert all(s["snr"] < 1.5 for s in d.report["where"] if s["residual_state"])
+    assert d.report["noise_floor"]["method"].startswith("calibration")
+
+
+def test_cart_mass_through_the_observer():
+    """The built-in cartpole (cart 1.5 kg, prior 1.0 kg) from [p, alpha] measurements only."""
+    cartpole = get_system("cartpole")
+    d = diagnose(cartpole, [simulate(cartpole, seed=1, duration=6.0)],
+                 settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    (effect,) = d.report["effects"]
+    assert effect["name"] == "mass(pdot via m_c)"
+    dm, std = effect["params"]["dm_c"], effect["uncertainty"]["dm_c"]
+    assert abs(dm - 0.5) < max(4 * std, 0.05)
+    assert 0 < std < 0.1
+    pdot = next(s for s in d.report["where"] if s["state"] == "pdot")
+    assert pdot["share"] > 0.5 and pdot["snr"] > 1.5
+    assert d.report["shrink"]["one_step"]["closed"] > 0.8
+
+
+def test_where_regimes_find_the_driver():
+    """A residual that is a sign step in an input is driven by that input. With 5 quantile bins of
+    a symmetric input the middle bin straddles the step (mean 0) and the other four have means
+    +-1, so the correlation ratio is exactly 4/5."""
+    system = get_system("ground_robot")
+    rng = np.random.default_rng(0)
+    n = 2000
+    z = np.column_stack([rng.normal(size=n), rng.normal(size=n), rng.uniform(1, 3, n), rng.normal(size=n)])
+    u = np.column_stack([rng.normal(size=n), rng.uniform(-0.3, 0.3, n)])
+    pairs = Pairs.from_states([(np.arange(n) * 0.01, z, u)])
+    r = np.zeros((n - 1, 4))
+    r[:, 2] = np.where(pairs.u[:, 0] > 0, 1.0, -1.0)
+    out = regimes(system, r, pairs, QUICK_SETTINGS)
+    assert out["drivers"]["v"][0]["variable"] == "a"
+    assert out["drivers"]["v"][0]["eta2"] == pytest.approx(0.8, abs=0.03)
+    assert out["variables"]["t"]["eta2"]["v"] < 0.05
+
+
+def test_white_floor_of_white_noise():
+    rng = np.random.default_rng(1)
+    r = rng.normal(0, 0.3, size=(20000, 2)) + np.linspace(0, 5, 20000)[:, None]  # plus a slow drift
+    np.testing.assert_allclose(white_floor(r), 0.3, rtol=0.05)
+
+
+def test_cli_diagnose_end_to_end(tmp_path):
+    """A short ground-robot run with the built-in drag: files, JSON contract, compiled UKF."""
+    system = get_system("ground_robot")
+    csv = write_run(simulate(system, seed=2, duration=12.0), system, tmp_path / "run.csv")
+    out = tmp_path / "diag"
+    result = CliRunner().invoke(cli, ["diagnose", "--system", "ground_robot", "--data", str(csv),
+                                      "--out", str(out), "--estimators", "ukf", "--no-progress"],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "diagnosis.json").read_text())
+    for key in ("where", "effects", "unexplained", "shrink", "regimes", "verdict"):
+        assert key in report
+    assert {"state", "share", "snr"} <= set(report["where"][0])
+    top = report["effects"][0]
+    assert {"kind", "state", "params", "explained", "score"} <= set(top)
+    assert top["kind"] == "quadratic_drag" and top["state"] == "v"
+    k = 0.5 * 1.225 * 0.06 * 1.05 / 1.5
+    assert abs(top["params"]["k"] - k) / k < 0.01
+    ukf = report["shrink"]["ukf"]
+    assert {"before", "after", "closed"} <= set(ukf) and ukf["after"] < ukf["before"]
+    assert ukf["closed"] > 0.5
+    for name in ("report.md", "residual.png", "regimes.png", "effects.png", "shrink.png"):
+        assert (out / name).stat().st_size > 1000
+    assert "quadratic_drag(v)" in (out / "report.md").read_text()
+
+
+def test_cli_list_effects_and_errors(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(cli, ["diagnose", "--list-effects", "--system", "cartpole"])
+    assert result.exit_code == 0 and "coulomb_friction(pdot via F)" in result.output
+    result = runner.invoke(cli, ["diagnose", "--system", "cartpole", "--data", str(tmp_path), "--out",
+                                 str(tmp_path / "o")])
+    assert result.exit_code == 1 and "no *.csv runs" in result.output
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,u_F,y_p,y_alpha\n0,1,0,0\n0.002,nan,0,0\n")
+    result = runner.invoke(cli, ["diagnose", "--system", "cartpole", "--data", str(bad), "--out",
+                                 str(tmp_path / "o")])
+    assert result.exit_code == 1 and "non-finite value in column 'u_F'" in result.output
+    with pytest.raises(UnknownNameError, match="unknown data format"):
+        load("cartpole", bad, "rosbag")
+    with pytest.raises(UnknownNameError, match="unknown source"):
+        DiagnosisSettings(source="oracle")
+    short = simulate(get_system("cartpole"), seed=0, duration=0.05)
+    with pytest.raises(DataError, match="too short"):
+        diagnose(get_system("cartpole"), [short], settings=QUICK_SETTINGS)
+
+
+def test_selftest_table_lists_every_case():
+    assert len({case_key(c) for c in CASES}) == len(CASES)
+    assert {c.expect for c in CASES} == {"effects", "no gap", "unexplained"}
+    assert any(len(c.inject) == 2 for c in CASES)
+    rows = [{"case": "x", "found": "-", "verdict": "no gap", "match": "-", "param_error": None,
+             "gap_closed": None, "pass": True, "seconds": 1.0}]
+    assert "param err %" in table(rows)
+
+
+@pytest.mark.slow
+def test_full_selftest_passes():
+    from learnest_codegen.diagnosis_selftest import run_selftest
+
+    rows = run_selftest(progress=False)
+    assert all(r["pass"] for r in rows), table(rows)
+
+
+def _real(name: str):
+    root = data_root()
+    if root is None or not (root / name).is_dir():
+        pytest.skip(f"real recordings {name!r} not found (../shared/data/{name})")
+    return root / name
+
+
+@pytest.mark.slow
+def test_real_rc_car_recordings(tmp_path):
+    folder = _real("dart")
+    system, runs = load(None, folder, "dart")
+    d = diagnose(system, runs[:2], settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    assert d.report["verdict"] != "no gap"  # the prior has no friction, drag or motor curve
+    assert d.report["shrink"]["one_step"]["after"] <= d.report["shrink"]["one_step"]["before"]
+
+
+@pytest.mark.slow
+def test_real_crazyflie_flights(tmp_path):
+    folder = _real("nanobench")
+    system, runs = load(None, folder, "nanobench")
+    d = diagnose(system, runs[:3], settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    assert d.report["noise_floor"]["method"].startswith("calibration")
+    names = {e.name for e in d.effects}
+    assert all(e["name"] in names for e in d.report["effects"])
+    one = d.report["shrink"]["one_step"]["rms_over_floor"]
+    assert one["corrected"] <= one["prior"] * 1.05  # held-out flight: never much worse
+
+
+def test_knode_model_is_compared(cartpole):
+    """The learned residual of a (briefly) trained model is set against the measured one."""
+    from learnest_codegen.training import TrainingSettings, train_on_run
+
+    run = simulate(cartpole, seed=3, duration=3.0)
+    model = train_on_run(run, cartpole, TrainingSettings(epochs=2, refine=0), progress=False)
+    d = diagnose(cartpole, [run], model=model, settings=QUICK_SETTINGS)
+    knode = d.report["knode"]
+    assert set(knode) == {"pdot", "alphadot"}
+    r = d.residual[:, 1]
+    import torch
+
+    with torch.no_grad():
+        delta = model.net(torch.as_tensor(d.fit_pairs.x), torch.as_tensor(d.fit_pairs.u)).numpy()[:, 1]
+    assert knode["pdot"]["r2"] == pytest.approx(1 - np.mean((r - delta) ** 2) / np.var(r), rel=1e-9)
+    one = d.report["shrink"]["one_step"]
+    assert {"prior", "corrected", "knode", "true", "closed_knode"} <= set(one)
+
+
+USER_SYSTEM = '''
+import numpy as np
+from learnest_codegen import NoiseModel, Signal, System
+
+def dynamics(ops, x, u, p):
+    q, qdot = x
+    return [qdot, -p["k"] * ops.sin(q) - p["c"] * qdot + u[0]]
+
+SYSTEM = System(
+    name="my_pendulum",
+    states=(Signal("q", "rad"), Signal("qdot", "rad/s")),
+    inputs=(Signal("tau", "N m"),),
+    outputs=(Signal("q", "rad"),),
+    params={"k": 9.0, "c": 0.0},
+    true_params={"k": 9.0, "c": 0.3},
+    dynamics=dynamics,
+    measurement=lambda ops, x, u, p: [x[0]],
+    noise=NoiseModel(measurement_std=(0.01,), state_std=(0.01, 0.01),
+                     process_std=(1e-3, 1e-2), initial_std=(0.1, 0.1)),
+    dt=0.01, duration=5.0, x0=(0.5, 0.0),
+    excitation=lambda t, rng: np.sin(2 * t)[:, None],
+    periodic_states=("q",),
+)
+'''
+
+
+def test_user_system_file(tmp_path):
+    """The README's pendulum from a user's file: its missing damping is found, nothing else."""
+    path = tmp_path / "my_pendulum.py"
+    path.write_text(USER_SYSTEM)
+    run_csv = tmp_path / "run.csv"
+    runner = CliRunner()
+    assert runner.invoke(cli, ["simulate", "--system", str(path), "--out", str(run_csv)]).exit_code == 0
+    result = runner.invoke(cli, ["diagnose", "--system", str(path), "--data", str(run_csv), "--out",
+                                 str(tmp_path / "diag"), "--estimators", "", "--no-progress"],
+                           catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
+    (effect,) = report["effects"]
+    assert effect["kind"] == "viscous_friction" and effect["state"] == "qdot"
+    assert effect["params"]["c"] == pytest.approx(0.3, rel=1e-3)
+    assert "parameter(qdot via c)" in effect["aliases"]  # the prior's own damping term, at 0

@@ -1,0 +1,135 @@
+"""The effect library: coverage of the required kinds, backend parity, closed forms, exact features."""
+
+from __future__ import annotations
+
+import casadi as cs
+import numpy as np
+import pytest
+import torch
+
+from learnest_codegen import get_system
+from learnest_codegen.effect_fit import FitData, FitSettings, Pairs, block_bootstrap, one_step
+from learnest_codegen.effects import (
+    corrected_dynamics,
+    corrected_system,
+    describe_library,
+    library,
+    velocity_states,
+)
+from learnest_codegen.errors import ShapeError, UnknownNameError
+
+REQUIRED = {"mass", "viscous_friction", "coulomb_friction", "quadratic_drag", "actuator_gain",
+            "actuator_offset", "bias"}
+
+
+def test_cartpole_library_covers_the_required_kinds():
+    lib = library(get_system("cartpole"))
+    assert REQUIRED <= {e.kind for e in lib}
+    names = {e.name for e in lib}
+    # a cart friction is a force entering where the motor force does, and a direct term
+    assert {"viscous_friction(pdot via F)", "viscous_friction(pdot)", "mass(pdot via m_c)"} <= names
+    assert len(names) == len(lib)
+    assert "actuator_gain(pdot via F)" in describe_library(lib)
+
+
+def test_ground_robot_and_quadrotor_libraries():
+    ground = get_system("ground_robot")
+    assert velocity_states(ground) == {"v": "v"}  # psi is an angle, not a velocity
+    kinds = {e.kind for e in library(ground)}
+    assert REQUIRED - {"mass"} <= kinds  # the robot's mass enters only through the prior's zero drag
+    quad = get_system("quadrotor")
+    lib = {e.name: e for e in library(quad)}
+    assert velocity_states(quad) == {"vx": "ax", "vy": "ay", "vz": "az"}  # drag on v acts on a'
+    assert {"battery_thrust_loss(vbat on az)", "quadratic_drag(vx on ax)", "motor_lag(az)"} <= set(lib)
+    assert not any(e.kind == "actuator_gain" for e in lib.values())  # its prior ignores the inputs
+    with pytest.raises(UnknownNameError, match="unknown effect kinds"):
+        library(quad, kinds=("wind_shear",))
+
+
+def test_corrected_dynamics_agree_in_numpy_torch_casadi():
+    system = get_system("cartpole")
+    lib = library(system)
+    rng = np.random.default_rng(0)
+    thetas = rng.normal(0, 0.1, len(lib))
+    fixed = corrected_system(system, lib, thetas)
+    x, u = rng.normal(size=(7, 4)), rng.normal(size=(7, 1))
+    f_np = fixed.f(x, u)
+    f_torch = fixed.f(torch.as_tensor(x), torch.as_tensor(u)).numpy()
+    F = fixed.casadi_f()
+    f_cs = np.stack([np.asarray(F(a, b)).ravel() for a, b in zip(x, u)])
+    np.testing.assert_allclose(f_torch, f_np, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(f_cs, f_np, rtol=1e-12, atol=1e-12)
+
+
+def test_input_channel_effects_are_the_prior_at_the_perturbed_input():
+    system = get_system("cartpole")
+    lib = {e.name: e for e in library(system)}
+    c, gain, offset = 0.7, -0.2, 0.3
+    effects = [lib["viscous_friction(pdot via F)"], lib["actuator_gain(pdot via F)"],
+               lib["actuator_offset(pdot via F)"]]
+    fixed = corrected_system(system, effects, [c, gain, offset])
+    rng = np.random.default_rng(1)
+    x, u = rng.normal(size=(5, 4)), rng.normal(size=(5, 1))
+    force = u * (1 + gain) + offset - c * x[:, 1:2]  # closed form: F_eff = (1+g) F + b - c pdot
+    np.testing.assert_allclose(fixed.f(x, u), system.f(x, force), rtol=1e-13, atol=1e-13)
+    mass = corrected_system(system, [lib["mass(pdot via m_c)"]], [0.5])
+    np.testing.assert_allclose(mass.f(x, u), system.f(x, u, variant="true"), rtol=1e-13)
+    assert system.f(x, u).shape == mass.f(x, u).shape
+    np.testing.assert_allclose(mass.f(x, u, variant="true"), system.f(x, u, variant="true"))
+
+
+def test_features_are_the_derivative_of_the_rk4_residual():
+    system = get_system("ground_robot")
+    lib = library(system)
+    rng = np.random.default_rng(2)
+    z = np.column_stack([rng.normal(size=40), rng.normal(size=40), rng.uniform(1, 3, 40),
+                         rng.normal(size=40)])
+    pairs = Pairs.from_states([(np.arange(40) * 0.01, z, rng.normal(0, 0.2, (40, 2)))])
+    theta = rng.normal(0, 0.01, len(lib))
+    r, J = one_step(system, lib, theta, pairs)
+    h = 1e-6
+    for j in range(len(lib)):
+        up, down = theta.copy(), theta.copy()
+        up[j] += h
+        down[j] -= h
+        numeric = -(one_step(system, lib, up, pairs, False)[0]
+                    - one_step(system, lib, down, pairs, False)[0]) / (2 * h)
+        scale = max(1.0, np.abs(numeric).max())
+        np.testing.assert_allclose(J[:, :, j], numeric, rtol=1e-5, atol=1e-6 * scale)
+    casadi_residual = (z[1:] - np.stack([
+        np.asarray(cs.Function("F", *_rk4(system, 0.01))(a, b)).ravel() for a, b in zip(z[:-1], pairs.u)
+    ])) / 0.01
+    r0 = one_step(system, lib, np.zeros(len(lib)), pairs, False)[0]
+    psi = system.state_names.index("psi")
+    np.testing.assert_allclose(np.delete(r0, psi, 1), np.delete(casadi_residual, psi, 1), rtol=1e-9,
+                               atol=1e-9)
+
+
+def _rk4(system, dt):
+    from learnest_codegen.export import prior_model
+
+    model = prior_model(system)
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    return [x, u], [model.F(x, u)]
+
+
+def test_block_bootstrap_matches_least_squares_theory_on_white_noise():
+    rng = np.random.default_rng(0)
+    n = 8000
+    phi = rng.normal(size=(n, 1, 1))
+    R = 2.0 * phi[:, :, 0] + rng.normal(size=(n, 1))
+    data = FitData(R, phi, np.ones(1), np.zeros(1))
+    draws = block_bootstrap(data, FitSettings(bootstrap=1000, blocks=100))
+    theory = 1.0 / np.sqrt(np.sum(phi**2))  # OLS std with unit noise
+    # 100 blocks: the bootstrap's own std estimate scatters by about 1/sqrt(200) = 7 %
+    assert abs(draws.std() / theory - 1) < 0.2
+    assert abs(draws.mean() - 2.0) < 4 * theory
+
+
+def test_pairs_check_shapes():
+    with pytest.raises(ShapeError, match="expected t"):
+        Pairs.from_states([(np.arange(3.0), np.zeros((4, 2)), np.zeros((4, 1)))])
+    with pytest.raises(ShapeError, match="finite"):
+        Pairs.from_states([(np.arange(3.0), np.full((3, 2), np.nan), np.zeros((3, 1)))])
+    with pytest.raises(ValueError, match="2 effects but 1"):
+        corrected_dynamics(get_system("cartpole"), library(get_system("cartpole"))[:2], [0.1])
