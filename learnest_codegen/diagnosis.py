@@ -476,18 +476,47 @@ def _step_json(effects: Sequence[Effect], step: dict | None) -> dict | None:
 
 
 def _effects_json(system: System, effects: Sequence[Effect], fit: EffectFit) -> list[dict]:
-    out = []
+    """One entry per selected effect; the columns of a multi-parameter effect (``Effect.group``)
+    are one entry with all their parameters (and, for the ``a/X`` + ``1/X`` pattern of a gain over
+    a time constant, the derived ``X`` and ``a`` under ``"derived"``)."""
+    out, done = [], set()
+    t_of = {st["index"]: float(st["t"]) for st in fit.steps}
     for k, j in enumerate(fit.chosen):
         e = effects[j]
-        params = {e.param: float(fit.theta[k])}
+        if e.group and e.group in done:
+            continue
+        ks = [i for i, jj in enumerate(fit.chosen) if effects[jj].group == e.group] if e.group else [k]
+        cols = [effects[fit.chosen[i]] for i in ks]
+        params = {c.param: float(fit.theta[i]) for c, i in zip(cols, ks)}
         how, target = e.channel.split(":", 1)
         if how == "param":
             params[target] = float(system.params[target] + fit.theta[k])
-        out.append({"kind": e.kind, "state": e.state, "channel": e.channel, "name": e.name,
-                    "params": params, "uncertainty": {e.param: float(fit.theta_std[k])},
-                    "units": {e.param: e.unit}, "explained": float(fit.explained[k]),
-                    "score": float(fit.scores[k]), "t": float(fit.steps[k]["t"]),
-                    "aliases": [effects[i].name for i in fit.aliases[k]], "description": e.description})
+        entry = {"kind": e.kind, "state": e.state, "channel": e.channel,
+                 "name": f"{e.group}({target})" if e.group else e.name,
+                 "params": params,
+                 "uncertainty": {c.param: float(fit.theta_std[i]) for c, i in zip(cols, ks)},
+                 "units": {c.param: c.unit for c in cols},
+                 "explained": float(sum(fit.explained[i] for i in ks)),
+                 "score": float(fit.scores[k]), "t": t_of.get(j, float("nan")),
+                 "aliases": sorted({effects[a].name for i in ks for a in fit.aliases[i]
+                                    if effects[a].group != e.group or not e.group}),
+                 "description": "; ".join(c.description for c in cols)}
+        if e.group:
+            done.add(e.group)
+            from .effects import DERIVED
+
+            rates = [p for p in params if p.startswith("1/")] if e.group not in DERIVED else []
+            derived = DERIVED[e.group](params) if e.group in DERIVED else {}
+            for rate in rates:
+                x = rate[2:]
+                if params[rate] != 0:
+                    derived[x] = 1.0 / params[rate]
+                    for p, v in params.items():
+                        if p.endswith("/" + x) and p != rate:
+                            derived[p[:-len(x) - 1]] = v / params[rate]
+            if derived:
+                entry["derived"] = derived
+        out.append(entry)
     return sorted(out, key=lambda d: -d["explained"])
 
 

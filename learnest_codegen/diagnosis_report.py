@@ -148,7 +148,7 @@ def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
               "| effect | parameters | +- (block bootstrap) | explained (held out) | score alone | aliases |",
               "|---|---|---|---|---|---|"]
     for e in r["effects"]:
-        params = ", ".join(f"{k} = {v:.4g}" for k, v in e["params"].items())
+        params = ", ".join(f"{k} = {v:.4g}" for k, v in {**e["params"], **e.get("derived", {})}.items())
         unc = ", ".join(f"{k}: {v:.2g} {e['units'][k]}" for k, v in e["uncertainty"].items())
         lines.append(f"| {e['name']} | {params} | {unc} | {e['explained']:.0%} | {e['score']:.0%} | "
                      f"{', '.join(e['aliases']) or '-'} |")

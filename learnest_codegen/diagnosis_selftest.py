@@ -12,7 +12,11 @@ and scores the outcome:
   ``extra_tolerance`` of the gap;
 * **parameter error** - relative error of each fitted parameter against the injected one;
 * **gap closed** - the held-out one-step gap closed by the corrected prior;
-* the exact prior must give "no gap"; an outside-library effect must give "unexplained".
+* the exact prior must give "no gap"; an outside-library effect must give "unexplained" and
+  name no effect that explains more than ``extra_tolerance`` of the gap. A *weak* outside effect
+  (:attr:`Case.accept`) may also be "no gap": under the observer (``--source observer``) it can
+  lie below the noise floor, and saying "no gap" then is honest, while naming a library effect
+  never is. The table's "expect" column shows the accepted verdicts.
 
 Injected library effects go through :func:`~learnest_codegen.effects.corrected_dynamics` (the
 same physical forms the library offers: a cart friction is a force on the cart, entering where
@@ -48,7 +52,11 @@ class Case:
     outside : optional ``fn(ops, x, u, p) -> list`` added to the true derivative (not in the library).
     expect : ``"effects"``, ``"no gap"`` or ``"unexplained"``.
     true_params : optional changes of the true parameters (e.g. the built-in drag ``C_D``).
-    expect_names : when ``true_params`` is used, the effects (and parameters) that should be found.
+    expect_names : when ``true_params`` or ``builtin_truth`` is used, the effects (and their
+        first parameters) that should be found.
+    builtin_truth : diagnose the built-in system as it is (its own true dynamics).
+    accept : for ``expect`` other than ``"effects"``, every verdict that passes (default: only
+        ``expect``); e.g. ``("unexplained", "no gap")`` for an outside effect near the noise floor.
     """
 
     system: str
@@ -58,21 +66,33 @@ class Case:
     expect: str = "effects"
     true_params: tuple[tuple[str, float], ...] = ()
     expect_names: tuple[tuple[str, float], ...] = ()
+    accept: tuple[str, ...] = ()
+    builtin_truth: bool = False
+
+    @property
+    def accepted(self) -> tuple[str, ...]:
+        """The verdicts that pass a case without expected effects."""
+        return self.accept or (self.expect,)
 
     @property
     def expected(self) -> tuple[tuple[str, float], ...]:
         return self.expect_names or self.inject
 
 
-def _cogging(ops, x, u, p):
-    """Cart cogging / a bumpy track: 0.8 sin(2 pi p / 0.25 m) N on the cart (outside the library)."""
-    return 0.8 * ops.sin(2 * ops.pi * x[0] / 0.25)
+def _cogging(amplitude: float) -> Callable:
+    """Cart cogging / a bumpy track: ``amplitude sin(2 pi p / 0.25 m)`` N on the cart, as true
+    dynamics (outside the library: nothing in it depends on the cart's position).
 
+    Strengths: with the truth as source both 0.8 N and 3 N are far above the floor. Through the
+    observer (``[p, alpha]`` measured, RTS-smoothed) 0.8 N is below the observer's noise floor on
+    ``pdot'`` (verdict "no gap"); 3 N is clearly above it.
+    """
+    def dynamics(ops, x, u, p):
+        from .systems.cartpole import dynamics as prior
 
-def _cartpole_outside(ops, x, u, p, prior=None):
-    from .systems.cartpole import dynamics
+        return prior(ops, x, [u[0] + amplitude * ops.sin(2 * ops.pi * x[0] / 0.25)], p)
 
-    return dynamics(ops, x, [u[0] + _cogging(ops, x, u, p)], p)
+    return dynamics
 
 
 def _wind(ops, x, u, p):
@@ -101,8 +121,10 @@ CASES: tuple[Case, ...] = (
          (("mass(pdot via m_c)", 0.5), ("viscous_friction(pdot via F)", 1.0))),
     Case("cartpole", "gain -20 % & Coulomb 0.5 N",
          (("actuator_gain(pdot via F)", -0.2), ("coulomb_friction(pdot via F)", 0.5))),
-    Case("cartpole", "cogging 0.8 N sin(2 pi p/0.25 m) (outside)", outside=_cartpole_outside,
+    Case("cartpole", "cogging 3 N sin(2 pi p/0.25 m) (outside)", outside=_cogging(3.0),
          expect="unexplained"),
+    Case("cartpole", "weak cogging 0.8 N sin(2 pi p/0.25 m) (outside)", outside=_cogging(0.8),
+         expect="unexplained", accept=("unexplained", "no gap")),
     Case("ground_robot", "exact prior", expect="no gap"),
     Case("ground_robot", "drag C_D 1.05 (built-in)", true_params=(("C_D", 1.05),),
          expect_names=(("quadratic_drag(v)", _K_DRAG),)),
@@ -120,11 +142,17 @@ CASES: tuple[Case, ...] = (
     Case("ground_robot", "steering gain -10 % & throttle offset 0.2 m/s^2",
          (("actuator_gain(psi via delta)", -0.1), ("actuator_offset(v via a)", 0.2))),
     Case("ground_robot", "wind 0.3 m/s^2 cos(psi - 0.5) (outside)", outside=_wind, expect="unexplained"),
+    # The built-in quadrotor truth: motor lag tau 0.05 s, battery-scaled thrust k_T 11.4, rotor
+    # drag k_D 0.35 1/s -> thrust_response k_T/tau = 228, plus the gravity term the drag's
+    # -k_D a leaves: bias(az) = k_D g = 3.4335 m/s^3 (see effects._quadrotor_effects).
+    Case("quadrotor", "motor lag + battery thrust + rotor drag (built-in)", builtin_truth=True,
+         expect_names=(("thrust_response(ax,ay,az)", 11.4 / 0.05), ("bias(az)", 0.35 * 9.81))),
 )
 
 # The default test suite runs these (one effect per system, the exact prior, the outside effect).
 QUICK = ("cartpole: cart mass +0.5 kg (built-in)", "cartpole: exact prior",
-         "cartpole: cogging 0.8 N sin(2 pi p/0.25 m) (outside)", "ground_robot: drag C_D 1.05 (built-in)")
+         "cartpole: cogging 3 N sin(2 pi p/0.25 m) (outside)", "ground_robot: drag C_D 1.05 (built-in)",
+         "quadrotor: motor lag + battery thrust + rotor drag (built-in)")
 
 
 def case_key(case: Case) -> str:
@@ -178,6 +206,8 @@ def _speed_loop(system: System, truth: System, base: Callable) -> Callable:
 def true_system(case: Case) -> System:
     """The case's prior (:func:`prior_system`) whose true dynamics carry the withheld effects."""
     system = prior_system(case)
+    if case.builtin_truth:
+        return system
     exact = dataclasses.replace(system, true_params=system.params, true_dynamics=system.dynamics)
     if case.true_params:
         return dataclasses.replace(exact, true_params={**system.params, **dict(case.true_params)})
@@ -226,10 +256,12 @@ def run_case(case: Case, settings: DiagnosisSettings, seed: int = 1, extra_toler
              and not expected_names & set(e["aliases"]) and e["explained"] > extra_tolerance]
     if case.expect == "effects":
         ok = all(matched) and not extra and report["verdict"] in ("explained", "partly explained")
-    else:
-        ok = report["verdict"] == case.expect
+    else:  # no named effect may explain a noticeable part of the gap
+        named = [e for e in report["effects"] if e["explained"] > extra_tolerance]
+        ok = report["verdict"] in case.accepted and not named
     one = report["shrink"]["one_step"]
-    return {"case": case_key(case), "injected": case.label, "expect": case.expect,
+    return {"case": case_key(case), "injected": case.label,
+            "expect": "effects" if case.expect == "effects" else " or ".join(case.accepted),
             "found": ", ".join(f"{e['name']} {next(iter(e['params'].values())):.4g}"
                                for e in report["effects"]) or "-",
             "match": ("exact" if all(k == "exact" for k in kinds) else
@@ -267,6 +299,7 @@ def table(rows: Sequence[dict]) -> str:
               "gap_closed": None if r["gap_closed"] is None else 100 * r["gap_closed"],
               "pass": "yes" if r["pass"] else "NO"} for r in rows]
     cols = [("case", "system: effect injected", "s"), ("found", "effect found", "s"),
-            ("verdict", "verdict", "s"), ("match", "match", "s"), ("param_error", "param err %", ".2f"),
+            ("verdict", "verdict", "s"), ("expect", "expected", "s"), ("match", "match", "s"),
+            ("param_error", "param err %", ".2f"),
             ("gap_closed", "gap closed %", ".1f"), ("pass", "pass", "s"), ("seconds", "s", ".1f")]
     return format_table(shown, cols)

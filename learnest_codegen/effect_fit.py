@@ -336,21 +336,24 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
     data0 = weighted(r, J, rows, sigma, spurious)
     first = baseline(data0, settings)
     gap, total, pool, duplicates = first.gap, first.total, first.pool, first.duplicates
+    groups = _groups(effects)
+    # a multi-parameter effect (a group) is a candidate as a whole, through its first column
+    pool = [j for j in pool if groups[j][0] == j and all(k in pool for k in groups[j])]
     chosen, steps, rejected, dropped = [], [], None, set()
     data = data0
     while len(chosen) < settings.max_effects:
-        sel = _next(data, chosen, [j for j in pool if j not in dropped], gap, settings)
+        sel = _next(data, chosen, [j for j in pool if j not in dropped], gap, settings, groups)
         if sel["accept"] is False:
             rejected = sel
             break
-        chosen.append(sel["index"])
+        chosen.extend(groups[sel["index"]])
         steps.append(sel)
         theta = _gauss_newton(system, effects, theta, chosen, pairs, rows, sigma, settings)
         r, J = one_step(system, effects, theta, pairs)
         data = weighted(r, J, rows, sigma, spurious)
         # Backward check: an effect chosen early may be superseded by later ones (on a narrow
         # speed range viscous friction first stands in for drag plus Coulomb friction).
-        while (drop := _superseded(data, theta, chosen, gap, settings)) is not None:
+        while (drop := _superseded(data, theta, chosen, gap, settings, groups)) is not None:
             chosen.remove(drop)
             dropped.add(drop)  # never re-entered: no add/drop cycles
             steps = [st for st in steps if st["index"] != drop]
@@ -362,7 +365,9 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
     G, b, c = _grams(data, labels, settings.folds)
     explained_total = float(np.clip((total - _cv_sse(G, b, c, chosen).sum()) / gap, 0.0, 1.0)) \
         if chosen else 0.0
-    losses = np.array([max(_drop_loss(data, theta, chosen, j, settings).sum(), 0.0) for j in chosen])
+    # a group's columns share the loss of dropping the whole group
+    losses = np.array([max(_drop_loss(data, theta, chosen, groups[j], settings).sum(), 0.0)
+                       / len(groups[j]) for j in chosen])
     explained = (losses * explained_total / losses.sum() if losses.sum() > 0
                  else np.full(len(chosen), explained_total / max(len(chosen), 1)))
     sub = FitData(data.R, data.Phi[:, :, chosen], data.sigma, data.spurious[chosen])
@@ -374,57 +379,83 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
                       for j in chosen], duplicates)
 
 
-def _drop_loss(data: FitData, theta: np.ndarray, chosen: list[int], j: int,
+def _groups(effects: Sequence[Effect]) -> list[list[int]]:
+    """Per library index, the indices selected together with it (itself, or its group's)."""
+    by_name: dict[str, list[int]] = {}
+    for j, e in enumerate(effects):
+        if e.group:
+            by_name.setdefault(e.group, []).append(j)
+    return [by_name[e.group] if e.group else [j] for j, e in enumerate(effects)]
+
+
+def _drop_loss(data: FitData, theta: np.ndarray, chosen: list[int], j: int | list[int],
                settings: FitSettings) -> np.ndarray:
-    """Per-fold increase of the held-out SSE when effect ``j`` is dropped (linearised at theta)."""
+    """Per-fold increase of the held-out SSE when effect ``j`` (or the columns ``j``) is dropped
+    (linearised at theta)."""
+    js = [j] if isinstance(j, (int, np.integer)) else list(j)
     labels = _fold_labels(data.R.shape[0], settings.folds)
     G, b, c = _grams(data, labels, settings.folds)
-    without = FitData(data.R + data.Phi[:, :, j] * theta[j], data.Phi, data.sigma, data.spurious)
+    without = FitData(data.R + sum(data.Phi[:, :, k] * theta[k] for k in js), data.Phi, data.sigma,
+                      data.spurious)
     Gj, bj, cj = _grams(without, labels, settings.folds)
-    return _cv_sse(Gj, bj, cj, [i for i in chosen if i != j]) - _cv_sse(G, b, c, chosen)
+    return _cv_sse(Gj, bj, cj, [i for i in chosen if i not in js]) - _cv_sse(G, b, c, chosen)
 
 
 def _superseded(data: FitData, theta: np.ndarray, chosen: list[int], gap: float,
-                settings: FitSettings) -> int | None:
-    """The chosen effect whose removal costs least, if that cost fails the entry tests."""
+                settings: FitSettings, groups: list[list[int]] | None = None) -> int | None:
+    """The chosen effect whose removal costs least, if that cost fails the entry tests (the
+    columns of a multi-parameter effect stay: they are entered and judged together)."""
     if len(chosen) < 2:
         return None
     full = _cv_sse(*_grams(data, _fold_labels(data.R.shape[0], settings.folds), settings.folds), chosen)
     costs = {}
     for j in chosen:
+        if groups is not None and len(groups[j]) > 1:
+            continue
         loss = _drop_loss(data, theta, chosen, j, settings)
         rel = loss / np.maximum(full + loss, 1e-300)  # over the smaller model's SSE, as on entry
         t_stat = rel.mean() / max(rel.std(ddof=1) / np.sqrt(len(rel)), 1e-300)
         costs[j] = (loss.sum() / gap, t_stat)
+    if not costs:
+        return None
     j = min(costs, key=lambda k: costs[k][0])
     gain, t_stat = costs[j]
     return j if (t_stat <= settings.t_min or gain <= settings.min_gain) else None
 
 
-def _next(data: FitData, chosen: list[int], pool: list[int], gap: float, settings: FitSettings) -> dict:
+def _next(data: FitData, chosen: list[int], pool: list[int], gap: float, settings: FitSettings,
+          groups: list[list[int]] | None = None) -> dict:
     """The next candidate: of the ``settings.scan`` best by held-out SSE, the first that passes the
-    three tests of the module docstring; else the best one, marked not accepted."""
+    three tests of the module docstring; else the best one, marked not accepted. A candidate
+    with a group (``groups[j]``) enters with all its columns."""
+    cols = (lambda j: groups[j]) if groups is not None else (lambda j: [j])
     labels = _fold_labels(data.R.shape[0], settings.folds)
     G, b, c = _grams(data, labels, settings.folds)
     base = _cv_sse(G, b, c, chosen)
-    trials = {j: _cv_sse(G, b, c, chosen + [j]) for j in pool if j not in chosen}
+    trials = {j: _cv_sse(G, b, c, chosen + cols(j)) for j in pool if j not in chosen}
     if not trials:
         return {"accept": False, "index": None, "reason": "library exhausted"}
     ranked = sorted(trials, key=lambda k: trials[k].sum())[:settings.scan]
-    steps = [_test(data, chosen, j, base, trials[j], gap, settings) for j in ranked]
+    steps = [_test(data, chosen, j, base, trials[j], gap, settings, cols(j)) for j in ranked]
     return next((st for st in steps if st["accept"]), steps[0])
 
 
 def _test(data: FitData, chosen: list[int], j: int, base: np.ndarray, trial: np.ndarray, gap: float,
-          settings: FitSettings) -> dict:
+          settings: FitSettings, cols: list[int] | None = None) -> dict:
     gains = base - trial
     # Fold gains relative to the fold's own residual: a deterministic effect that grows with the
     # regime (drag ~ v^2) gains very different absolute amounts in different folds, but a
     # consistent fraction in each.
     relative = gains / np.maximum(base, 1e-300)
     t_stat = float(relative.mean() / max(relative.std(ddof=1) / np.sqrt(len(relative)), 1e-300))
-    size = float(_term_size(data, chosen + [j])[-1])
-    need = max(settings.min_size, settings.spurious_factor * float(data.spurious[j]))
+    cols = cols or [j]
+    if len(cols) == 1:
+        size = float(_term_size(data, chosen + [j])[-1])
+    else:  # the size of the group's combined term (its columns may nearly cancel)
+        P = data.Phi[:, :, chosen + cols].reshape(-1, len(chosen) + len(cols))
+        th = np.linalg.lstsq(P, data.R.ravel(), rcond=None)[0]
+        size = float(np.sqrt(np.mean((P[:, len(chosen):] @ th[len(chosen):]) ** 2)))
+    need = max(settings.min_size, settings.spurious_factor * float(max(data.spurious[k] for k in cols)))
     step = {"index": j, "t": t_stat, "gain": float(gains.sum() / gap), "size": size, "size_needed": need}
     reasons = [why for ok, why in ((t_stat > settings.t_min, "not consistent across folds"),
                                    (step["gain"] > settings.min_gain, "explains too little"),

@@ -10,7 +10,13 @@ with one parameter (value and unit) and a *channel* through which it enters the 
 * ``param:<p>`` - a change of a prior parameter (``m_c + dm``): "scaling of the prior's own
   terms" for masses and inertias, exact and nonlinear in the parameter.
 * ``direct:<s>`` - a term added to the derivative of state ``s`` only (a bias, or a damping of a
-  velocity that no input drives).
+  velocity that no input drives); ``direct:<s1>,<s2>,...`` - a list of terms, one per state, with
+  one shared parameter (a thrust gain common to all three axes).
+
+An effect with several parameters is a *group* of one-parameter columns (``Effect.group``) that
+the selection enters and reports together, e.g. the quadrotor's ``thrust_response``
+``(k T - a) / tau`` = ``(k/tau) T - (1/tau) a``: each column alone explains nothing when the two
+nearly cancel (hover: ``k T ~ a + g``), their difference is the signature.
 
 The corrected dynamics are ``f(x, u + sum du, p + sum dp) + sum direct``, written once against the
 ``ops`` backend (:func:`corrected_dynamics`), so a corrected prior runs in numpy, torch and CasADi
@@ -81,6 +87,7 @@ class Effect:
     term: Term = field(compare=False, repr=False)
     description: str = ""
     variable: str = ""  # the state it depends on, when not ``state`` (drag on vx acting on ax')
+    group: str = ""  # effects of one group are selected together (one multi-parameter effect)
 
     @property
     def name(self) -> str:
@@ -116,6 +123,8 @@ class LibraryContext:
 
 KindBuilder = Callable[[System, LibraryContext], list]
 KINDS: dict[str, KindBuilder] = {}
+# physical parameters derived from a multi-parameter effect's fitted ones: group -> fn(params) -> dict
+DERIVED: dict[str, Callable[[Mapping[str, float]], dict]] = {}
 _SYSTEM_EFFECTS: dict[str, KindBuilder] = {}
 
 
@@ -391,6 +400,10 @@ def corrected_dynamics(system: System, effects: Sequence[Effect], thetas: Sequen
                 u2[j] = u2[j] + value
             elif how == "param":
                 p2[target] = p2[target] + value
+            elif "," in target:
+                for name, v in zip(target.split(","), value):
+                    i = states.index(name)
+                    extra[i] = extra[i] + v
             else:
                 i = states.index(target)
                 extra[i] = extra[i] + value
@@ -408,12 +421,24 @@ def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
     * ``battery_thrust_loss``: ``theta T_i (vbat - V_NOM)`` - thrust per command falls as the
       battery drains (``V_NOM = 3.5 V``) [m/s^3 per unit throttle per V];
     * ``motor_lag``: ``-theta a_i`` - the acceleration relaxing towards the command with the
-      motors' time constant, ``theta = 1 / tau`` [1/s].
+      motors' time constant, ``theta = 1 / tau`` [1/s];
+    * ``thrust_response`` (all axes, three parameters, one group): the motors' first-order
+      response to the commanded thrust, with the rotor drag in the force balance,
+      ``a' = (k_T (vbat / V_NOM) T - g e3 - k_D v - a) / tau``, written linearly as
+      ``(k_T/tau) (vbat / V_NOM) T - (1/tau) (a + g e3) - (k_D/tau) v``: a shared thrust gain over
+      time constant [m/s^3 per unit throttle], a shared rate ``1/tau`` [1/s] and drag over time
+      constant [1/s^2]. In flight the terms nearly cancel (``k_T T ~ a + g e3 + k_D v``), so only
+      together do they explain the jerk; the diagnosis also reports ``tau``, ``k_T`` and ``k_D``.
+      The drag is part of the group because without it the thrust balance is off by ``k_D v``,
+      which on a 1 m/s flight is several times the jerk itself, and the two-parameter fit then
+      lands on the degenerate direction ``k_T/tau ~ k_T (1/tau)`` (seen on the simulated
+      quadrotor: ``k/tau = -35``, ``1/tau = -3``). The drag's own ``-k_D a`` is absorbed in
+      ``1/tau`` (``1/tau + k_D``, 0.35 of 20 1/s in the simulation).
     """
     try:
-        from .systems.quadrotor import V_NOM
-    except ImportError:  # the system file may be a user's copy; the nominal voltage is the same
-        V_NOM = 3.5
+        from .systems.quadrotor import GRAVITY, V_NOM
+    except ImportError:  # the system file may be a user's copy; the constants are the same
+        GRAVITY, V_NOM = 9.81, 3.5
     out = []
     names = system.state_names
     axes = [(f"a{a}", f"T{a}") for a in ("x", "y", "z")]
@@ -432,10 +457,47 @@ def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
             Effect("motor_lag", s, f"direct:{s}", "1/tau", "1/s", lambda ops, x, u, th, i=i: -th * x[i],
                    f"{s} relaxes with the motors' time constant"),
         ]
+    acc = [names.index(s) for s, _ in axes]
+    thr = [system.input_names.index(t) for _, t in axes]
+    target = "direct:" + ",".join(s for s, _ in axes)
+    out += [
+        Effect("thrust_response", "az", target, "k/tau", "(m/s^2)/s",
+               lambda ops, x, u, th: [th * u[j] * u[jb] / V_NOM for j in thr],
+               "thrust response: gain over time constant on the commanded thrust (vbat / V_NOM) T",
+               "T", group="thrust_response"),
+        Effect("thrust_response", "az", target, "1/tau", "1/s",
+               lambda ops, x, u, th: [-th * x[i] - (th * GRAVITY if k == 2 else 0.0)
+                                      for k, i in enumerate(acc)],
+               "thrust response: the acceleration (plus gravity) relaxing at rate 1/tau",
+               "a", group="thrust_response"),
+        Effect("thrust_response", "az", target, "k_D/tau", "1/s^2",
+               lambda ops, x, u, th: [-th * x[i - 3] for i in acc],
+               "thrust response: rotor drag k_D v in the thrust balance, over tau",
+               "v", group="thrust_response"),
+    ]
     return out
 
 
 register_system_effects("quadrotor", _quadrotor_effects)
+
+
+def _thrust_response_physical(p: Mapping[str, float]) -> dict:
+    """``tau``, ``k_T``, ``k_D`` from the fitted ``c = k_T/tau``, ``b = 1/tau + k_D``, ``d = k_D/tau``.
+
+    The rate column also carries the drag's ``-k_D a`` (see :func:`_quadrotor_effects`), so
+    ``tau`` solves ``d tau^2 - b tau + 1 = 0`` (the root near ``1/b``); with no drag ``tau = 1/b``.
+    """
+    import math
+
+    b, c, d = p["1/tau"], p["k/tau"], p["k_D/tau"]
+    if b <= 0:
+        return {}
+    disc = b * b - 4 * d
+    tau = 1.0 / b if abs(d) < 1e-12 * b * b or disc < 0 else (b - math.sqrt(disc)) / (2 * d)
+    return {"tau": tau, "k_T": c * tau, "k_D": d * tau}
+
+
+DERIVED["thrust_response"] = _thrust_response_physical
 
 
 def corrected_system(system: System, effects: Sequence[Effect], thetas: Sequence[float]) -> System:

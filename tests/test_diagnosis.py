@@ -137,7 +137,8 @@ def test_selftest_table_lists_every_case():
     assert len({case_key(c) for c in CASES}) == len(CASES)
     assert {c.expect for c in CASES} == {"effects", "no gap", "unexplained"}
     assert any(len(c.inject) == 2 for c in CASES)
-    rows = [{"case": "x", "found": "-", "verdict": "no gap", "match": "-", "param_error": None,
+    rows = [{"case": "x", "found": "-", "verdict": "no gap", "expect": "no gap", "match": "-",
+             "param_error": None,
              "gap_closed": None, "pass": True, "seconds": 1.0}]
     assert "param err %" in table(rows)
 
@@ -239,3 +240,16 @@ def test_user_system_file(tmp_path):
     assert effect["kind"] == "viscous_friction" and effect["state"] == "qdot"
     assert effect["params"]["c"] == pytest.approx(0.3, rel=1e-3)
     assert "parameter(qdot via c)" in effect["aliases"]  # the prior's own damping term, at 0
+
+
+def test_quadrotor_thrust_response_physical_parameters():
+    """On the simulated quadrotor the grouped thrust_response recovers tau, k_T, k_D of its truth."""
+    from learnest_codegen.systems.quadrotor import K_DRAG, K_T, TAU_MOTOR
+
+    quad = get_system("quadrotor")
+    d = diagnose(quad, [simulate(quad, seed=2, duration=10.0)], settings=QUICK_SETTINGS)
+    effect = next(e for e in d.report["effects"] if e["kind"] == "thrust_response")
+    assert set(effect["params"]) == {"k/tau", "1/tau", "k_D/tau"}
+    got = effect["derived"]
+    np.testing.assert_allclose([got["tau"], got["k_T"], got["k_D"]], [TAU_MOTOR, K_T, K_DRAG], rtol=1e-3)
+    assert d.report["verdict"] == "explained" and d.report["shrink"]["one_step"]["closed"] > 0.99

@@ -133,3 +133,24 @@ def test_pairs_check_shapes():
         Pairs.from_states([(np.arange(3.0), np.full((3, 2), np.nan), np.zeros((3, 1)))])
     with pytest.raises(ValueError, match="2 effects but 1"):
         corrected_dynamics(get_system("cartpole"), library(get_system("cartpole"))[:2], [0.1])
+
+
+def test_quadrotor_thrust_response_is_the_true_dynamics():
+    """thrust_response (k_T/tau, 1/tau + k_D, k_D/tau) plus bias(az) = k_D g is, algebraically,
+    the quadrotor's true motor-lag / battery-thrust / rotor-drag dynamics; and the physical
+    parameters are recovered from the fitted ones."""
+    from learnest_codegen.effects import DERIVED
+    from learnest_codegen.systems.quadrotor import GRAVITY, K_DRAG, K_T, TAU_MOTOR
+
+    quad = get_system("quadrotor")
+    lib = {e.name: e for e in library(quad)}
+    group = [e for e in lib.values() if e.group == "thrust_response"]
+    assert [e.param for e in group] == ["k/tau", "1/tau", "k_D/tau"]
+    thetas = [K_T / TAU_MOTOR, 1 / TAU_MOTOR + K_DRAG, K_DRAG / TAU_MOTOR, K_DRAG * GRAVITY]
+    corrected = corrected_system(quad, [*group, lib["bias(az)"]], thetas)
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(50, 9))
+    u = np.hstack([rng.uniform(0, 1, (50, 3)), rng.uniform(3.3, 3.8, (50, 1))])
+    np.testing.assert_allclose(corrected.f(x, u), quad.f(x, u, variant="true"), rtol=1e-12, atol=1e-9)
+    phys = DERIVED["thrust_response"](dict(zip(["k/tau", "1/tau", "k_D/tau"], thetas)))
+    np.testing.assert_allclose([phys["tau"], phys["k_T"], phys["k_D"]], [TAU_MOTOR, K_T, K_DRAG], rtol=1e-12)
