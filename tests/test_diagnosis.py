@@ -198,36 +198,11 @@ def test_knode_model_is_compared(cartpole):
     assert {"prior", "corrected", "knode", "true", "closed_knode"} <= set(one)
 
 
-USER_SYSTEM = '''
-import numpy as np
-from learnest_codegen import NoiseModel, Signal, System
-
-def dynamics(ops, x, u, p):
-    q, qdot = x
-    return [qdot, -p["k"] * ops.sin(q) - p["c"] * qdot + u[0]]
-
-SYSTEM = System(
-    name="my_pendulum",
-    states=(Signal("q", "rad"), Signal("qdot", "rad/s")),
-    inputs=(Signal("tau", "N m"),),
-    outputs=(Signal("q", "rad"),),
-    params={"k": 9.0, "c": 0.0},
-    true_params={"k": 9.0, "c": 0.3},
-    dynamics=dynamics,
-    measurement=lambda ops, x, u, p: [x[0]],
-    noise=NoiseModel(measurement_std=(0.01,), state_std=(0.01, 0.01),
-                     process_std=(1e-3, 1e-2), initial_std=(0.1, 0.1)),
-    dt=0.01, duration=5.0, x0=(0.5, 0.0),
-    excitation=lambda t, rng: np.sin(2 * t)[:, None],
-    periodic_states=("q",),
-)
-'''
 
 
-def test_user_system_file(tmp_path):
+def test_user_system_file(tmp_path, user_system_file):
     """The README's pendulum from a user's file: its missing damping is found, nothing else."""
-    path = tmp_path / "my_pendulum.py"
-    path.write_text(USER_SYSTEM)
+    path = user_system_file
     run_csv = tmp_path / "run.csv"
     runner = CliRunner()
     assert runner.invoke(cli, ["simulate", "--system", str(path), "--out", str(run_csv)]).exit_code == 0

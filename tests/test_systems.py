@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import textwrap
-
 import casadi as cs
 import numpy as np
 import pytest
@@ -12,37 +10,6 @@ import torch
 from learnest_codegen import get_system
 from learnest_codegen.errors import LearnestError, ShapeError, SystemFileError, UnknownNameError
 from learnest_codegen.systems import SYSTEMS
-
-USER_SYSTEM = '''
-import numpy as np
-from learnest_codegen import NoiseModel, Signal, System
-
-def dynamics(ops, x, u, p):
-    q, qdot = x
-    return [qdot, -p["k"] * ops.sin(q) - p["c"] * qdot + u[0]]
-
-SYSTEM = System(
-    name="my_pendulum",
-    states=(Signal("q", "rad"), Signal("qdot", "rad/s")),
-    inputs=(Signal("tau", "N m"),),
-    outputs=(Signal("q", "rad"),),
-    params={"k": 9.0, "c": 0.0},
-    true_params={"k": 9.0, "c": 0.3},
-    dynamics=dynamics,
-    measurement=lambda ops, x, u, p: [x[0]],
-    noise=NoiseModel((0.01,), (0.01, 0.01), (1e-3, 1e-2), (0.1, 0.1)),
-    dt=0.01, duration=5.0, x0=(0.5, 0.0),
-    excitation=lambda t, rng: np.sin(2 * t)[:, None],
-    periodic_states=("q",),
-)
-'''
-
-
-@pytest.fixture
-def user_system_file(tmp_path):
-    path = tmp_path / "my_system.py"
-    path.write_text(textwrap.dedent(USER_SYSTEM))
-    return path
 
 
 def _systems(user_system_file):
