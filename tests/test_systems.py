@@ -30,16 +30,27 @@ def test_numpy_torch_casadi_agree(user_system_file, variant):
         np.testing.assert_allclose(h_cs, system.h(x, u), rtol=1e-12, atol=1e-12)
 
 
-def test_cartpole_matches_equation_13_at_rest():
-    """Pole upright, at rest, no force: an equilibrium; a force accelerates the cart by F/(mc+mp)
-    corrected for the pole's reaction, which the closed form below states independently."""
+def _cartpole_lagrangian(x, F, mc, mp=0.1, l=0.5, g=9.81):
+    """Accelerations of a cart and a uniform pole (half-length l, pivot inertia 4/3 mp l^2)
+    from the Lagrangian's mass matrix, solved numerically: an independent reference."""
+    _, _, a, ad = x
+    M = np.array([[mc + mp, mp * l * np.cos(a)], [mp * l * np.cos(a), 4 / 3 * mp * l**2]])
+    rhs = np.array([F + mp * l * ad**2 * np.sin(a), mp * g * l * np.sin(a)])
+    return np.linalg.solve(M, rhs)
+
+
+def test_cartpole_matches_lagrangian_mechanics():
+    """Both variants against the mass-matrix form of the Lagrangian, at random states; at rest and
+    upright with no force the cartpole is in equilibrium, and the heavier true cart accelerates less."""
     s = get_system("cartpole")
     np.testing.assert_allclose(s.f(np.zeros(4), np.zeros(1)), np.zeros(4), atol=1e-15)
-    F, mc, mp, l = 2.0, 1.0, 0.1, 0.5  # at alpha = 0: alpha_dd = -F/(l(4/3 - mp/(mc+mp)))
-    a_dd = -F / (l * (4 / 3 - mp / (mc + mp)))
-    p_dd = (F - mp * l * a_dd) / (mc + mp)
-    np.testing.assert_allclose(s.f(np.zeros(4), np.array([F])), [0, p_dd, 0, a_dd], rtol=1e-14)
-    assert s.f(np.zeros(4), np.array([F]), variant="true")[1] < p_dd  # heavier true cart
+    rng = np.random.default_rng(3)
+    for variant, mc in (("prior", 1.0), ("true", 1.5)):
+        for x, F in zip(rng.normal(size=(20, 4)) * [1, 2, 3, 5], rng.normal(size=20) * 10):
+            p_dd, a_dd = _cartpole_lagrangian(x, F, mc)
+            np.testing.assert_allclose(s.f(x, np.array([F]), variant=variant), [x[1], p_dd, x[3], a_dd],
+                                       rtol=1e-12, atol=1e-12)
+    assert s.f(np.zeros(4), np.array([2.0]), variant="true")[1] < s.f(np.zeros(4), np.array([2.0]))[1]
 
 
 def test_torch_gradients_flow():

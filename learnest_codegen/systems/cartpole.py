@@ -1,4 +1,4 @@
-"""Cartpole of the paper's eq. (13) (Florian's correct form of Barto et al.).
+"""Cartpole of the paper's eq. (13) in Florian's correct form (Barto et al.'s cartpole).
 
 State ``[p, pdot, alpha, alphadot]`` with ``alpha`` measured from the upright; input the force
 ``F`` on the cart; measurement ``[p, alpha]``. The prior model believes the cart weighs 1.0 kg,
@@ -13,13 +13,18 @@ from .base import KinematicChain, NoiseModel, Signal, System
 
 
 def dynamics(ops, x, u, p):
-    """Continuous cartpole dynamics, eq. (13); ``l`` is the pole's half-length."""
+    """Continuous cartpole dynamics (Florian's correct form); ``l`` is the pole's half-length.
+
+    The paper's eq. (13) as printed drops the ``1/(m_c + m_p)`` on the force term of
+    ``alpha_dd`` (it adds a force to an acceleration); this is the form of its cited source,
+    the Lagrangian of a cart and a uniform pole, which ``tests/test_systems.py`` checks.
+    """
     _, pdot, alpha, alphadot = x
     (force,) = u
     mc, mp, l, g = p["m_c"], p["m_p"], p["l"], p["g"]
     sin_a, cos_a = ops.sin(alpha), ops.cos(alpha)
     total = mc + mp
-    alpha_dd = (g * sin_a - cos_a * (force + mp * l * alphadot**2 * sin_a)) / (
+    alpha_dd = (g * sin_a - cos_a * (force + mp * l * alphadot**2 * sin_a) / total) / (
         l * (4.0 / 3.0 - mp * cos_a**2 / total)
     )
     p_dd = (force + mp * l * (alphadot**2 * sin_a - alpha_dd * cos_a)) / total
