@@ -8,6 +8,7 @@ constants are buffers saved with the weights and appear in the exported graph.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import casadi as cs
@@ -59,12 +60,23 @@ class ResidualNet(torch.nn.Module):
     Leaving out a coordinate the physics is invariant to (a ground robot's position and
     heading, a cart's position) keeps the net from keying on where the training run went and
     failing wherever the test run goes.
+
+    ``via`` (indices of inputs, with ``prior`` the prior dynamics ``f(x, u)`` in any backend)
+    makes the MLP's outputs input corrections instead: ``Delta(x, u) = prior(x, u + G mlp) -
+    prior(x, u)`` with ``G`` placing them at ``via``; ``outputs`` is then unused. See
+    :attr:`learnest_codegen.systems.System.residual_via_names`.
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
                  periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None,
-                 inputs: tuple[int, ...] | None = None):
+                 inputs: tuple[int, ...] | None = None, via: tuple[int, ...] | None = None,
+                 prior: Callable | None = None):
         super().__init__()
+        self.via = tuple(via or ())
+        if self.via and (prior is None or any(not 0 <= i < nu for i in self.via)):
+            raise ValueError(f"ResidualNet: via must index range({nu}) and needs the prior "
+                             f"dynamics; got via={self.via}, prior={prior}")
+        self.prior = prior
         self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
         self.outputs = tuple(range(nx)) if outputs is None else tuple(outputs)
         self.inputs = tuple(range(nx + nu)) if inputs is None else tuple(inputs)
@@ -75,7 +87,8 @@ class ResidualNet(torch.nn.Module):
             raise ValueError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
                              f"got {self.inputs}")
         n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs)
-        self.mlp = MultiLayerPerceptron(n_in, settings.hidden, len(self.outputs), settings.layers - 1,
+        n_out = len(self.via) or len(self.outputs)
+        self.mlp = MultiLayerPerceptron(n_in, settings.hidden, n_out, settings.layers - 1,
                                         settings.activation).double()
         self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
         self.register_buffer("in_scale", torch.ones(n_in, dtype=torch.float64))
@@ -100,6 +113,11 @@ class ResidualNet(torch.nn.Module):
         xu = torch.cat([x, u], dim=-1)
         feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos)
         out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        if self.via:
+            zero = torch.zeros_like(out[..., 0])
+            du = torch.stack([out[..., self.via.index(i)] if i in self.via else zero
+                              for i in range(self.nu)], dim=-1)
+            return self.prior(x, u + du) - self.prior(x, u)
         if len(self.outputs) == self.nx:
             return out
         zero = torch.zeros_like(out[..., 0])
@@ -112,6 +130,10 @@ class ResidualNet(torch.nn.Module):
         feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos))
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         out = self.mlp(z.T).T  # the naive MLP works on row vectors
+        if self.via:
+            du = cs.vertcat(*[out[self.via.index(i)] if i in self.via else cs.SX(0)
+                              for i in range(self.nu)])
+            return self.prior(x, u + du) - self.prior(x, u)
         if len(self.outputs) == self.nx:
             return out
         return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)

@@ -93,13 +93,22 @@ class TrainedModel:
 
 def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> ResidualNet:
     """An untrained residual net for ``system``: it sees ``system.residual_input_names`` (angles
-    as sine and cosine) and acts only on the derivatives of ``system.residual_state_names``."""
+    as sine and cosine) and acts through the inputs ``system.residual_via_names`` when there are
+    any, otherwise on the derivatives of ``system.residual_state_names``."""
     names = system.state_names
     periodic = tuple(names.index(n) for n in system.periodic_states)
     outputs = tuple(names.index(n) for n in system.residual_state_names)
     signals = [*names, *system.input_names]
     inputs = tuple(signals.index(n) for n in system.residual_input_names)
-    return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs)
+    via = tuple(system.input_names.index(n) for n in system.residual_via_names)
+    return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs, via,
+                       prior=system.f if via else None)
+
+
+def residual_structure(system: System) -> dict:
+    """What a residual net of ``system`` sees and where it acts (stored with a trained model)."""
+    return {"inputs": system.residual_input_names, "via": system.residual_via_names,
+            "states": [] if system.residual_via_names else system.residual_state_names}
 
 
 def data_hash(*arrays: np.ndarray) -> str:
@@ -159,6 +168,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     meta = {
         "system": system.name, "nx": system.nx, "nu": system.nu, "dt": dt,
         "network": settings.network.to_json(), "training": settings.to_json(),
+        "residual": residual_structure(system),
         "observer": observer, "data_hash": data_hash(zeta, u), "samples": int(zeta.shape[0]),
         "final_loss": final_loss, "prior_loss": prior_loss, "best_epoch": best[2],
         "loss_history": history, "validation_history": valid_history,
@@ -190,6 +200,10 @@ def load_model(directory: str | Path, system: System) -> TrainedModel:
         raise ModelMismatchError(f"model {directory} was trained for system {got[0]!r} "
                                  f"(nx={got[1]}, nu={got[2]}), not {system.name!r} "
                                  f"(nx={system.nx}, nu={system.nu})")
+    stored, expected = meta.get("residual"), residual_structure(system)
+    if stored is not None and stored != expected:
+        raise ModelMismatchError(f"model {directory} has residual structure {stored}, but system "
+                                 f"{system.name!r} now defines {expected}; retrain it")
     net = make_net(system, NetworkSettings(**meta["network"]))
     net.load_state_dict(torch.load(weights_path, weights_only=True))
     return TrainedModel(system, net, meta)

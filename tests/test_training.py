@@ -163,3 +163,50 @@ def test_residual_inputs_must_name_signals(cartpole):
         dataclasses.replace(cartpole, residual_inputs=("p", "nonsense"))
     with pytest.raises(ValueError, match="inputs must be a non-empty subset"):
         ResidualNet(4, 1, inputs=(7,))
+
+
+def test_a_heavier_cart_is_a_force_through_the_input(cartpole):
+    """Why the cartpole's residual acts via F: f_prior(x, F - Delta m_c * pdd_true) equals f_true
+    exactly (the mass only enters the cart's equation), at random states and forces."""
+    rng = np.random.default_rng(5)
+    x, u = rng.normal(size=(100, 4)) * [1, 2, 3, 5], rng.normal(size=(100, 1)) * 8
+    f_true = cartpole.f(x, u, variant="true")
+    dm = cartpole.true_params["m_c"] - cartpole.params["m_c"]
+    np.testing.assert_allclose(cartpole.f(x, u - dm * f_true[:, 1:2]), f_true, rtol=1e-12, atol=1e-12)
+
+
+def test_residual_via_an_input_is_an_input_correction(cartpole):
+    """With ``residual_via`` the net's output is a force: Delta = f(x, u + c) - f(x, u) for a net
+    that outputs the constant c, in torch and CasADi; it changes only the accelerations."""
+    assert cartpole.residual_via_names == ["F"]
+    net = make_net(cartpole)
+    with torch.no_grad():
+        for p in net.mlp.parameters():
+            p.zero_()
+        net.mlp.output_layer.bias.fill_(0.7)
+    rng = np.random.default_rng(6)
+    x, u = rng.normal(size=(40, 4)) * [1, 2, 3, 5], rng.normal(size=(40, 1)) * 5
+    want = cartpole.f(x, u + 0.7) - cartpole.f(x, u)
+    with torch.no_grad():
+        got = net(torch.tensor(x), torch.tensor(u)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert np.all(got[:, [0, 2]] == 0.0) and np.abs(got[:, [1, 3]]).min() > 0
+    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
+    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
+    np.testing.assert_allclose(fn.map(40)(x.T, u.T).full().T, want, rtol=1e-12, atol=1e-12)
+
+
+def test_residual_via_is_checked(cartpole, tmp_path):
+    with pytest.raises(ValueError, match="residual_via"):
+        dataclasses.replace(cartpole, residual_via=("pdot",))
+    with pytest.raises(ValueError, match="not both"):
+        dataclasses.replace(cartpole, residual_states=("pdot",))
+    with pytest.raises(ValueError, match="via must index"):
+        ResidualNet(4, 1, via=(0,))  # no prior dynamics to act through
+    run = simulate(cartpole, 0, duration=0.2)
+    model = train(cartpole, run.x, run.u, run.dt, TrainingSettings(epochs=1), progress=False)
+    model.save(tmp_path / "m")
+    unstructured = dataclasses.replace(cartpole, residual_via=None)
+    with pytest.raises(ModelMismatchError, match="residual structure"):
+        load_model(tmp_path / "m", unstructured)
+    assert load_model(tmp_path / "m", cartpole).hash == model.hash

@@ -93,6 +93,7 @@ class System:
     default_observer: str = "rts"  # pre-training observer used when none is named
     residual_states: tuple[str, ...] | None = None  # see residual_state_names
     residual_inputs: tuple[str, ...] | None = None  # see residual_input_names
+    residual_via: tuple[str, ...] | None = None  # see residual_via_names
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -121,6 +122,13 @@ class System:
         if unknown or self.residual_inputs == ():
             raise ValueError(f"system {self.name!r}: residual_inputs {unknown or '()'} must name "
                              f"states or inputs ({sorted(signals)})")
+        unknown = [n for n in (self.residual_via or ()) if n not in self.input_names]
+        if unknown or self.residual_via == ():
+            raise ValueError(f"system {self.name!r}: residual_via {unknown or '()'} must name "
+                             f"inputs ({self.input_names})")
+        if self.residual_via is not None and self.residual_states is not None:
+            raise ValueError(f"system {self.name!r}: give residual_states or residual_via, not both "
+                             "(a residual through inputs changes whichever states those inputs drive)")
         for chain in self.kinematic_chains:
             unknown = [n for n in chain.states if n not in self.state_names]
             if chain.output not in self.output_names or unknown:
@@ -166,6 +174,19 @@ class System:
         if self.residual_inputs is not None:
             return list(self.residual_inputs)
         return [*self.state_names, *self.input_names]
+
+    @property
+    def residual_via_names(self) -> list[str]:
+        """Inputs through which a learned residual acts; empty: it acts on state derivatives.
+
+        With ``residual_via`` the hybrid model is ``f_prior(x, u + G Delta(x, u))``, ``G``
+        selecting these inputs: the net learns a generalised force where the actuators act, and
+        the prior's own input map carries it to every state it drives. A heavier cart is exactly
+        such a force (``-Delta m_c * pdd``); so are friction and drag on a driven axis and an
+        actuator's gain or offset. An effect elsewhere (friction in an unactuated joint) is out
+        of reach of such a residual: leave ``residual_via`` unset for those.
+        """
+        return list(self.residual_via or ())
 
     @property
     def input_names(self) -> list[str]:

@@ -81,4 +81,7 @@ CARTPOLE = System(
     kinematic_chains=(KinematicChain("p", ("p", "pdot")), KinematicChain("alpha", ("alpha", "alphadot"))),
     # Translation invariance: no force depends on where the cart is on the rail.
     residual_inputs=("pdot", "alpha", "alphadot", "F"),
+    # Unmodelled effects act on the cart, where the force acts (a heavier cart is the force
+    # -Delta m_c * pdd): the net learns a force and the prior carries it to both accelerations.
+    residual_via=("F",),
 )
