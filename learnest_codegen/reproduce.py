@@ -211,8 +211,11 @@ class Job:
         return self.result_path.with_suffix("")
 
     def identity(self) -> dict:
-        """Everything that determines the job's results (hashed into ``config_hash``)."""
+        """Everything that determines the job's results (hashed into ``config_hash``), the
+        system's :meth:`~learnest_codegen.systems.System.fingerprint` included: a sweep resumed
+        after an edit to the equations redoes its jobs."""
         return {"format": RESULT_FORMAT, "task": self.task, "config": self.config.to_json(),
+                "system": _system_fingerprint(self.config.system),
                 "seed": self.seed, "train_seed": self.train_seed, "test_seed": self.test_seed,
                 "backend": self.backend}
 
@@ -223,6 +226,17 @@ class Job:
         """Hash of the configuration without the seed: equal across the seeds of one sweep."""
         ident = {k: v for k, v in self.identity().items() if k not in ("seed", "train_seed", "test_seed")}
         return _hash(ident)
+
+
+def _system_fingerprint(name: str) -> str | None:
+    """The system's fingerprint; ``None`` when it cannot be loaded (the job then fails and is
+    recorded as failed, like any other)."""
+    from .systems import get_system
+
+    try:
+        return get_system(name).fingerprint()
+    except Exception:  # noqa: BLE001
+        return None
 
 
 def _hash(obj: Any) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import casadi as cs
 import numpy as np
 import pytest
@@ -88,3 +90,17 @@ def test_wrong_shapes_are_rejected():
         s.f(np.zeros(3), np.zeros(1))
     with pytest.raises(ShapeError):
         s.f(cs.SX.sym("x", 5), cs.SX.sym("u", 1))
+
+
+def test_fingerprint_sees_equations_not_just_settings():
+    """Same system: same fingerprint; an edit to the equations (same names and settings) or to a
+    true parameter changes it, so resumed sweeps and caches notice."""
+    s = get_system("cartpole")
+    assert s.fingerprint() == get_system("cartpole").fingerprint()
+
+    def edited(ops, x, u, p):
+        xdot = s.dynamics(ops, x, u, p)
+        return [xdot[0], xdot[1] * 1.000001, xdot[2], xdot[3]]
+
+    assert dataclasses.replace(s, dynamics=edited).fingerprint() != s.fingerprint()
+    assert s.with_true_params(m_c=1.4).fingerprint() != s.fingerprint()

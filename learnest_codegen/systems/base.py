@@ -10,6 +10,8 @@ complete example and the README for writing one in your own file.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Callable, Mapping, Sequence
@@ -235,6 +237,24 @@ class System:
     def with_true_params(self, **changes: float) -> "System":
         """A copy whose true system uses changed parameters (for experiments)."""
         return dataclasses.replace(self, true_params={**self.true_params, **changes})
+
+    def fingerprint(self) -> str:
+        """Hash of what the system computes: its description, true parameters, noise, residual
+        structure, and ``f`` (both variants) and ``h`` at fixed random points, so an edit to the
+        equations changes it even when no setting changed."""
+        rng = np.random.default_rng(12345)
+        x, u = rng.normal(size=(8, self.nx)), rng.normal(size=(8, self.nu))
+        h = hashlib.sha256(json.dumps({**self.describe(), "true_params": dict(self.true_params),
+                                       "noise": dataclasses.asdict(self.noise), "x0": list(self.x0),
+                                       "duration": self.duration,
+                                       "residual": [self.residual_input_names, self.residual_via_names,
+                                                    self.residual_state_names]},
+                                      sort_keys=True, default=str).encode())
+        with np.errstate(all="ignore"):
+            excitation = self.excitation(np.arange(16) * self.dt * 25, np.random.default_rng(0))
+            for values in (self.f(x, u), self.f(x, u, variant="true"), self.h(x, u), excitation):
+                h.update(np.round(np.asarray(values, dtype=np.float64), 9).tobytes())
+        return h.hexdigest()[:16]
 
     def describe(self) -> dict:
         """A JSON-serialisable summary, used in manifests and model directories."""
