@@ -5,8 +5,9 @@ The loss is the paper's eq. (11): the mean over consecutive pairs of
 float64. A trained model is a directory holding the weights (``weights.pt``), ``model.json``
 (system, network and training settings, hash of the training data, final loss) and nothing else.
 
-Two additions to the paper's procedure, both measured on the cartpole (relative error of the
-learned residual against ``f_true - f_prior`` on an unseen run):
+Two additions to the paper's procedure, both measured on the cartpole with a free residual and
+the printed eq. (13) (relative error of the learned residual against ``f_true - f_prior`` on an
+unseen run):
 
 * Early stopping on a held-out final segment of the run (``validation_fraction``). The
   observer's errors are correlated in time and with the state, and after a few dozen epochs the
@@ -14,7 +15,8 @@ learned residual against ``f_true - f_prior`` on an unseen run):
   0.84 -> 0.39.
 * ``refine`` rounds of model-based smoothing: the observations are recomputed by an EKF-RTS
   smoother through the current hybrid model and the net is trained again. 0.39 -> 0.30 after
-  two rounds.
+  two rounds. With the cartpole's residual through the force (``System.residual_via``) the
+  observer is no longer what limits it: the rounds move the UKF gap closure by 0.1 point.
 """
 
 from __future__ import annotations
