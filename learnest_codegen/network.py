@@ -65,17 +65,24 @@ class ResidualNet(torch.nn.Module):
     makes the MLP's outputs input corrections instead: ``Delta(x, u) = prior(x, u + G mlp) -
     prior(x, u)`` with ``G`` placing them at ``via``; ``outputs`` is then unused. See
     :attr:`learnest_codegen.systems.System.residual_via_names`.
+
+    ``prior_features`` (indices of states, with ``prior``) appends the prior's derivatives of
+    those states, ``prior(x, u)[prior_features]``, to the features. See
+    :attr:`learnest_codegen.systems.System.residual_prior_feature_names`.
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
                  periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None,
                  inputs: tuple[int, ...] | None = None, via: tuple[int, ...] | None = None,
-                 prior: Callable | None = None):
+                 prior: Callable | None = None, prior_features: tuple[int, ...] = ()):
         super().__init__()
-        self.via = tuple(via or ())
+        self.via, self.prior_features = tuple(via or ()), tuple(prior_features)
         if self.via and (prior is None or any(not 0 <= i < nu for i in self.via)):
             raise ValueError(f"ResidualNet: via must index range({nu}) and needs the prior "
                              f"dynamics; got via={self.via}, prior={prior}")
+        if self.prior_features and (prior is None or any(not 0 <= i < nx for i in self.prior_features)):
+            raise ValueError(f"ResidualNet: prior_features must index range({nx}) and need the prior "
+                             f"dynamics; got prior_features={self.prior_features}, prior={prior}")
         self.prior = prior
         self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
         self.outputs = tuple(range(nx)) if outputs is None else tuple(outputs)
@@ -86,21 +93,24 @@ class ResidualNet(torch.nn.Module):
         if not self.inputs or any(not 0 <= i < nx + nu for i in self.inputs):
             raise ValueError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
                              f"got {self.inputs}")
-        n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs)
+        n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs) + len(self.prior_features)
         n_out = len(self.via) or len(self.outputs)
         self.mlp = MultiLayerPerceptron(n_in, settings.hidden, n_out, settings.layers - 1,
                                         settings.activation).double()
         self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
         self.register_buffer("in_scale", torch.ones(n_in, dtype=torch.float64))
 
-    def _features(self, parts: list, sin, cos) -> list:
+    def _features(self, parts: list, sin, cos, prior_xdot: list | None = None) -> list:
         keep = [parts[i] for i in self.inputs if i not in self.periodic]
-        return keep + [f(parts[i]) for i in self.periodic if i in self.inputs for f in (sin, cos)]
+        angles = [f(parts[i]) for i in self.periodic if i in self.inputs for f in (sin, cos)]
+        return keep + angles + [prior_xdot[i] for i in self.prior_features]
 
     def features_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Network input features of ``x (M, nx)``, ``u (M, nu)`` before standardisation."""
+        x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
         parts = list(np.hstack([x, u]).T)
-        return np.stack(self._features(parts, np.sin, np.cos), axis=-1)
+        prior_xdot = list(np.asarray(self.prior(x, u)).T) if self.prior_features else None
+        return np.stack(self._features(parts, np.sin, np.cos, prior_xdot), axis=-1)
 
     def set_input_scaling(self, x: np.ndarray, u: np.ndarray) -> None:
         """Fix the standardisation from training data ``x (M, nx)``, ``u (M, nu)``."""
@@ -111,7 +121,11 @@ class ResidualNet(torch.nn.Module):
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         xu = torch.cat([x, u], dim=-1)
-        feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos)
+        prior_xdot = None
+        if self.prior_features:
+            fp = self.prior(x, u)
+            prior_xdot = [fp[..., i] for i in range(self.nx)]
+        feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos, prior_xdot)
         out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
         if self.via:
             zero = torch.zeros_like(out[..., 0])
@@ -127,7 +141,11 @@ class ResidualNet(torch.nn.Module):
     def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
         xu = cs.vertcat(x, u)
-        feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos))
+        prior_xdot = None
+        if self.prior_features:
+            fp = self.prior(x, u)
+            prior_xdot = [fp[i] for i in range(self.nx)]
+        feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos, prior_xdot))
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         out = self.mlp(z.T).T  # the naive MLP works on row vectors
         if self.via:

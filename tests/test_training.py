@@ -155,7 +155,8 @@ def test_residual_ignores_the_coordinates_the_physics_is_invariant_to(name):
     fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
     np.testing.assert_allclose(fn.map(50)(moved.T, u.T).full().T, b, rtol=1e-12, atol=1e-14)
     assert net.mlp.input_layer.in_features == len(system.residual_input_names) + sum(
-        1 for n in system.periodic_states if n in system.residual_input_names)
+        1 for n in system.periodic_states if n in system.residual_input_names) + len(
+        system.residual_prior_feature_names)
 
 
 def test_residual_inputs_must_name_signals(cartpole):
@@ -210,3 +211,30 @@ def test_residual_via_is_checked(cartpole, tmp_path):
     with pytest.raises(ModelMismatchError, match="residual structure"):
         load_model(tmp_path / "m", unstructured)
     assert load_model(tmp_path / "m", cartpole).hash == model.hash
+
+
+def test_prior_features_are_the_prior_derivatives(cartpole):
+    """The cartpole's net sees f_prior's accelerations: its features end with them (numpy), and a
+    net whose only nonzero weights read those features agrees in torch and CasADi."""
+    assert cartpole.residual_prior_feature_names == ["pdot", "alphadot"]
+    net = make_net(cartpole)
+    rng = np.random.default_rng(8)
+    x, u = rng.normal(size=(30, 4)) * [1, 2, 3, 5], rng.normal(size=(30, 1)) * 5
+    feats = net.features_numpy(x, u)
+    np.testing.assert_array_equal(feats[:, -2:], cartpole.f(x, u)[:, [1, 3]])
+    with torch.no_grad():
+        for p in net.mlp.parameters():
+            p.zero_()
+        net.mlp.input_layer.weight[0, -2] = 0.3  # hidden unit 0 reads the prior's pdd
+        net.mlp.output_layer.weight[0, 0] = 2.0
+        got = net(torch.tensor(x), torch.tensor(u)).numpy()
+    force = 2.0 * np.tanh(0.3 * cartpole.f(x, u)[:, 1])  # unit input scaling
+    np.testing.assert_allclose(got, cartpole.f(x, u + force[:, None]) - cartpole.f(x, u),
+                               rtol=1e-12, atol=1e-12)
+    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
+    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
+    np.testing.assert_allclose(fn.map(30)(x.T, u.T).full().T, got, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="residual_prior_features"):
+        dataclasses.replace(cartpole, residual_prior_features=("nope",))
+    with pytest.raises(ValueError, match="prior_features must index"):
+        ResidualNet(4, 1, prior_features=(1,))
