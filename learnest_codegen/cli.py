@@ -83,10 +83,12 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
               help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
 @click.option("--validation-fraction", default=0.2, show_default=True,
               help="final share of the run held out for early stopping; 0 disables")
+@click.option("--restarts", type=click.IntRange(min=1), default=1, show_default=True,
+              help="initialisations trained per round; the lowest validation loss is kept")
 @click.option("--seed", default=0, show_default=True)
 @_friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
-          observer, full_state, refine, validation_fraction, seed) -> None:
+          observer, full_state, refine, validation_fraction, restarts, seed) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
     from .data import read_run
     from .network import NetworkSettings
@@ -95,7 +97,8 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
     system = _system(system_name)
     run = read_run(data, system)
     settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
-                                NetworkSettings(layers, hidden, activation), validation_fraction, refine)
+                                NetworkSettings(layers, hidden, activation), validation_fraction, refine,
+                                restarts)
     model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
     model.save(out)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
@@ -202,14 +205,17 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
 @click.option("--refine", default=2, show_default=True, help="model-based smoothing rounds (0 = paper)")
+@click.option("--restarts", type=click.IntRange(min=1), default=3, show_default=True,
+              help="initialisations per training round (best validation loss kept; 1 = paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
-def demo(system_name, out, epochs, observer, duration, refine, no_python_mhe) -> None:
+def demo(system_name, out, epochs, observer, duration, refine, restarts, no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
     from .demo import run_demo
 
     report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
-                      python_mhe=not no_python_mhe, duration=duration, refine=refine)
+                      python_mhe=not no_python_mhe, duration=duration, refine=refine,
+                      restarts=restarts)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 

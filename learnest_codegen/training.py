@@ -26,7 +26,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -53,12 +53,14 @@ class TrainingSettings:
     network: NetworkSettings = field(default_factory=NetworkSettings)
     validation_fraction: float = 0.2  # final segment held out for early stopping; 0 disables
     refine: int = 0  # rounds of model-based smoothing and retraining (see module docstring)
+    restarts: int = 1  # initialisations trained per round; the lowest validation loss is kept
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
             raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
-        if not 0 <= self.validation_fraction < 0.9 or self.refine < 0:
-            raise ValueError(f"need 0 <= validation_fraction < 0.9 and refine >= 0; got {self}")
+        if not 0 <= self.validation_fraction < 0.9 or self.refine < 0 or self.restarts < 1:
+            raise ValueError(f"need 0 <= validation_fraction < 0.9, refine >= 0 and restarts >= 1; "
+                             f"got {self}")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -135,13 +137,33 @@ def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch
 def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
           settings: TrainingSettings = TrainingSettings(), *, observer: str = "",
           progress: bool = True) -> TrainedModel:
-    """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``."""
+    """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``.
+
+    With ``settings.restarts > 1`` the net is trained from that many initialisations (seeds
+    ``seed, seed + 1, ...``) and the one with the lowest validation loss is kept; ``model.json``
+    lists every restart's validation loss. A bad local optimum shows there: on the cartpole one
+    of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
+    six times the others'.
+    """
     zeta, u = np.asarray(zeta, float), np.asarray(u, float)
     if zeta.ndim != 2 or zeta.shape[1] != system.nx or u.shape != (zeta.shape[0], system.nu):
         raise ValueError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
                          f"got {zeta.shape}, {u.shape}")
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
         raise ValueError("train: zeta and u must be finite")
+    start, models = time.perf_counter(), []
+    for r in range(settings.restarts):
+        member = replace(settings, seed=settings.seed + r, restarts=1)
+        models.append(_train_once(system, zeta, u, dt, member, observer, progress))
+    valid = [min(m.meta["validation_history"]) for m in models]
+    best = models[int(np.argmin(valid))]
+    best.meta.update(training=settings.to_json(), restart_seed=best.meta["training"]["seed"],
+                     restart_validation=valid, train_seconds=time.perf_counter() - start)
+    return best
+
+
+def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
+                settings: TrainingSettings, observer: str, progress: bool) -> TrainedModel:
     torch.manual_seed(settings.seed)
     net = make_net(system, settings.network)
     net.set_input_scaling(zeta, u)

@@ -238,3 +238,21 @@ def test_prior_features_are_the_prior_derivatives(cartpole):
         dataclasses.replace(cartpole, residual_prior_features=("nope",))
     with pytest.raises(ValueError, match="prior_features must index"):
         ResidualNet(4, 1, prior_features=(1,))
+
+
+def test_restarts_keep_the_lowest_validation_loss(cartpole, cartpole_run):
+    """Three initialisations: the kept model is the one whose validation loss is lowest, and it is
+    exactly the model a single training with that seed gives."""
+    run = cartpole_run
+    settings = TrainingSettings(epochs=3, seed=5, restarts=3)
+    model = train(cartpole, run.x[:1500], run.u[:1500], run.dt, settings, progress=False)
+    losses = model.meta["restart_validation"]
+    assert len(losses) == 3 and len(set(losses)) == 3
+    chosen = 5 + int(np.argmin(losses))
+    assert model.meta["restart_seed"] == chosen and model.meta["training"]["restarts"] == 3
+    single = train(cartpole, run.x[:1500], run.u[:1500], run.dt,
+                   dataclasses.replace(settings, seed=chosen, restarts=1), progress=False)
+    for a, b in zip(model.net.state_dict().values(), single.net.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="restarts"):
+        TrainingSettings(restarts=0)
