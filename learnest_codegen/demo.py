@@ -60,7 +60,7 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
 
     observer = observer or system.default_observer
     say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
-        f"{refine} refinement rounds)")
+        f"{refine} refinement rounds, {restarts} initialisations each)")
     settings = TrainingSettings(epochs=epochs, refine=refine, restarts=restarts)
     trained = train_on_run(train_run, system, settings, observer=observer)
     trained.save(out / "model")
