@@ -121,17 +121,15 @@ class ResidualNet(torch.nn.Module):
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         xu = torch.cat([x, u], dim=-1)
-        prior_xdot = None
-        if self.prior_features:
-            fp = self.prior(x, u)
-            prior_xdot = [fp[..., i] for i in range(self.nx)]
+        fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
+        prior_xdot = [fp[..., i] for i in range(self.nx)] if self.prior_features else None
         feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos, prior_xdot)
         out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
         if self.via:
             zero = torch.zeros_like(out[..., 0])
             du = torch.stack([out[..., self.via.index(i)] if i in self.via else zero
                               for i in range(self.nu)], dim=-1)
-            return self.prior(x, u + du) - self.prior(x, u)
+            return self.prior(x, u + du) - fp
         if len(self.outputs) == self.nx:
             return out
         zero = torch.zeros_like(out[..., 0])
@@ -141,17 +139,15 @@ class ResidualNet(torch.nn.Module):
     def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
         xu = cs.vertcat(x, u)
-        prior_xdot = None
-        if self.prior_features:
-            fp = self.prior(x, u)
-            prior_xdot = [fp[i] for i in range(self.nx)]
+        fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
+        prior_xdot = [fp[i] for i in range(self.nx)] if self.prior_features else None
         feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos, prior_xdot))
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         out = self.mlp(z.T).T  # the naive MLP works on row vectors
         if self.via:
             du = cs.vertcat(*[out[self.via.index(i)] if i in self.via else cs.SX(0)
                               for i in range(self.nu)])
-            return self.prior(x, u + du) - self.prior(x, u)
+            return self.prior(x, u + du) - fp
         if len(self.outputs) == self.nx:
             return out
         return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)
