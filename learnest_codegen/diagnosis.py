@@ -150,10 +150,10 @@ def load_runs(system: System, data: str | Path) -> list[Run]:
 
 
 def _read_nanobench(path: Path) -> list[Run]:
-    from .recordings import nanobench
+    from .recordings import crazyflie
 
-    files = nanobench.list_flights(path) if path.is_dir() else [path]
-    return [nanobench.read_flight(f).run for f in files]
+    files = crazyflie.list_flights(path) if path.is_dir() else [path]
+    return [crazyflie.read_flight(f).run for f in files]
 
 
 def _read_dart(path: Path) -> list[Run]:

@@ -12,7 +12,7 @@ residual's *features*, one study
 3. runs MHE, KNODE-MHE, UKF and KNODE-UKF (compiled C) on every other case, each starting
    from that case's first measurements, and scores them against the reference states: the truth
    in simulation, and on real flights Vicon position with Savitzky-Golay velocity and
-   acceleration (:func:`~learnest_codegen.recordings.nanobench.reference_states`). The
+   acceleration (:func:`~learnest_codegen.recordings.crazyflie.reference_states`). The
    Crazyflie's onboard EKF is scored alongside on position and velocity (its logged
    acceleration is not a world-frame acceleration in m/s^2: it regresses on the reference with
    slope 0.13).
@@ -117,7 +117,7 @@ class StudySettings:
 
 def flight_cases(root: str | Path, **read_options) -> list[Case]:
     """Every NanoBench flight under ``root`` as a :class:`Case` (see ``read_flight``)."""
-    from .recordings.nanobench import list_flights, read_flight
+    from .recordings.crazyflie import list_flights, read_flight
 
     paths = list_flights(root)
     if not paths:

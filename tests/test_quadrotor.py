@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from learnest_codegen import flight_study as fs
 from learnest_codegen.errors import DataError, UnknownNameError
+from learnest_codegen.recordings import crazyflie as nb
 from learnest_codegen.recordings import data_root
-from learnest_codegen.recordings import nanobench as nb
 from learnest_codegen.simulation import simulate
 from learnest_codegen.systems import SYSTEMS
 from learnest_codegen.systems.quadrotor import (
