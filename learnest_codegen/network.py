@@ -69,14 +69,23 @@ class ResidualNet(torch.nn.Module):
     ``prior_features`` (indices of states, with ``prior``) appends the prior's derivatives of
     those states, ``prior(x, u)[prior_features]``, to the features. See
     :attr:`learnest_codegen.systems.System.residual_prior_feature_names`.
+
+    ``prior_gains`` (with ``prior_features``) adds, to each output channel ``c``, the prior
+    features times learned gains: ``out[c] + sum_k g[c, k](x, u) * prior_k / s_k``, where the
+    gains are further MLP outputs and ``s_k`` is prior feature ``k``'s training scale. See
+    :attr:`learnest_codegen.systems.System.residual_prior_gains`.
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
                  periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None,
                  inputs: tuple[int, ...] | None = None, via: tuple[int, ...] | None = None,
-                 prior: Callable | None = None, prior_features: tuple[int, ...] = ()):
+                 prior: Callable | None = None, prior_features: tuple[int, ...] = (),
+                 prior_gains: bool = False):
         super().__init__()
         self.via, self.prior_features = tuple(via or ()), tuple(prior_features)
+        self.prior_gains = bool(prior_gains)
+        if self.prior_gains and not self.prior_features:
+            raise ValueError("ResidualNet: prior_gains multiplies the prior features; give prior_features")
         if self.via and (prior is None or any(not 0 <= i < nu for i in self.via)):
             raise ValueError(f"ResidualNet: via must index range({nu}) and needs the prior "
                              f"dynamics; got via={self.via}, prior={prior}")
@@ -94,7 +103,8 @@ class ResidualNet(torch.nn.Module):
             raise ValueError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
                              f"got {self.inputs}")
         n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs) + len(self.prior_features)
-        n_out = len(self.via) or len(self.outputs)
+        self.channels = len(self.via) or len(self.outputs)
+        n_out = self.channels * (1 + len(self.prior_features) if self.prior_gains else 1)
         self.mlp = MultiLayerPerceptron(n_in, settings.hidden, n_out, settings.layers - 1,
                                         settings.activation).double()
         self.register_buffer("in_mean", torch.zeros(n_in, dtype=torch.float64))
@@ -125,16 +135,24 @@ class ResidualNet(torch.nn.Module):
         prior_xdot = [fp[..., i] for i in range(self.nx)] if self.prior_features else None
         feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos, prior_xdot)
         out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        out = self._channels([out[..., j] for j in range(out.shape[-1])], prior_xdot)
+        zero = torch.zeros_like(out[0])
         if self.via:
-            zero = torch.zeros_like(out[..., 0])
-            du = torch.stack([out[..., self.via.index(i)] if i in self.via else zero
+            du = torch.stack([out[self.via.index(i)] if i in self.via else zero
                               for i in range(self.nu)], dim=-1)
             return self.prior(x, u + du) - fp
-        if len(self.outputs) == self.nx:
-            return out
-        zero = torch.zeros_like(out[..., 0])
-        rows = [out[..., self.outputs.index(i)] if i in self.outputs else zero for i in range(self.nx)]
+        rows = [out[self.outputs.index(i)] if i in self.outputs else zero for i in range(self.nx)]
         return torch.stack(rows, dim=-1)
+
+    def _channels(self, out: list, prior_xdot: list | None) -> list:
+        """The residual's channels from the MLP's outputs (any backend): the outputs themselves,
+        or with ``prior_gains`` each plus its gains times the scaled prior features."""
+        if not self.prior_gains:
+            return out
+        n, g = self.channels, len(self.prior_features)
+        scales = [float(s) for s in self.in_scale[-g:]]
+        return [out[c] + sum(out[n + c * g + k] * (prior_xdot[j] / scales[k])
+                             for k, j in enumerate(self.prior_features)) for c in range(n)]
 
     def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
@@ -144,11 +162,10 @@ class ResidualNet(torch.nn.Module):
         feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos, prior_xdot))
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         out = self.mlp(z.T).T  # the naive MLP works on row vectors
+        out = self._channels([out[j] for j in range(out.shape[0])], prior_xdot)
         if self.via:
             du = cs.vertcat(*[out[self.via.index(i)] if i in self.via else cs.SX(0)
                               for i in range(self.nu)])
             return self.prior(x, u + du) - fp
-        if len(self.outputs) == self.nx:
-            return out
         return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)
                             for i in range(self.nx)])

@@ -108,14 +108,15 @@ def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> R
     prior_features = tuple(names.index(n) for n in system.residual_prior_feature_names)
     return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs, via,
                        prior=system.f if via or prior_features else None,
-                       prior_features=prior_features)
+                       prior_features=prior_features, prior_gains=system.residual_prior_gains)
 
 
 def residual_structure(system: System) -> dict:
     """What a residual net of ``system`` sees and where it acts (stored with a trained model)."""
     return {"inputs": system.residual_input_names, "via": system.residual_via_names,
             "states": [] if system.residual_via_names else system.residual_state_names,
-            "prior_features": system.residual_prior_feature_names}
+            "prior_features": system.residual_prior_feature_names,
+            **({"prior_gains": True} if system.residual_prior_gains else {})}
 
 
 def data_hash(*arrays: np.ndarray) -> str:

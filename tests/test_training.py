@@ -184,7 +184,7 @@ def test_residual_via_an_input_is_an_input_correction(cartpole):
     with torch.no_grad():
         for p in net.mlp.parameters():
             p.zero_()
-        net.mlp.output_layer.bias.fill_(0.7)
+        net.mlp.output_layer.bias[0] = 0.7  # the force channel; its gains stay zero
     rng = np.random.default_rng(6)
     x, u = rng.normal(size=(40, 4)) * [1, 2, 3, 5], rng.normal(size=(40, 1)) * 5
     want = cartpole.f(x, u + 0.7) - cartpole.f(x, u)
@@ -238,6 +238,51 @@ def test_prior_features_are_the_prior_derivatives(cartpole):
         dataclasses.replace(cartpole, residual_prior_features=("nope",))
     with pytest.raises(ValueError, match="prior_features must index"):
         ResidualNet(4, 1, prior_features=(1,))
+
+
+def test_prior_gains_multiply_the_prior_accelerations(cartpole):
+    """``residual_prior_gains``: further MLP outputs are gains on the (scaled) prior
+    accelerations. A net whose only nonzero weight is the bias of the gain on pdd acts through
+    the force ``g * pdd_prior``, identically in torch and CasADi."""
+    assert cartpole.residual_prior_gains
+    net = make_net(cartpole)
+    assert net.mlp.output_layer.bias.shape == (3,)  # force, gain on pdd, gain on alpha_dd
+    rng = np.random.default_rng(9)
+    x, u = rng.normal(size=(30, 4)) * [1, 2, 3, 5], rng.normal(size=(30, 1)) * 5
+    with torch.no_grad():
+        for p in net.mlp.parameters():
+            p.zero_()
+        net.mlp.output_layer.bias[1] = -0.4
+        net.in_scale[-2] = 2.0  # the gain multiplies the prior feature over its scale
+        got = net(torch.tensor(x), torch.tensor(u)).numpy()
+    force = -0.4 * cartpole.f(x, u)[:, 1] / 2.0
+    np.testing.assert_allclose(got, cartpole.f(x, u + force[:, None]) - cartpole.f(x, u),
+                               rtol=1e-12, atol=1e-12)
+    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
+    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
+    np.testing.assert_allclose(fn.map(30)(x.T, u.T).full().T, got, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="residual_prior_gains"):
+        dataclasses.replace(cartpole, residual_prior_features=())
+    with pytest.raises(ValueError, match="prior_gains"):
+        ResidualNet(4, 1, prior_gains=True)
+
+
+def test_heavier_cart_is_a_gain_on_the_prior_acceleration(cartpole):
+    """Closed form behind ``residual_prior_gains``: with ``b = d pdd_prior / dF`` (pdd is affine
+    in F), the true cartpole is the prior driven by ``F + g * pdd_prior`` with
+    ``g = -Delta m_c / (1 + b Delta m_c)``, a gain that depends on the pole angle only."""
+    rng = np.random.default_rng(10)
+    x, u = rng.normal(size=(50, 4)) * [1, 2, 3, 5], rng.normal(size=(50, 1)) * 5
+    dm = cartpole.true_params["m_c"] - cartpole.params["m_c"]
+    b = cartpole.f(x, np.ones_like(u))[:, 1] - cartpole.f(x, np.zeros_like(u))[:, 1]
+    gain = -dm / (1 + b * dm)
+    force = u + (gain * cartpole.f(x, u)[:, 1])[:, None]
+    np.testing.assert_allclose(cartpole.f(x, force), cartpole.f(x, u, variant="true"),
+                               rtol=1e-10, atol=1e-10)
+    x_moved = x.copy()
+    x_moved[:, [0, 1, 3]] = rng.normal(size=(50, 3)) * 4  # same angles, other positions/rates
+    b_moved = cartpole.f(x_moved, np.ones_like(u))[:, 1] - cartpole.f(x_moved, np.zeros_like(u))[:, 1]
+    np.testing.assert_allclose(b_moved, b, rtol=1e-12)
 
 
 def test_restarts_keep_the_lowest_validation_loss(cartpole, cartpole_run):

@@ -97,6 +97,7 @@ class System:
     residual_inputs: tuple[str, ...] | None = None  # see residual_input_names
     residual_via: tuple[str, ...] | None = None  # see residual_via_names
     residual_prior_features: tuple[str, ...] = ()  # see residual_prior_feature_names
+    residual_prior_gains: bool = False  # see the docstring of residual_prior_feature_names
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -129,6 +130,9 @@ class System:
         if unknown or self.residual_via == ():
             raise ValueError(f"system {self.name!r}: residual_via {unknown or '()'} must name "
                              f"inputs ({self.input_names})")
+        if self.residual_prior_gains and not self.residual_prior_features:
+            raise ValueError(f"system {self.name!r}: residual_prior_gains multiplies the prior "
+                             "features by learned gains; name them in residual_prior_features")
         if self.residual_via is not None and self.residual_states is not None:
             raise ValueError(f"system {self.name!r}: give residual_states or residual_via, not both "
                              "(a residual through inputs changes whichever states those inputs drive)")
@@ -200,6 +204,14 @@ class System:
         nearly linear, and extrapolates to states the training run never reached. On the
         cartpole this lifts the gap closure of a net trained on the exact states from 97.4 % to
         99.8 % on an unseen run.
+
+        With ``residual_prior_gains`` the features also enter multiplied: each residual channel
+        is ``a(x, u) + sum_k g_k(x, u) * f_prior_k(x, u)``, the additive term and the gains all
+        outputs of the one MLP. A mass or inertia error is then a gain that hardly varies (for
+        the cart, ``-Delta m_c / (1 + Delta m_c dpdd/dF)``, a function of the pole angle only),
+        instead of a product the tanh units must approximate. On the cartpole, trained through
+        the observer with two refinement rounds, this lifts the UKF gap closure of seeds 0-7
+        from 98.2 % to 98.6 %, and the worst seed from 95.8 % to 96.5 %.
         """
         return list(self.residual_prior_features)
 
@@ -262,7 +274,8 @@ class System:
                                        "duration": self.duration,
                                        "residual": [self.residual_input_names, self.residual_via_names,
                                                     self.residual_state_names,
-                                                    self.residual_prior_feature_names]},
+                                                    self.residual_prior_feature_names,
+                                                    *(["prior_gains"] if self.residual_prior_gains else [])]},
                                       sort_keys=True, default=str).encode())
         with np.errstate(all="ignore"):
             excitation = self.excitation(np.arange(16) * self.dt * 25, np.random.default_rng(0))

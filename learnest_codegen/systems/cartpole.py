@@ -84,6 +84,8 @@ CARTPOLE = System(
     # Unmodelled effects act on the cart, where the force acts (a heavier cart is the force
     # -Delta m_c * pdd): the net learns a force and the prior carries it to both accelerations.
     residual_via=("F",),
-    # ... and sees the prior's accelerations: given those, a mass error is nearly linear.
+    # ... and sees the prior's accelerations: given those, a mass error is nearly linear;
+    # with gains on them, a mass error is a gain that barely varies.
     residual_prior_features=("pdot", "alphadot"),
+    residual_prior_gains=True,
 )
