@@ -159,6 +159,25 @@ def ekf_rts(run: Run, system: System, residual: Callable | None = None,
                         {"q_scale": scale, "refined": residual is not None})
 
 
+def innovation_loglik(run: Run, system: System, residual: Callable | None = None,
+                      q_scales: tuple[float, ...] = (0.1, 1.0, 10.0, 100.0)) -> float:
+    """Log-likelihood of the run's measurements under ``RK4(f_prior + residual)``.
+
+    The EKF's innovation log-likelihood, maximised over the process-noise scale as
+    :func:`ekf_rts` chooses it. It scores a model by its measurements alone, so it compares
+    models whose training states differ; :func:`~learnest_codegen.training.train_on_run` uses
+    it to choose between restarts.
+    """
+    F, A = _discrete_with_jacobian(system, residual, run.dt)
+    R = np.diag(np.square(system.noise.measurement_std))
+    q0 = np.square(system.noise.process_std)
+    x0 = run.x[0] if run.x is not None else np.asarray(system.x0, float)
+    with np.errstate(all="ignore"):
+        scores = [_ekf_forward(run, system, F, A, np.diag(q0 * s), R, x0)[-1] for s in q_scales]
+    scores = [v for v in scores if np.isfinite(v)]
+    return max(scores) if scores else -np.inf
+
+
 def _discrete_with_jacobian(system: System, residual, dt: float):
     import casadi as cs
 
