@@ -303,6 +303,28 @@ def test_restarts_keep_the_lowest_validation_loss(cartpole, cartpole_run):
         TrainingSettings(restarts=0)
 
 
+def test_restarts_by_score_keep_the_highest_score(cartpole, cartpole_run):
+    """With ``score`` the kept restart is the highest-scoring one (here: seed 6 of 5, 6, 7),
+    whatever the validation losses say, and the scores are recorded."""
+    run = cartpole_run
+    settings = TrainingSettings(epochs=2, seed=5, restarts=3)
+    model = train(cartpole, run.x[:800], run.u[:800], run.dt, settings, progress=False,
+                  score=lambda m: -abs(m.meta["training"]["seed"] - 6))
+    assert model.meta["restart_seed"] == 6 and model.meta["restart_score"] == [-1.0, 0.0, -1.0]
+    assert len(model.meta["restart_validation"]) == 3
+
+
+def test_innovation_loglik_prefers_the_true_dynamics(cartpole):
+    """The EKF's measurement likelihood, the restart criterion through an observer: the true
+    model's residual scores far above the prior (no residual) on a simulated run."""
+    from learnest_codegen.observers import innovation_loglik
+
+    run = simulate(cartpole, 3, duration=2.0)
+    true_residual = lambda x, u: cartpole.f(x, u, variant="true") - cartpole.f(x, u)  # noqa: E731
+    prior, true = innovation_loglik(run, cartpole), innovation_loglik(run, cartpole, true_residual)
+    assert np.isfinite(prior) and true > prior + 20
+
+
 def test_refinement_study_starts_from_true_model_states(tmp_path):
     """scripts/study_refinement.py: round 0 trains on states smoothed through the true model,
     whose velocities are far better than the kinematic smoother's (RMS ~1e-3 against ~2e-2)."""
