@@ -84,7 +84,9 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
 @click.option("--validation-fraction", default=0.2, show_default=True,
               help="final share of the run held out for early stopping; 0 disables")
 @click.option("--restarts", type=click.IntRange(min=1), default=1, show_default=True,
-              help="initialisations trained per round; the lowest validation loss is kept")
+              help="initialisations trained per round; through an observer the one whose model "
+                   "best explains the measurements (EKF likelihood) is kept, on full states the "
+                   "lowest validation loss")
 @click.option("--seed", default=0, show_default=True)
 @_friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
@@ -206,7 +208,8 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
 @click.option("--refine", default=2, show_default=True, help="model-based smoothing rounds (0 = paper)")
 @click.option("--restarts", type=click.IntRange(min=1), default=3, show_default=True,
-              help="initialisations per training round (best validation loss kept; 1 = paper)")
+              help="initialisations per training round (the one whose model best explains the "
+                   "measurements is kept; 1 = paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
 def demo(system_name, out, epochs, observer, duration, refine, restarts, no_python_mhe) -> None:
