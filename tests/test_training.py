@@ -176,6 +176,19 @@ def test_a_heavier_cart_is_a_force_through_the_input(cartpole):
     np.testing.assert_allclose(cartpole.f(x, u - dm * f_true[:, 1:2]), f_true, rtol=1e-12, atol=1e-12)
 
 
+def _assert_acts_as_force(cartpole, net, x, u, force) -> np.ndarray:
+    """The net's residual is ``f(x, u + force) - f(x, u)`` in torch, and its CasADi form agrees;
+    returns the torch residual."""
+    with torch.no_grad():
+        got = net(torch.tensor(x), torch.tensor(u)).numpy()
+    want = cartpole.f(x, u + np.reshape(force, (-1, 1))) - cartpole.f(x, u)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    xs, us = cs.SX.sym("x", cartpole.nx), cs.SX.sym("u", cartpole.nu)
+    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
+    np.testing.assert_allclose(fn.map(len(x))(x.T, u.T).full().T, got, rtol=1e-12, atol=1e-12)
+    return got
+
+
 def test_residual_via_an_input_is_an_input_correction(cartpole):
     """With ``residual_via`` the net's output is a force: Delta = f(x, u + c) - f(x, u) for a net
     that outputs the constant c, in torch and CasADi; it changes only the accelerations."""
@@ -187,14 +200,8 @@ def test_residual_via_an_input_is_an_input_correction(cartpole):
         net.mlp.output_layer.bias[0] = 0.7  # the force channel; its gains stay zero
     rng = np.random.default_rng(6)
     x, u = rng.normal(size=(40, 4)) * [1, 2, 3, 5], rng.normal(size=(40, 1)) * 5
-    want = cartpole.f(x, u + 0.7) - cartpole.f(x, u)
-    with torch.no_grad():
-        got = net(torch.tensor(x), torch.tensor(u)).numpy()
-    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    got = _assert_acts_as_force(cartpole, net, x, u, np.full(40, 0.7))
     assert np.all(got[:, [0, 2]] == 0.0) and np.abs(got[:, [1, 3]]).min() > 0
-    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
-    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
-    np.testing.assert_allclose(fn.map(40)(x.T, u.T).full().T, want, rtol=1e-12, atol=1e-12)
 
 
 def test_residual_via_is_checked(cartpole, tmp_path):
@@ -227,13 +234,7 @@ def test_prior_features_are_the_prior_derivatives(cartpole):
             p.zero_()
         net.mlp.input_layer.weight[0, -2] = 0.3  # hidden unit 0 reads the prior's pdd
         net.mlp.output_layer.weight[0, 0] = 2.0
-        got = net(torch.tensor(x), torch.tensor(u)).numpy()
-    force = 2.0 * np.tanh(0.3 * cartpole.f(x, u)[:, 1])  # unit input scaling
-    np.testing.assert_allclose(got, cartpole.f(x, u + force[:, None]) - cartpole.f(x, u),
-                               rtol=1e-12, atol=1e-12)
-    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
-    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
-    np.testing.assert_allclose(fn.map(30)(x.T, u.T).full().T, got, rtol=1e-12, atol=1e-12)
+    _assert_acts_as_force(cartpole, net, x, u, 2.0 * np.tanh(0.3 * cartpole.f(x, u)[:, 1]))  # unit scaling
     with pytest.raises(ValueError, match="residual_prior_features"):
         dataclasses.replace(cartpole, residual_prior_features=("nope",))
     with pytest.raises(ValueError, match="prior_features must index"):
@@ -254,13 +255,7 @@ def test_prior_gains_multiply_the_prior_accelerations(cartpole):
             p.zero_()
         net.mlp.output_layer.bias[1] = -0.4
         net.in_scale[-2] = 2.0  # the gain multiplies the prior feature over its scale
-        got = net(torch.tensor(x), torch.tensor(u)).numpy()
-    force = -0.4 * cartpole.f(x, u)[:, 1] / 2.0
-    np.testing.assert_allclose(got, cartpole.f(x, u + force[:, None]) - cartpole.f(x, u),
-                               rtol=1e-12, atol=1e-12)
-    xs, us = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
-    fn = cs.Function("delta", [xs, us], [net.casadi(xs, us)])
-    np.testing.assert_allclose(fn.map(30)(x.T, u.T).full().T, got, rtol=1e-12, atol=1e-12)
+    _assert_acts_as_force(cartpole, net, x, u, -0.4 * cartpole.f(x, u)[:, 1] / 2.0)
     with pytest.raises(ValueError, match="residual_prior_gains"):
         dataclasses.replace(cartpole, residual_prior_features=())
     with pytest.raises(ValueError, match="prior_gains"):
