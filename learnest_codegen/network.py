@@ -73,7 +73,7 @@ class ResidualNet(torch.nn.Module):
     ``prior_gains`` (with ``prior_features``) adds, to each output channel ``c``, the prior
     features times learned gains: ``out[c] + sum_k g[c, k](x, u) * prior_k / s_k``, where the
     gains are further MLP outputs and ``s_k`` is prior feature ``k``'s training scale. See
-    :attr:`learnest_codegen.systems.System.residual_prior_gains`.
+    :attr:`learnest_codegen.systems.System.residual_prior_feature_names` (``residual_prior_gains``).
     """
 
     def __init__(self, nx: int, nu: int, settings: NetworkSettings = NetworkSettings(),
