@@ -147,11 +147,7 @@ def ekf_rts(run: Run, system: System, residual: Callable | None = None,
 
     ``residual(x_sx, u_sx) -> SX`` adds a learned term (a net's CasADi form) to the prior.
     """
-    F, A = _discrete_with_jacobian(system, residual, run.dt)
-    R = np.diag(np.square(system.noise.measurement_std))
-    q0 = np.square(system.noise.process_std)
-    x0 = run.x[0] if run.x is not None else np.asarray(system.x0, float)
-    passes = {float(s): _ekf_forward(run, system, F, A, np.diag(q0 * s), R, x0) for s in q_scales}
+    passes, A = _ekf_passes(run, system, residual, q_scales)
     scale = max(passes, key=lambda s: passes[s][-1])
     xs, Ps, xps, Pps, _ = passes[scale]
     zeta, covs = _rts_backward(xs, Ps, xps, Pps, A, run.u)
@@ -168,14 +164,20 @@ def innovation_loglik(run: Run, system: System, residual: Callable | None = None
     models whose training states differ; :func:`~learnest_codegen.training.train_on_run` uses
     it to choose between restarts.
     """
+    with np.errstate(all="ignore"):
+        passes, _ = _ekf_passes(run, system, residual, q_scales)
+    scores = [p[-1] for p in passes.values() if np.isfinite(p[-1])]
+    return max(scores) if scores else -np.inf
+
+
+def _ekf_passes(run: Run, system: System, residual, q_scales):
+    """Forward EKF passes through ``RK4(f_prior + residual)``, one per process-noise scale
+    (``{scale: (xs, Ps, xps, Pps, loglik)}``), and the step's state Jacobian ``A``."""
     F, A = _discrete_with_jacobian(system, residual, run.dt)
     R = np.diag(np.square(system.noise.measurement_std))
     q0 = np.square(system.noise.process_std)
     x0 = run.x[0] if run.x is not None else np.asarray(system.x0, float)
-    with np.errstate(all="ignore"):
-        scores = [_ekf_forward(run, system, F, A, np.diag(q0 * s), R, x0)[-1] for s in q_scales]
-    scores = [v for v in scores if np.isfinite(v)]
-    return max(scores) if scores else -np.inf
+    return {float(s): _ekf_forward(run, system, F, A, np.diag(q0 * s), R, x0) for s in q_scales}, A
 
 
 def _discrete_with_jacobian(system: System, residual, dt: float):

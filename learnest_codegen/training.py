@@ -54,7 +54,7 @@ class TrainingSettings:
     network: NetworkSettings = field(default_factory=NetworkSettings)
     validation_fraction: float = 0.2  # final segment held out for early stopping; 0 disables
     refine: int = 0  # rounds of model-based smoothing and retraining (see module docstring)
-    restarts: int = 1  # initialisations trained per round; the lowest validation loss is kept
+    restarts: int = 1  # initialisations trained per round; see train() and train_on_run()
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
