@@ -139,8 +139,10 @@ class TaskConfig:
 DEFAULT_TASKS: dict[str, TaskConfig] = {
     # Three initialisations per round, the best on validation kept: a bad local optimum
     # (seen on 1 of 10 cartpole trainings) otherwise costs a seed 15-20 points of gap closure.
-    "cartpole": TaskConfig("cartpole", TrainingSettings(epochs=250, refine=2, restarts=3),
-                           TrainingSettings(epochs=250)),
+    # Weight decay 0.1 (AdamW): the full-state nets go from 99.3-99.9 % of the UKF gap closed
+    # to 99.9-100 % on unseen runs (7 seeds); through the observer it adds about 0.1 point.
+    "cartpole": TaskConfig("cartpole", TrainingSettings(epochs=250, refine=2, restarts=3, weight_decay=0.1),
+                           TrainingSettings(epochs=250, weight_decay=0.1)),
     # The paper's 10000 epochs, full batch (2000 training pairs): 10000 Adam steps in ~55 s per
     # model on one core; minibatches of 256 take ~4x longer for no better held-out loss.
     "ground_robot": TaskConfig("ground_robot", TrainingSettings(epochs=10000, batch_size=4096, refine=0),

@@ -17,6 +17,11 @@ unseen run):
   smoother through the current hybrid model and the net is trained again. 0.39 -> 0.30 after
   two rounds. With the cartpole's residual through the force (``System.residual_via``) the
   observer is no longer what limits it: the rounds move the UKF gap closure by 0.1 point.
+
+And an optional decoupled weight decay (``weight_decay``, AdamW): on the cartpole it takes the
+net trained on noisy full states from 99.3-99.9 % of the UKF gap closed to 99.9-100 % on
+unseen runs. Ten seconds of data leave many nets that fit the training run equally well; the
+decay picks the smallest, which is also the smoothest and extrapolates least.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ class TrainingSettings:
     validation_fraction: float = 0.2  # final segment held out for early stopping; 0 disables
     refine: int = 0  # rounds of model-based smoothing and retraining (see module docstring)
     restarts: int = 1  # initialisations trained per round; see train() and train_on_run()
+    weight_decay: float = 0.0  # decoupled (AdamW) decay of every weight per step, times the rate
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
@@ -62,9 +68,16 @@ class TrainingSettings:
         if not 0 <= self.validation_fraction < 0.9 or self.refine < 0 or self.restarts < 1:
             raise ValueError(f"need 0 <= validation_fraction < 0.9, refine >= 0 and restarts >= 1; "
                              f"got {self}")
+        if not (0.0 <= self.weight_decay < 1.0 / self.learning_rate):
+            raise ValueError(f"need 0 <= weight_decay < 1 / learning_rate; got {self}")
 
     def to_json(self) -> dict:
-        return asdict(self)
+        """The settings as a dict. ``weight_decay`` is left out at its default 0, so the
+        identities of models and sweep jobs trained before it existed are unchanged."""
+        out = asdict(self)
+        if not self.weight_decay:
+            del out["weight_decay"]
+        return out
 
 
 @dataclass
@@ -181,7 +194,11 @@ def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
     train_set = [a[:n_train] for a in pairs]
     valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
-    optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
+    if settings.weight_decay:
+        optimiser = torch.optim.AdamW(net.parameters(), lr=settings.learning_rate,
+                                      weight_decay=settings.weight_decay)
+    else:
+        optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     generator = torch.Generator().manual_seed(settings.seed)
     start, history, valid_history = time.perf_counter(), [], []
     best = (math.inf, copy.deepcopy(net.state_dict()), 0)

@@ -15,7 +15,14 @@ from learnest_codegen.integrators import rk4_step
 from learnest_codegen.network import NetworkSettings, ResidualNet
 from learnest_codegen.simulation import simulate
 from learnest_codegen.systems import get_system
-from learnest_codegen.training import TrainingSettings, load_model, make_net, train, train_on_run
+from learnest_codegen.training import (
+    TrainingSettings,
+    load_model,
+    make_net,
+    one_step_loss,
+    train,
+    train_on_run,
+)
 
 
 @pytest.fixture(scope="module")
@@ -340,3 +347,48 @@ def test_refinement_study_starts_from_true_model_states(tmp_path):
     ukf = result["seeds"][0]["ukf_mse"]
     assert ukf["true"] < ukf["nominal"] / 100
     assert np.isfinite(row["gap_closure"]) and row["gap_closure"] < 1
+
+
+def test_weight_decay_settings_and_identity():
+    """``weight_decay`` is validated, and left out of the settings' JSON at its default so the
+    identities of models and sweep jobs made before it existed do not change."""
+    assert "weight_decay" not in TrainingSettings().to_json()
+    assert TrainingSettings(weight_decay=0.1).to_json()["weight_decay"] == 0.1
+    for bad in (-0.1, 100.0):  # 100 * lr 1e-2 would zero every weight in one step
+        with pytest.raises(ValueError, match="weight_decay"):
+            TrainingSettings(weight_decay=bad)
+
+
+def test_weight_decay_is_decoupled_adamw(cartpole, cartpole_run):
+    """One epoch with decay equals torch's AdamW from the same initialisation (and differs from
+    plain Adam): the setting reaches the optimiser."""
+    run = cartpole_run
+    settings = TrainingSettings(epochs=1, seed=3, weight_decay=0.5, validation_fraction=0.0,
+                                batch_size=10_000)
+    model = train(cartpole, run.x[:400], run.u[:400], run.dt, settings, progress=False)
+    torch.manual_seed(3)
+    net = make_net(cartpole)
+    net.set_input_scaling(run.x[:400], run.u[:400])
+    start = {k: v.clone() for k, v in net.state_dict().items()}
+    pairs = [torch.as_tensor(a) for a in (run.x[:399], run.u[:399], run.x[1:400])]
+    for optimiser, expect_equal in ((torch.optim.AdamW(net.parameters(), lr=1e-2, weight_decay=0.5), True),
+                                    (torch.optim.Adam(net.parameters(), lr=1e-2), False)):
+        net.load_state_dict(start)
+        optimiser.zero_grad()
+        one_step_loss(cartpole, net, *pairs, run.dt).backward()
+        optimiser.step()
+        same = all(torch.allclose(a, b, rtol=0, atol=1e-15) for a, b in
+                   zip(net.state_dict().values(), model.net.state_dict().values()))
+        assert same == expect_equal
+
+
+def test_weight_decay_helps_the_full_state_net_generalise(cartpole, cartpole_run, cartpole_test_run):
+    """Trained on noisy full states of one run (job 0 of Table I), the net with weight decay 0.1
+    matches ``f_true - f_prior`` on the unseen run better than the one without (measured: UKF gap
+    closure 99.73 % -> 99.96 %)."""
+    errors = []
+    for wd in (0.0, 0.1):
+        model = train_on_run(cartpole_run, cartpole, TrainingSettings(epochs=250, weight_decay=wd),
+                             full_state=True, progress=False)
+        errors.append(_relative_residual_error(cartpole, model.net, cartpole_test_run))
+    assert errors[1] < 0.8 * errors[0], errors
