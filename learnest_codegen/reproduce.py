@@ -31,7 +31,11 @@ Layout of OUT (default ``results/table1``)
     OUT/summary.json                      the table data and the sweep's wall time, jobs, cores
 
 Resuming: a job whose results file holds the same configuration hash (task settings, seed,
-backend, duration) is skipped; a results file with another hash is redone; ``force`` redoes all.
+backend, duration, the system's fingerprint) is skipped; a results file with another hash is
+redone; ``force`` redoes all. Each results file also records :func:`code_hash`, the hash of the
+package's sources that made it. It is not part of the configuration (an edited docstring must
+not cost an hour of reruns), but a resumed sweep names the finished jobs made by other code, so
+a change to the training is never silently mixed with results of the old one.
 Executors: ``local`` (a process pool, one torch thread per worker), ``ray`` and ``dask``
 (optional extras; for a multi-machine cluster OUT must be on a shared filesystem).
 """
@@ -39,6 +43,7 @@ Executors: ``local`` (a process pool, one torch thread per worker), ``ray`` and 
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import json
 import math
@@ -357,7 +362,8 @@ def run_job(job: Job) -> dict:
 
     results = {
         **job.identity(), "config_hash": job.config_hash(), "task_hash": job.task_hash(),
-        "system": system.name, "state_names": list(system.state_names), "samples": len(test_run),
+        "code": code_hash(), "system": system.name, "state_names": list(system.state_names),
+        "samples": len(test_run),
         "methods": methods, "training": training, "timings": timings,
         "wall_seconds": time.perf_counter() - start,
     }
@@ -536,6 +542,7 @@ class SweepReport:
     ran: list[tuple[str, int]] = field(default_factory=list)
     skipped: list[tuple[str, int]] = field(default_factory=list)
     redone: list[tuple[str, int]] = field(default_factory=list)  # results of another configuration
+    other_code: list[tuple[str, int]] = field(default_factory=list)  # skipped, made by other code
     failed: dict[tuple[str, int], str] = field(default_factory=dict)
     wall_seconds: float = 0.0
     shared_compile_seconds: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -594,11 +601,18 @@ def run_sweep(configs: Mapping[str, TaskConfig], *, seeds: int = DEFAULT_SEEDS,
         status = _existing(job)
         if status == "same" and not force:
             report.skipped.append((job.task, job.seed))
+            if _stored_code(job) != code_hash():
+                report.other_code.append((job.task, job.seed))
             continue
         if status == "other":
             report.redone.append((job.task, job.seed))
             echo(f"{job.task} seed {job.seed}: results are of another configuration; redoing")
         todo.append(job)
+    if report.other_code:
+        names = ", ".join(f"{t} seed {sd}" for t, sd in report.other_code)
+        echo(f"note: {len(report.other_code)} finished job(s) were made by other code than this "
+             f"(the package's sources changed since, or predate this record): {names}. Their "
+             f"results are kept; use --force to redo them.")
     for job in planned:  # failed preparation: every job of the task is a recorded failure
         if job.task in broken:
             report.failed[job.task, job.seed] = record_failure(job, broken[job.task])["error"]
@@ -630,10 +644,28 @@ def run_sweep(configs: Mapping[str, TaskConfig], *, seeds: int = DEFAULT_SEEDS,
              "workers": min(jobs, len(todo)), "jobs_option": jobs, "cpu_count": os.cpu_count(),
              "executor": executor, "backend": backend, "seeds": seeds,
              "tasks": {t: c.to_json() for t, c in prepared.items()},
-             "shared_compile_seconds": report.shared_compile_seconds,
+             "shared_compile_seconds": report.shared_compile_seconds, "code": code_hash(),
+             "made_by_other_code": [f"{t}/seed_{s}" for t, s in report.other_code],
              "failed": {f"{t}/seed_{s}": e for (t, s), e in report.failed.items()}}
     report.table = combine(out, sweep=sweep)
     return report
+
+
+@functools.lru_cache(maxsize=1)
+def code_hash() -> str:
+    """Hash of the package's Python sources (paths and contents): which code made a result."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _stored_code(job: Job) -> str | None:
+    try:
+        return json.loads(job.result_path.read_text()).get("code")
+    except (json.JSONDecodeError, OSError):
+        return None
 
 
 def _existing(job: Job) -> str:

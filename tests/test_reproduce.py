@@ -54,6 +54,7 @@ def test_quick_sweep_writes_results_and_table(sweep):
         assert mse["MHE (true dynamics)"] < mse["MHE"] and mse["UKF (true dynamics)"] < mse["UKF"]
         assert (res["train_seed"], res["test_seed"]) == (2 * res["seed"], 2 * res["seed"] + 1)
         assert res["backend"] == "c" and len(res["config_hash"]) == 16
+        assert res["code"] == rep.code_hash()  # which sources made it
         for key in ("knode", "knode_full"):
             assert res["training"][key]["best_epoch"] <= 2 and res["training"][key]["train_seconds"] > 0
         assert {"simulate", "train_knode", "compile_knode", "estimate"} <= set(res["timings"])
@@ -126,6 +127,7 @@ def known_results(task: str, seed: int, config_hash: str = "x", backend: str = "
 def fake_job(job: rep.Job) -> dict:
     """Stands in for run_job in the workers (module level: picklable)."""
     results = known_results(job.task, job.seed, job.config_hash(), job.backend)
+    results["code"] = rep.code_hash()
     rep._write_json(job.result_path, results)
     return results
 
@@ -156,6 +158,25 @@ def test_resume_and_force(tmp_path, quick_configs):
     assert all(p.stat().st_mtime_ns != m for p, m in zip(paths, mtimes))
     changed = rep.run_sweep(rep.task_configs(["cartpole"], epochs=2, duration=0.5), **kwargs)
     assert len(changed.redone) == 2 and len(changed.ran) == 2
+
+
+def test_resume_names_results_made_by_other_code(tmp_path, quick_configs):
+    """A finished job whose results were made by other sources is kept (same configuration)
+    but named, in the sweep's output and in summary.json; jobs made by this code are not."""
+    kwargs = dict(seeds=2, out=tmp_path, jobs=1, backend="python", progress=False, job_fn=fake_job)
+    rep.run_sweep(quick_configs, echo=lambda _: None, **kwargs)
+    path = tmp_path / "runs" / "cartpole" / "seed_0.json"
+    results = load(path)
+    results["code"] = "0" * 16  # as if an older version of the package had made it
+    path.write_text(json.dumps(results))
+    lines = []
+    again = rep.run_sweep(quick_configs, echo=lines.append, **kwargs)
+    assert not again.ran and len(again.skipped) == 2 and again.other_code == [("cartpole", 0)]
+    assert any("1 finished job(s) were made by other code" in ln and "cartpole seed 0" in ln
+               for ln in lines), lines
+    assert load(path)["code"] == "0" * 16  # kept, not redone
+    assert load(tmp_path / "summary.json")["sweep"]["made_by_other_code"] == ["cartpole/seed_0"]
+    assert len(rep.code_hash()) == 16 and rep.code_hash() == load(tmp_path / "summary.json")["sweep"]["code"]
 
 
 def test_failing_job_is_recorded_and_the_others_kept(tmp_path, quick_configs):
