@@ -212,15 +212,17 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--restarts", type=click.IntRange(min=1), default=3, show_default=True,
               help="initialisations per training round (the one whose model best explains the "
                    "measurements is kept; 1 = paper)")
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.1, show_default=True,
+              help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
-def demo(system_name, out, epochs, observer, duration, refine, restarts, no_python_mhe) -> None:
+def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
     from .demo import run_demo
 
     report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
                       python_mhe=not no_python_mhe, duration=duration, refine=refine,
-                      restarts=restarts)
+                      restarts=restarts, weight_decay=weight_decay)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 
