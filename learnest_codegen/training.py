@@ -189,11 +189,20 @@ def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                 settings: TrainingSettings, observer: str, progress: bool) -> TrainedModel:
     torch.manual_seed(settings.seed)
     net = make_net(system, settings.network)
-    net.set_input_scaling(zeta, u)
+    signs = system.reflection_signs()
+    if signs is None:
+        net.set_input_scaling(zeta, u)
+    else:
+        net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
     n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
     train_set = [a[:n_train] for a in pairs]
     valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
+    if signs is not None:  # every pair and its mirror image (validation split first: no leak)
+        sx, su = (torch.as_tensor(s) for s in signs)
+        train_set, valid_set = ([torch.cat([z, z * sx]), torch.cat([v, v * su]), torch.cat([zn, zn * sx])]
+                                for z, v, zn in (train_set, valid_set))
+        n_train = len(train_set[0])
     if settings.weight_decay:
         optimiser = torch.optim.AdamW(net.parameters(), lr=settings.learning_rate,
                                       weight_decay=settings.weight_decay)

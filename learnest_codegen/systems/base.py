@@ -98,6 +98,7 @@ class System:
     residual_via: tuple[str, ...] | None = None  # see residual_via_names
     residual_prior_features: tuple[str, ...] = ()  # see residual_prior_feature_names
     residual_prior_gains: bool = False  # see the docstring of residual_prior_feature_names
+    reflection: tuple[str, ...] | None = None  # see reflection_signs
     description: str = ""
     extra: Mapping[str, object] = field(default_factory=dict)
 
@@ -122,6 +123,10 @@ class System:
             raise ValueError(f"system {self.name!r}: periodic_states/residual_states/"
                              f"residual_prior_features {unknown} are not states")
         signals = {*self.state_names, *self.input_names}
+        unknown = [n for n in (self.reflection or ()) if n not in signals]
+        if unknown or self.reflection == ():
+            raise ValueError(f"system {self.name!r}: reflection {unknown or '()'} must name "
+                             f"states or inputs ({sorted(signals)})")
         unknown = [n for n in (self.residual_inputs or ()) if n not in signals]
         if unknown or self.residual_inputs == ():
             raise ValueError(f"system {self.name!r}: residual_inputs {unknown or '()'} must name "
@@ -215,6 +220,22 @@ class System:
         """
         return list(self.residual_prior_features)
 
+    def reflection_signs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Signs ``(s_x, s_u)`` of the system's mirror symmetry, or ``None`` if it declares none.
+
+        ``reflection`` names the states and inputs that change sign when the system is seen in
+        a mirror; the physics then obeys ``f(s_x x, s_u u) = s_x f(x, u)``. A cartpole on a level
+        rail does: pushed the other way, it does the mirror image, whatever its masses, friction
+        or drag. A slope along the rail or an actuator offset would break it; a system with such
+        effects declares no reflection. Training adds the mirror image of every training pair,
+        so the net sees both directions of every motion the run made (see
+        :func:`learnest_codegen.training.train`).
+        """
+        if self.reflection is None:
+            return None
+        flip = lambda names: np.array([-1.0 if n in self.reflection else 1.0 for n in names])  # noqa: E731
+        return flip(self.state_names), flip(self.input_names)
+
     @property
     def input_names(self) -> list[str]:
         return [s.name for s in self.inputs]
@@ -275,7 +296,9 @@ class System:
                                        "residual": [self.residual_input_names, self.residual_via_names,
                                                     self.residual_state_names,
                                                     self.residual_prior_feature_names,
-                                                    *(["prior_gains"] if self.residual_prior_gains else [])]},
+                                                    *(["prior_gains"] if self.residual_prior_gains else []),
+                                                    *([["reflection", *self.reflection]]
+                                                      if self.reflection else [])]},
                                       sort_keys=True, default=str).encode())
         with np.errstate(all="ignore"):
             excitation = self.excitation(np.arange(16) * self.dt * 25, np.random.default_rng(0))

@@ -88,4 +88,8 @@ CARTPOLE = System(
     # with gains on them, a mass error is a gain that barely varies.
     residual_prior_features=("pdot", "alphadot"),
     residual_prior_gains=True,
+    # A level rail and a symmetric cart: pushed the other way, the cartpole does the mirror image
+    # (true for any mass, friction or drag). Training adds the mirror image of every pair; one
+    # run's excursions are lopsided, and the test run goes where the training run did not.
+    reflection=("p", "pdot", "alpha", "alphadot", "F"),
 )
