@@ -18,6 +18,10 @@ unseen run):
   two rounds. With the cartpole's residual through the force (``System.residual_via``) the
   observer is no longer what limits it: the rounds move the UKF gap closure by 0.1 point.
 
+A system's declared mirror symmetry doubles the data: every pair is also used mirrored
+(``System.reflection``). On the cartpole this took the worst Table I job from 90.5 % to 99.8 %
+of the UKF gap closed: its training run had swung one way harder than the other.
+
 And an optional decoupled weight decay (``weight_decay``, AdamW): on the cartpole it takes the
 net trained on noisy full states from 99.3-99.9 % of the UKF gap closed to 99.9-100 % on
 unseen runs. Ten seconds of data leave many nets that fit the training run equally well; the
@@ -159,6 +163,9 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     lists every restart's validation loss. A bad local optimum shows there: on the cartpole one
     of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
     six times the others'.
+
+    A system that declares a mirror symmetry (:meth:`~learnest_codegen.systems.System.reflection_signs`)
+    is trained on every pair and its mirror image, the validation segment split off first.
 
     ``score(model)`` (higher is better) replaces the validation loss as the criterion; its
     values are stored as ``restart_score``. The validation loss cannot tell initialisations
