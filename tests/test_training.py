@@ -362,7 +362,7 @@ def test_weight_decay_settings_and_identity():
 def test_weight_decay_is_decoupled_adamw(cartpole, cartpole_run):
     """One epoch with decay equals torch's AdamW from the same initialisation (and differs from
     plain Adam): the setting reaches the optimiser."""
-    run = cartpole_run
+    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)  # the pairs as given
     settings = TrainingSettings(epochs=1, seed=3, weight_decay=0.5, validation_fraction=0.0,
                                 batch_size=10_000)
     model = train(cartpole, run.x[:400], run.u[:400], run.dt, settings, progress=False)
