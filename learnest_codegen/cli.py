@@ -89,10 +89,16 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
                    "lowest validation loss")
 @click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
               help="decoupled weight decay (AdamW); 0.1 helps the cartpole's nets generalise")
+@click.option("--final-lr", "final_learning_rate", type=click.FloatRange(min=0.0, min_open=True),
+              default=None, help="anneal the learning rate to this value (cosine); default: constant")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True), default=0.0,
+              show_default=True, help="validate and keep the moving average of the weights with this "
+                                      "decay per step (e.g. 0.99); 0 = the weights themselves")
 @click.option("--seed", default=0, show_default=True)
 @_friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
-          observer, full_state, refine, validation_fraction, restarts, weight_decay, seed) -> None:
+          observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
+          weight_average, seed) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
     from .data import read_run
     from .network import NetworkSettings
@@ -102,7 +108,7 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
     run = read_run(data, system)
     settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
                                 NetworkSettings(layers, hidden, activation), validation_fraction, refine,
-                                restarts, weight_decay)
+                                restarts, weight_decay, final_learning_rate, weight_average)
     model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
     model.save(out)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
@@ -214,15 +220,19 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
                    "measurements is kept; 1 = paper)")
 @click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.1, show_default=True,
               help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True), default=0.99,
+              show_default=True, help="keep the moving average of the weights (decay per step; 0 = "
+                                      "the weights themselves, as the paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
-def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, no_python_mhe) -> None:
+def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, weight_average,
+         no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
     from .demo import run_demo
 
     report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
                       python_mhe=not no_python_mhe, duration=duration, refine=refine,
-                      restarts=restarts, weight_decay=weight_decay)
+                      restarts=restarts, weight_decay=weight_decay, weight_average=weight_average)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 

@@ -46,7 +46,8 @@ class DemoReport:
 def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: str | None = None,
              train_seed: int = 0, test_seed: int = 1, include_true: bool = True,
              python_mhe: bool = True, duration: float | None = None, refine: int = 2,
-             restarts: int = 3, weight_decay: float = 0.1) -> DemoReport:
+             restarts: int = 3, weight_decay: float = 0.1,
+             weight_average: float = 0.99) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``."""
     out = Path(out)
     report = DemoReport()
@@ -60,8 +61,10 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
 
     observer = observer or system.default_observer
     say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
-        f"{refine} refinement rounds, {restarts} initialisations each, weight decay {weight_decay:g})")
-    settings = TrainingSettings(epochs=epochs, refine=refine, restarts=restarts, weight_decay=weight_decay)
+        f"{refine} refinement rounds, {restarts} initialisations each, weight decay {weight_decay:g}, "
+        f"weight average {weight_average:g})")
+    settings = TrainingSettings(epochs=epochs, refine=refine, restarts=restarts, weight_decay=weight_decay,
+                                weight_average=weight_average)
     trained = train_on_run(train_run, system, settings, observer=observer)
     trained.save(out / "model")
     report.figures.append(str(plot_loss(trained.meta["loss_history"], trained.meta["prior_loss"],

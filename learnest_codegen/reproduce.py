@@ -146,8 +146,12 @@ DEFAULT_TASKS: dict[str, TaskConfig] = {
     # (seen on 1 of 10 cartpole trainings) otherwise costs a seed 15-20 points of gap closure.
     # Weight decay 0.1 (AdamW): the full-state nets go from 99.3-99.9 % of the UKF gap closed
     # to 99.9-100 % on unseen runs (7 seeds); through the observer it adds about 0.1 point.
-    "cartpole": TaskConfig("cartpole", TrainingSettings(epochs=250, refine=2, restarts=3, weight_decay=0.1),
-                           TrainingSettings(epochs=250, weight_decay=0.1)),
+    # Keeping the moving average of the weights (decay 0.99 per step) instead of the last Adam
+    # iterate: on the six seeds tried (0, 10-14) the UKF gap closure moved by +0.08 point on
+    # average (seed 14 99.15 -> 99.47 %), at no extra cost.
+    "cartpole": TaskConfig("cartpole", TrainingSettings(epochs=250, refine=2, restarts=3, weight_decay=0.1,
+                                                        weight_average=0.99),
+                           TrainingSettings(epochs=250, weight_decay=0.1, weight_average=0.99)),
     # The paper's 10000 epochs, full batch (2000 training pairs): 10000 Adam steps in ~55 s per
     # model on one core; minibatches of 256 take ~4x longer for no better held-out loss.
     "ground_robot": TaskConfig("ground_robot", TrainingSettings(epochs=10000, batch_size=4096, refine=0),

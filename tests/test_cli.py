@@ -30,9 +30,12 @@ def test_simulate_train_compile_estimate(workdir):
     run = read_run(run_csv, get_system("cartpole"))
     assert len(run) == 300 and run.x is not None
 
-    r = invoke(cli, ["train", "--system", "cartpole", "--data", run_csv, "--out", model_dir, "--epochs", 3])
+    r = invoke(cli, ["train", "--system", "cartpole", "--data", run_csv, "--out", model_dir, "--epochs", 3,
+                     "--weight-decay", 0.1, "--final-lr", 1e-3, "--weight-average", 0.9])
     assert r.exit_code == 0, r.output
-    assert json.loads((model_dir / "model.json").read_text())["training"]["epochs"] == 3
+    training = json.loads((model_dir / "model.json").read_text())["training"]
+    assert (training["epochs"], training["weight_decay"], training["final_learning_rate"],
+            training["weight_average"]) == (3, 0.1, 1e-3, 0.9)
 
     r = invoke(compile_standalone, [model_dir, "--out", compiled])
     assert r.exit_code == 0, r.output

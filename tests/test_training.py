@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import casadi as cs
 import numpy as np
@@ -380,6 +381,83 @@ def test_weight_decay_is_decoupled_adamw(cartpole, cartpole_run):
         same = all(torch.allclose(a, b, rtol=0, atol=1e-15) for a, b in
                    zip(net.state_dict().values(), model.net.state_dict().values()))
         assert same == expect_equal
+
+
+def test_final_learning_rate_settings_and_identity():
+    """``final_learning_rate`` is validated, and left out of the settings' JSON when unset."""
+    assert "final_learning_rate" not in TrainingSettings().to_json()
+    assert TrainingSettings(final_learning_rate=1e-4).to_json()["final_learning_rate"] == 1e-4
+    for bad in (0.0, -1e-4, 0.1):  # above the starting rate 1e-2 is not an annealing
+        with pytest.raises(ValueError, match="final_learning_rate"):
+            TrainingSettings(final_learning_rate=bad)
+
+
+def test_final_learning_rate_is_a_cosine_annealing(cartpole, cartpole_run):
+    """Three full-batch epochs equal plain Adam steps at the closed-form cosine rates
+    ``eta_min + (eta_0 - eta_min) (1 + cos(pi t / (E - 1))) / 2``, t = 0, 1, 2, and differ from
+    steps at the constant rate."""
+    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)
+    lr0, lr1, epochs = 1e-2, 1e-4, 3
+    settings = TrainingSettings(epochs=epochs, seed=5, validation_fraction=0.0, batch_size=10_000,
+                                learning_rate=lr0, final_learning_rate=lr1)
+    model = train(cartpole, run.x[:400], run.u[:400], run.dt, settings, progress=False)
+    pairs = [torch.as_tensor(a) for a in (run.x[:399], run.u[:399], run.x[1:400])]
+    for annealed in (True, False):
+        torch.manual_seed(5)
+        net = make_net(cartpole)
+        net.set_input_scaling(run.x[:400], run.u[:400])
+        optimiser, states = torch.optim.Adam(net.parameters(), lr=lr0), []
+        for t in range(epochs):
+            rate = lr1 + (lr0 - lr1) * (1 + math.cos(math.pi * t / (epochs - 1))) / 2 if annealed else lr0
+            for group in optimiser.param_groups:
+                group["lr"] = rate
+            optimiser.zero_grad()
+            one_step_loss(cartpole, net, *pairs, run.dt).backward()
+            optimiser.step()
+            states.append({k: v.clone() for k, v in net.state_dict().items()})
+        kept = states[model.meta["best_epoch"]]
+        same = all(torch.allclose(kept[k], v, rtol=0, atol=1e-14) for k, v in model.net.state_dict().items())
+        assert same == annealed
+    assert model.meta["best_epoch"] == epochs - 1  # the loss fell every epoch: the last is kept
+
+
+def test_weight_average_settings_and_identity():
+    """``weight_average`` is validated, and left out of the settings' JSON when off."""
+    assert "weight_average" not in TrainingSettings().to_json()
+    assert TrainingSettings(weight_average=0.99).to_json()["weight_average"] == 0.99
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="weight_average"):
+            TrainingSettings(weight_average=bad)
+
+
+def test_weight_average_keeps_the_moving_average(cartpole, cartpole_run):
+    """With ``weight_average = d`` the net validated and kept is the exponential moving average
+    ``w_bar <- d w_bar + (1 - d) w`` of plain Adam's iterates, started at the initialisation:
+    four full-batch epochs replicated by hand."""
+    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)
+    d, epochs = 0.5, 4
+    settings = TrainingSettings(epochs=epochs, seed=7, validation_fraction=0.0, batch_size=10_000,
+                                weight_average=d)
+    model = train(cartpole, run.x[:400], run.u[:400], run.dt, settings, progress=False)
+    torch.manual_seed(7)
+    net = make_net(cartpole)
+    net.set_input_scaling(run.x[:400], run.u[:400])
+    pairs = [torch.as_tensor(a) for a in (run.x[:399], run.u[:399], run.x[1:400])]
+    optimiser = torch.optim.Adam(net.parameters(), lr=1e-2)
+    mean = {k: v.clone() for k, v in net.state_dict().items()}
+    means, raws = [], []
+    for _ in range(epochs):
+        optimiser.zero_grad()
+        one_step_loss(cartpole, net, *pairs, run.dt).backward()
+        optimiser.step()
+        for name, weight in net.named_parameters():
+            mean[name] = d * mean[name] + (1 - d) * weight.detach()
+        means.append({k: v.clone() for k, v in mean.items()})
+        raws.append({k: v.clone() for k, v in net.state_dict().items()})
+    best = model.meta["best_epoch"]
+    close = lambda a: all(torch.allclose(a[k], v, rtol=0, atol=1e-14)  # noqa: E731
+                          for k, v in model.net.state_dict().items())
+    assert close(means[best]) and not close(raws[best])
 
 
 def test_weight_decay_helps_the_full_state_net_generalise(cartpole, cartpole_run, cartpole_test_run):
