@@ -1,6 +1,6 @@
 """The full-scale demo (paper settings): KNODE estimators must beat the nominal ones widely.
 
-Slow (about 4 minutes on 2 cores): run with ``pytest -m slow``.
+Slow (about 6 minutes on 2 cores): run with ``pytest -m slow``.
 """
 
 from __future__ import annotations
