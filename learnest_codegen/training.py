@@ -93,8 +93,9 @@ class TrainingSettings:
             raise ValueError(f"need 0 < final_learning_rate <= learning_rate; got {self}")
 
     def to_json(self) -> dict:
-        """The settings as a dict. ``weight_decay`` is left out at its default 0, so the
-        identities of models and sweep jobs trained before it existed are unchanged."""
+        """The settings as a dict. ``weight_decay``, ``final_learning_rate`` and
+        ``weight_average`` are left out when off, so the identities of models and sweep jobs
+        trained before they existed are unchanged."""
         out = asdict(self)
         for key in ("weight_decay", "final_learning_rate", "weight_average"):
             if not out[key]:
@@ -237,11 +238,11 @@ def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     if settings.final_learning_rate is not None:
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
             optimiser, T_max=max(settings.epochs - 1, 1), eta_min=settings.final_learning_rate)
-    averaged = net  # with weight_average: a copy holding the exponential moving average
+    kept = net  # the net validated and kept; with weight_average a copy holding the average
     if settings.weight_average:
-        averaged = make_net(system, settings.network)
-        averaged.load_state_dict(net.state_dict())
-    pairs_ema = list(zip(averaged.parameters(), net.parameters()))
+        kept = make_net(system, settings.network)
+        kept.load_state_dict(net.state_dict())
+    averaging = list(zip(kept.parameters(), net.parameters())) if kept is not net else []
     generator = torch.Generator().manual_seed(settings.seed)
     start, history, valid_history = time.perf_counter(), [], []
     best = (math.inf, copy.deepcopy(net.state_dict()), 0)
@@ -252,11 +253,9 @@ def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             loss = one_step_loss(system, net, *(a[idx] for a in train_set), dt)
             loss.backward()
             optimiser.step()
-            if averaged is not net:
-                with torch.no_grad():
-                    for mean, weight in pairs_ema:
-                        mean.lerp_(weight, 1.0 - settings.weight_average)
-        kept = averaged
+            with torch.no_grad():
+                for mean, weight in averaging:
+                    mean.lerp_(weight, 1.0 - settings.weight_average)
         with torch.no_grad():
             history.append(float(one_step_loss(system, kept, *train_set, dt)))
             valid_history.append(float(one_step_loss(system, kept, *valid_set, dt)))
