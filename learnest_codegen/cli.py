@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -214,25 +215,32 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
 @click.option("--epochs", default=250, show_default=True)
 @click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
-@click.option("--refine", default=2, show_default=True, help="model-based smoothing rounds (0 = paper)")
+@click.option("--refine", default=2, show_default=True,
+              help="model-based smoothing rounds (0 = paper; Table I uses 5)")
 @click.option("--restarts", type=click.IntRange(min=1), default=3, show_default=True,
               help="initialisations per training round (the one whose model best explains the "
                    "measurements is kept; 1 = paper)")
-@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.1, show_default=True,
-              help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
-@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True), default=0.99,
-              show_default=True, help="keep the moving average of the weights (decay per step; 0 = "
-                                      "the weights themselves, as the paper)")
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.1,
+              show_default=True, help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
+              default=0.99, show_default=True,
+              help="keep the moving average of the weights (decay per step; 0 = the weights "
+                   "themselves, as the paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
 @_friendly
 def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, weight_average,
          no_python_mhe) -> None:
-    """Simulate, train, compile and compare nominal and KNODE estimators on a test run."""
-    from .demo import run_demo
+    """Simulate, train, compile and compare nominal and KNODE estimators on a test run.
 
-    report = run_demo(_system(system_name), out, epochs=epochs, observer=observer,
-                      python_mhe=not no_python_mhe, duration=duration, refine=refine,
-                      restarts=restarts, weight_decay=weight_decay, weight_average=weight_average)
+    The training defaults are ``QUICK_TRAINING`` (learnest_codegen.training; a test keeps
+    them equal: this module imports no torch)."""
+    from .demo import run_demo
+    from .training import QUICK_TRAINING
+
+    training = replace(QUICK_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
+                       weight_decay=weight_decay, weight_average=weight_average)
+    report = run_demo(_system(system_name), out, training=training, observer=observer,
+                      python_mhe=not no_python_mhe, duration=duration)
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 
@@ -326,7 +334,6 @@ def quadrotor(data, simulated, train_names, all_train, features, matrix, estimat
     nominal MHE and UKF (and the onboard EKF's velocity) on every other flight against
     Savitzky-Golay reference states. Writes OUT/quadrotor.{md,json,png}.
     """
-    from dataclasses import replace
 
     from . import flight_study as fs
     from .recordings import data_root

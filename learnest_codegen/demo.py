@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import click
@@ -23,7 +23,7 @@ from .export import hybrid_model, prior_model, true_model
 from .plotting import plot_errors, plot_estimates, plot_loss
 from .simulation import simulate
 from .systems import System
-from .training import TrainingSettings, train_on_run
+from .training import QUICK_TRAINING, TrainingSettings, train_on_run
 
 LABELS = {"nominal": "", "knode": "KNODE-", "true": ""}
 
@@ -43,12 +43,15 @@ class DemoReport:
         ])
 
 
-def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: str | None = None,
-             train_seed: int = 0, test_seed: int = 1, include_true: bool = True,
-             python_mhe: bool = True, duration: float | None = None, refine: int = 2,
-             restarts: int = 3, weight_decay: float = 0.1,
-             weight_average: float = 0.99) -> DemoReport:
-    """Run the whole pipeline on ``system`` and write everything under ``out``."""
+def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QUICK_TRAINING,
+             observer: str | None = None, train_seed: int = 0, test_seed: int = 1,
+             include_true: bool = True, python_mhe: bool = True,
+             duration: float | None = None) -> DemoReport:
+    """Run the whole pipeline on ``system`` and write everything under ``out``.
+
+    ``training`` defaults to :data:`~learnest_codegen.training.QUICK_TRAINING`; its ``seed`` is
+    replaced by ``train_seed``.
+    """
     out = Path(out)
     report = DemoReport()
     say = lambda msg: click.echo(click.style(f"==> {msg}", bold=True))  # noqa: E731
@@ -60,11 +63,10 @@ def run_demo(system: System, out: str | Path, *, epochs: int = 250, observer: st
     write_run(test_run, system, out / "test.csv")
 
     observer = observer or system.default_observer
-    say(f"training the KNODE residual on {observer!r} observations ({epochs} epochs, "
-        f"{refine} refinement rounds, {restarts} initialisations each, weight decay {weight_decay:g}, "
-        f"weight average {weight_average:g})")
-    settings = TrainingSettings(epochs=epochs, refine=refine, restarts=restarts, weight_decay=weight_decay,
-                                weight_average=weight_average)
+    settings = replace(training, seed=train_seed)
+    say(f"training the KNODE residual on {observer!r} observations ({settings.epochs} epochs, "
+        f"{settings.refine} refinement rounds, {settings.restarts} initialisations each, weight decay "
+        f"{settings.weight_decay:g}, weight average {settings.weight_average:g})")
     trained = train_on_run(train_run, system, settings, observer=observer)
     trained.save(out / "model")
     report.figures.append(str(plot_loss(trained.meta["loss_history"], trained.meta["prior_loss"],

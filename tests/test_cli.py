@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
+import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -93,3 +95,18 @@ def test_demo_end_to_end(tmp_path):
     assert rows["UKF (true dynamics)", "C"]["mse"] < rows["UKF", "C"]["mse"]
     for png in ("estimates.png", "errors.png", "training_loss.png"):
         assert (tmp_path / png).stat().st_size > 10_000
+
+
+def test_demo_defaults_are_the_quick_training_recipe():
+    """The demo's option defaults are QUICK_TRAINING (written out so that `learnest --help`
+    imports no torch), and Table I's cartpole task trains with RECOMMENDED_TRAINING."""
+    from learnest_codegen.reproduce import DEFAULT_TASKS
+    from learnest_codegen.training import QUICK_TRAINING, RECOMMENDED_TRAINING
+
+    defaults = {p.name: p.default for p in cli.commands["demo"].params}
+    for name in ("epochs", "refine", "restarts", "weight_decay", "weight_average"):
+        assert defaults[name] == getattr(QUICK_TRAINING, name), name
+    help_text = " ".join(cli.commands["demo"].get_help(click.Context(cli)).split())
+    assert f"Table I uses {RECOMMENDED_TRAINING.refine})" in help_text
+    assert DEFAULT_TASKS["cartpole"].training == RECOMMENDED_TRAINING
+    assert replace(RECOMMENDED_TRAINING, refine=QUICK_TRAINING.refine) == QUICK_TRAINING

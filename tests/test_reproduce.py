@@ -177,6 +177,10 @@ def test_resume_names_results_made_by_other_code(tmp_path, quick_configs):
     assert load(path)["code"] == "0" * 16  # kept, not redone
     assert load(tmp_path / "summary.json")["sweep"]["made_by_other_code"] == ["cartpole/seed_0"]
     assert len(rep.code_hash()) == 16 and rep.code_hash() == load(tmp_path / "summary.json")["sweep"]["code"]
+    # the table names every code that made a task's results, also when merely combined
+    codes = sorted(["0" * 16, rep.code_hash()])
+    assert load(tmp_path / "summary.json")["table"]["cartpole"]["code"] == codes
+    assert f"code {codes[0]}, {codes[1]}" in (tmp_path / "table1.md").read_text()
 
 
 def test_failing_job_is_recorded_and_the_others_kept(tmp_path, quick_configs):
