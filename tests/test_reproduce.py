@@ -248,7 +248,7 @@ def test_paper_closures_match_the_paper():
 
 
 def test_task_configs_and_job_identity():
-    assert rep.DEFAULT_TASKS["cartpole"].training.refine == 2
+    assert rep.DEFAULT_TASKS["cartpole"].training.refine == 5
     assert rep.DEFAULT_TASKS["ground_robot"].training.epochs == 10000
     cfg = rep.task_configs(["cartpole", "ground_robot"], epochs=7, duration=1.5, refine=0)
     for c in cfg.values():
