@@ -3,14 +3,17 @@
 Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``, ``reproduce table1``,
 ``reproduce quadrotor``, ``diagnose``.
 Every ``--system`` accepts a built-in name or the path of a Python file defining ``SYSTEM``.
-Errors of the package (:class:`LearnestError`) and missing files are printed as one clear line
-(exit code 1) instead of a traceback.
+Errors a user can cause (the package's :class:`LearnestError`, missing or unwritable files,
+values out of range) are printed as one clear line with exit code 1 instead of a traceback;
+``LEARNEST_TRACEBACK=1`` shows the traceback. Outputs are never written over an input, nor over
+an existing file or folder without ``--force``, and appear whole or not at all.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -23,17 +26,43 @@ from .errors import LearnestError
 SYSTEM_HELP = "built-in system name (cartpole) or path to a .py file defining SYSTEM"
 
 
+#: Failures a user can cause: the package's own errors, files (missing, unreadable, unwritable),
+#: values out of range (settings' ValueError) and numerics that a bad input drives off a cliff.
+USER_ERRORS = (LearnestError, OSError, ValueError, ArithmeticError, np.linalg.LinAlgError)
+
+
 def _friendly(fn):
-    """Turn expected failures into a one-line error instead of a traceback."""
+    """Turn the failures a user can cause into a one-line error (exit 1) instead of a traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (LearnestError, FileNotFoundError) as exc:
-            raise click.ClickException(str(exc)) from exc
+        except USER_ERRORS as exc:
+            if os.environ.get("LEARNEST_TRACEBACK"):
+                raise
+            message = " ".join(str(exc).split()) or type(exc).__name__
+            raise click.ClickException(message) from exc
 
     return wrapper
+
+
+FORCE = click.option("--force", is_flag=True, help="replace an existing output")
+RESAMPLE = click.option("--resample", is_flag=True,
+                        help="put a run sampled at another rate on the system's time step "
+                             "(default: refuse such a run)")
+
+
+def _read_run(data: str, system, resample: bool):
+    """Read a run CSV and make sure it is sampled at the system's ``dt`` (or resample it)."""
+    from .data import check_sampling, read_run
+    from .data import resample as to_grid
+
+    run = read_run(data, system)
+    if resample:
+        run = to_grid(run, system.dt)
+    check_sampling(run, system.dt, str(data))
+    return run
 
 
 def _system(name: str):
@@ -53,12 +82,15 @@ def cli() -> None:
 @click.option("--seed", default=0, show_default=True, help="seeds the excitation and the noise")
 @click.option("--duration", type=float, default=None, help="run length [s] (default: the system's)")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="run CSV to write")
+@FORCE
 @_friendly
-def simulate(system_name: str, seed: int, duration: float | None, out: str) -> None:
+def simulate(system_name: str, seed: int, duration: float | None, out: str, force: bool) -> None:
     """Simulate the true system and write a run CSV (truth included)."""
     from .data import write_run
+    from .outputs import claim_output
     from .simulation import simulate as sim
 
+    claim_output(out, force=force)
     system = _system(system_name)
     run = sim(system, seed, duration=duration)
     write_run(run, system, out)
@@ -96,22 +128,26 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str) -> N
               show_default=True, help="validate and keep the moving average of the weights with this "
                                       "decay per step (e.g. 0.99); 0 = the weights themselves")
 @click.option("--seed", default=0, show_default=True)
+@RESAMPLE
+@FORCE
 @_friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
           observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
-          weight_average, seed) -> None:
+          weight_average, seed, resample, force) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
-    from .data import read_run
     from .network import NetworkSettings
+    from .outputs import atomic_dir, claim_output
     from .training import TrainingSettings, train_on_run
 
+    claim_output(out, inputs=(data,), force=force, kind="dir")
     system = _system(system_name)
-    run = read_run(data, system)
+    run = _read_run(data, system, resample)
     settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
                                 NetworkSettings(layers, hidden, activation), validation_fraction, refine,
                                 restarts, weight_decay, final_learning_rate, weight_average)
     model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
-    model.save(out)
+    with atomic_dir(out) as tmp:
+        model.save(tmp)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
                f"(prior alone {model.meta['prior_loss']:.4e}), {model.meta['train_seconds']:.1f} s")
 
@@ -179,15 +215,19 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators) -> None
 @click.option("--compiled", type=click.Path(file_okay=False), default=None,
               help="compiled estimator directory (C backend; default: compile on demand)")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@RESAMPLE
+@FORCE
 @_friendly
-def estimate(system_name, data, estimator, model, backend, compiled, out) -> None:
+def estimate(system_name, data, estimator, model, backend, compiled, out, resample, force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state."""
     from .compilation import compile_estimators, estimator_dir, estimator_kind, resolve_model
-    from .data import read_run
     from .evaluation import mse, run_estimator
+    from .outputs import atomic_file, claim_output
 
+    claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
+                 force=force)
     system = _system(system_name)
-    run = read_run(data, system)
+    run = _read_run(data, system, resample)
     kind = estimator_kind(estimator)
     discrete, model_hash = resolve_model(system, model)
     if backend == "python":
@@ -197,12 +237,13 @@ def estimate(system_name, data, estimator, model, backend, compiled, out) -> Non
             root = Path(out).resolve().parent / ".learnest_compiled"
             compile_estimators(discrete, root, model_hash=model_hash, estimators=(estimator,))
             compiled = estimator_dir(root, discrete, estimator)
-        est = kind.compiled(compiled, expect={"system": system.name, "model_hash": model_hash})
+        est = kind.compiled(compiled, expect={"system": system.name, "model_hash": model_hash,
+                                              "dt": system.dt})
     result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(out, np.column_stack([run.t, result.x_hat]), delimiter=",", header=header,
-               comments="", fmt="%.17g")
+    with atomic_file(out) as tmp:
+        np.savetxt(tmp, np.column_stack([run.t, result.x_hat]), delimiter=",", header=header,
+                   comments="", fmt="%.17g")
     line = f"wrote {out}: {len(run)} estimates, {result.seconds_per_step * 1e6:.1f} us/step"
     if run.x is not None:
         line += f", MSE vs truth {mse(result.x_hat, run.x):.4e}"
@@ -339,20 +380,24 @@ def quadrotor(data, simulated, train_names, all_train, features, matrix, estimat
     from .recordings import data_root
 
     split = lambda text: [p.strip() for p in text.split(",") if p.strip()]  # noqa: E731
+    skipped = None
     if simulated:
         cases, default = fs.simulated_cases(range(simulated)), "sim_seed0"
     else:
         root = data_root(data)
         if root is None:
             raise click.ClickException("no data folder found: pass --data DIR or set $LEARNEST_DATA")
-        cases, default = fs.flight_cases(root, savgol_window=savgol_window), fs.DEFAULT_TRAIN
+        skipped: dict[str, str] = {}
+        cases, default = fs.flight_cases(root, skipped=skipped, savgol_window=savgol_window), fs.DEFAULT_TRAIN
+        for name, reason in skipped.items():
+            click.echo(f"skipped {name}: {reason}", err=True)
     train = [c.name for c in cases] if all_train else split(train_names or default)
     base = fs.StudySettings()
     settings = fs.StudySettings(training=replace(base.training, epochs=epochs), observer=observer,
                                 estimators=tuple(split(estimators)))
     matrix = list(fs.DEFAULT_MATRIX) if matrix.strip() == "default" else split(matrix)
     summaries = fs.run_study(cases, out, train=train, features=split(features), settings=settings,
-                             matrix=matrix, force=force)
+                             matrix=matrix, force=force, skipped=skipped)
     click.echo("\n" + fs.markdown(summaries).split("### medians")[-1])
     click.echo(f"wrote {Path(out) / 'quadrotor.md'}, quadrotor.json, quadrotor.png")
 

@@ -3,6 +3,10 @@
 Columns: ``t`` [s], ``u_<input>``, ``y_<output>`` and, when truth is known, ``x_<state>``,
 named after the system's signals. Loading validates the columns against the system, checks that
 time increases strictly and that every value is finite, and says exactly what is wrong.
+
+Every model and compiled estimator steps at its system's ``dt``; a run sampled at another rate
+would be estimated (or trained on) silently wrong, so :func:`check_sampling` compares the two and
+:func:`resample` puts a run on the right grid when the user asks for it.
 """
 
 from __future__ import annotations
@@ -15,7 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DataError, ShapeError
+from .outputs import atomic_file
 from .systems import System
+
+#: How far the median sampling period may differ from the expected ``dt`` (relative).
+SAMPLING_RTOL = 0.01
+#: How far a single step may differ from ``dt`` (relative): timestamp jitter, not a gap.
+JITTER_RTOL = 0.5
 
 
 @dataclass(frozen=True)
@@ -48,6 +58,11 @@ class Run:
         """Mean sampling period [s]."""
         return float(np.mean(np.diff(self.t)))
 
+    @property
+    def median_dt(self) -> float:
+        """Median sampling period [s] (robust to a few late timestamps)."""
+        return float(np.median(np.diff(self.t)))
+
     def __len__(self) -> int:
         return self.t.shape[0]
 
@@ -59,12 +74,11 @@ def columns(system: System, with_truth: bool) -> list[str]:
 
 
 def write_run(run: Run, system: System, path: str | Path) -> Path:
-    """Write ``run`` as CSV (full double precision)."""
+    """Write ``run`` as CSV (full double precision), atomically (whole file or none)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     blocks = [run.t[:, None], run.u, run.y] + ([run.x] if run.x is not None else [])
     table = np.hstack(blocks)
-    with path.open("w", newline="") as fh:
+    with atomic_file(path) as tmp, tmp.open("w", newline="") as fh:
         fh.write(",".join(columns(system, run.x is not None)) + "\n")
         np.savetxt(fh, table, delimiter=",", fmt="%.17g")
     return path
@@ -106,3 +120,41 @@ def read_run(path: str | Path, system: System) -> Run:
     truth_cols = [f"x_{n}" for n in system.state_names]
     x = pick("x", system.state_names) if all(c in col for c in truth_cols) else None
     return Run(t, pick("u", system.input_names), pick("y", system.output_names), x, system.name)
+
+
+def check_sampling(run: Run, dt: float, where: str, *, rtol: float = SAMPLING_RTOL,
+                   jitter: float = JITTER_RTOL) -> None:
+    """Raise :class:`DataError` unless ``run`` is sampled every ``dt`` seconds.
+
+    The median step must equal ``dt`` within ``rtol`` (relative), and every single step within
+    ``jitter`` (relative: timestamp jitter passes, a dropped sample does not). The message says
+    how to resample (``--resample`` on the command line, :func:`resample` in Python).
+    """
+    steps = np.diff(run.t)
+    median = float(np.median(steps))
+    if abs(median - dt) > rtol * dt:
+        raise DataError(f"{where}: the run is sampled every {median:.6g} s (median step), but the "
+                        f"{run.system} model steps every {dt:g} s; resample it (--resample, or "
+                        f"learnest_codegen.data.resample) or use a model of that rate")
+    k = int(np.argmax(np.abs(steps - dt)))
+    if abs(steps[k] - dt) > jitter * dt:
+        raise DataError(f"{where}: step {steps[k]:.6g} s from t={run.t[k]:.6g} s (sample {k}) is not "
+                        f"the model's {dt:g} s within {jitter:.0%}: a gap or a time jump; resample "
+                        f"the run (--resample) or cut it there")
+
+
+def resample(run: Run, dt: float) -> Run:
+    """``run`` on the uniform grid ``t[0] + k dt`` that fits inside it.
+
+    Measurements and truth are interpolated linearly; the input is held (zero-order hold, the
+    convention of :class:`Run`: ``u[k]`` applies from ``t[k]`` to ``t[k+1]``).
+    """
+    if not dt > 0:
+        raise ValueError(f"resample: need dt > 0, got {dt}")
+    t = run.t[0] + dt * np.arange(int(np.floor((run.t[-1] - run.t[0]) / dt + 1e-9)) + 1)
+    if len(t) < 2:
+        raise DataError(f"resample: a run of {run.t[-1] - run.t[0]:g} s holds fewer than 2 samples "
+                        f"at dt={dt:g} s")
+    held = np.clip(np.searchsorted(run.t, t, side="right") - 1, 0, len(run) - 1)
+    lerp = lambda a: np.column_stack([np.interp(t, run.t, col) for col in a.T])  # noqa: E731
+    return Run(t, run.u[held], lerp(run.y), None if run.x is None else lerp(run.x), run.system)

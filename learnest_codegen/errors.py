@@ -39,6 +39,11 @@ class BuildError(LearnestError, RuntimeError):
     """The C compiler failed; the message carries the command line and the compiler's stderr."""
 
 
+class OutputError(LearnestError, OSError):
+    """An output path cannot be written as asked: it is an input, it exists (without
+    ``--force``), or its folder cannot be made."""
+
+
 class SolverError(LearnestError, RuntimeError):
     """A numerical solver (Ipopt, a Cholesky factorisation) failed at run time."""
 

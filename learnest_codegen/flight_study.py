@@ -115,19 +115,36 @@ class StudySettings:
 # --- cases ----------------------------------------------------------------------------------------
 
 
-def flight_cases(root: str | Path, **read_options) -> list[Case]:
-    """Every NanoBench flight under ``root`` as a :class:`Case` (see ``read_flight``)."""
+def flight_cases(root: str | Path, *, skipped: dict[str, str] | None = None,
+                 **read_options) -> list[Case]:
+    """Every NanoBench flight under ``root`` as a :class:`Case` (see ``read_flight``).
+
+    A flight that cannot be used (one that never leaves the ground, a gap, another sampling
+    rate) raises :class:`DataError`; with a ``skipped`` dict it is left out instead and its
+    reason recorded there under the file's name, so one bad recording does not stop a study.
+    """
     from .recordings.crazyflie import list_flights, read_flight
 
     paths = list_flights(root)
     if not paths:
         raise FileNotFoundError(f"no flight CSVs under {root}")
-    flights = [read_flight(p, **read_options) for p in paths]
-    for f in flights:
-        if abs(f.timing.dt - QUADROTOR.dt) > 1e-3 * QUADROTOR.dt:
-            raise DataError(f"flight {f.name}: sampled every {f.timing.dt} s, but the quadrotor "
-                            f"estimators step {QUADROTOR.dt} s")
-    return [Case(f.name, f.run, f.reference, f.onboard) for f in flights]
+    cases = []
+    for path in paths:
+        try:
+            f = read_flight(path, **read_options)
+            if abs(f.timing.dt - QUADROTOR.dt) > 1e-3 * QUADROTOR.dt:
+                raise DataError(f"flight {f.name}: sampled every {f.timing.dt} s, but the quadrotor "
+                                f"estimators step {QUADROTOR.dt} s")
+        except DataError as exc:
+            if skipped is None:
+                raise
+            skipped[Path(path).stem] = str(exc)
+            continue
+        cases.append(Case(f.name, f.run, f.reference, f.onboard))
+    if not cases:
+        raise DataError(f"no usable flight under {root}: " + "; ".join(f"{k}: {v}" for k, v in
+                                                                     (skipped or {}).items()))
+    return cases
 
 
 def simulated_cases(seeds: Iterable[int], duration: float | None = None) -> list[Case]:
@@ -338,13 +355,14 @@ def plot_boxes(summaries: Sequence[Summary], path: Path) -> Path:
 def run_study(cases: Sequence[Case], out: str | Path, *, train: Sequence[str],
               features: Sequence[str] = tuple(FEATURES), settings: StudySettings = StudySettings(),
               matrix: Sequence[str] = (), force: bool = False,
-              progress: bool = True) -> list[Summary]:
+              progress: bool = True, skipped: dict[str, str] | None = None) -> list[Summary]:
     """Each training case in ``train`` x each of ``features``, tested on all other cases.
 
     ``matrix`` names more training cases that are tested with the UKF only (the training-flight
     matrix); they appear in the medians table, not in the per-case tables or the box plot.
     Writes the per-study JSON files, ``OUT/quadrotor.{md,json,png}``; returns the summaries of
-    ``train`` followed by those of ``matrix``.
+    ``train`` followed by those of ``matrix``. ``skipped`` (recording name -> reason) is listed
+    in both reports.
     """
     out = Path(out)
     names = [c.name for c in cases]
@@ -365,8 +383,11 @@ def run_study(cases: Sequence[Case], out: str | Path, *, train: Sequence[str],
             knode = train_and_test(train_case, tests, f, out, chosen, force=force, progress=progress)
             summaries.append(summarise(nominal, knode))
     main = summaries[:len(train) * len(features)]
-    (out / "quadrotor.md").write_text(markdown(main, matrix=summaries[len(main):]))
-    _write_json(out / "quadrotor.json", {"settings": settings.to_json(),
+    report = markdown(main, matrix=summaries[len(main):])
+    if skipped:
+        report += "\n### recordings left out\n\n" + "".join(f"- {k}: {v}\n" for k, v in skipped.items())
+    (out / "quadrotor.md").write_text(report)
+    _write_json(out / "quadrotor.json", {"settings": settings.to_json(), "skipped": dict(skipped or {}),
                                          "studies": [s.to_json() for s in summaries]})
     plot_boxes(main[:8], out / "quadrotor.png")
     return summaries

@@ -49,6 +49,7 @@ import copy
 import hashlib
 import json
 import math
+import pickle
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -58,7 +59,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .data import Run
+from .data import Run, check_sampling
 from .errors import ModelMismatchError
 from .integrators import rk4_step
 from .network import NetworkSettings, ResidualNet
@@ -310,7 +311,13 @@ def load_model(directory: str | Path, system: System) -> TrainedModel:
     meta_path, weights_path = directory / META, directory / WEIGHTS
     if not meta_path.is_file() or not weights_path.is_file():
         raise FileNotFoundError(f"{directory} is not a model directory (needs {META} and {WEIGHTS})")
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelMismatchError(f"{meta_path} is not valid JSON ({exc}); the model directory is "
+                                 "damaged: retrain or restore it") from exc
+    if not isinstance(meta, dict) or "network" not in meta:
+        raise ModelMismatchError(f"{meta_path} holds no model description; retrain or restore it")
     got = (meta.get("system"), meta.get("nx"), meta.get("nu"))
     if got != (system.name, system.nx, system.nu):
         raise ModelMismatchError(f"model {directory} was trained for system {got[0]!r} "
@@ -321,7 +328,11 @@ def load_model(directory: str | Path, system: System) -> TrainedModel:
         raise ModelMismatchError(f"model {directory} has residual structure {stored}, but system "
                                  f"{system.name!r} now defines {expected}; retrain it")
     net = make_net(system, NetworkSettings(**meta["network"]))
-    net.load_state_dict(torch.load(weights_path, weights_only=True))
+    try:
+        net.load_state_dict(torch.load(weights_path, weights_only=True))
+    except (RuntimeError, EOFError, OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
+        raise ModelMismatchError(f"{weights_path} cannot be read as this model's weights "
+                                 f"({str(exc).splitlines()[0]}); retrain or restore it") from exc
     return TrainedModel(system, net, meta)
 
 
@@ -335,6 +346,7 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
     (:func:`~learnest_codegen.observers.innovation_loglik`), not by the validation loss on the
     observer's states.
     """
+    check_sampling(run, system.dt, f"train_on_run({system.name})")
     observer = observer or system.default_observer
     start = time.perf_counter()
     from .observers import ekf_rts, innovation_loglik, observe, smooth_states
