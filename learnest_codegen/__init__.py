@@ -1,13 +1,36 @@
 """learnest_codegen: learned (KNODE) dynamics to compiled C state estimators.
 
 Data flows one way: systems -> simulation/data -> observers -> training -> export ->
-codegen -> toolchain -> runtime -> evaluation -> CLI.
+codegen -> toolchain -> runtime -> evaluation -> CLI. The names below are the public API; the
+pipeline's calls (:mod:`learnest_codegen.pipeline`) import torch only when a trained model is
+involved, so ``import learnest_codegen`` stays light.
 """
 
+from .data import Run as Run
+from .data import read_run as read_run
+from .data import resample as resample
+from .data import write_run as write_run
 from .errors import LearnestError as LearnestError
+from .evaluation import mse as mse
+from .pipeline import compile_estimator as compile_estimator
+from .pipeline import evaluate as evaluate
+from .pipeline import load_estimator as load_estimator
+from .pipeline import reference_estimator as reference_estimator
+from .pipeline import resolve as resolve
+from .pipeline import simulate as simulate
+from .pipeline import train as train
 from .systems import NoiseModel as NoiseModel
 from .systems import Signal as Signal
 from .systems import System as System
 from .systems import get_system as get_system
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """The training recipes live with the training code (torch): loaded on first use."""
+    if name in ("QUICK_TRAINING", "RECOMMENDED_TRAINING", "TrainingSettings"):
+        from . import training
+
+        return getattr(training, name)
+    raise AttributeError(f"module 'learnest_codegen' has no attribute {name!r}")

@@ -1,0 +1,128 @@
+"""The pipeline as calls: simulate, train, compile, load, evaluate.
+
+Every stage of the data flow is reachable from here with one import, and the commands, the demo
+and the studies use the same calls, so a model reaches a running estimator by one path only::
+
+    import learnest_codegen as ln
+
+    system = ln.get_system("cartpole")
+    train_run, test_run = ln.simulate(system, seed=0), ln.simulate(system, seed=1)
+    model = ln.train(train_run, system, ln.QUICK_TRAINING)
+    ukf = ln.compile_estimator(model, "ukf", out="generated")   # C library, loaded
+    result = ln.evaluate(ukf, test_run)                          # estimates, MSE, timing
+
+A *model* is ``"nominal"`` (the prior), ``"true"`` (simulation's truth), a trained model or its
+directory. torch is imported only when a trained model is involved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping, Union
+
+import numpy as np
+
+from .compilation import ESTIMATOR_NAMES, compile_estimators, estimator_dir, estimator_kind, resolve_model
+from .data import Run, check_sampling
+from .evaluation import EstimateResult, run_estimator
+from .export import DiscreteModel, hybrid_model
+from .runtime.manifest import read_manifest
+from .systems import System, get_system
+
+if TYPE_CHECKING:
+    from .training import TrainedModel, TrainingSettings
+
+ModelLike = Union[str, Path, "TrainedModel", DiscreteModel]
+
+
+def simulate(system: System | str, seed: int = 0, *, duration: float | None = None) -> Run:
+    """Simulate the true system (scipy RK45, zero-order-hold inputs) into a :class:`Run` with truth."""
+    from .simulation import simulate as sim  # scipy.integrate: loaded only when simulating
+
+    return sim(get_system(system), seed, duration=duration)
+
+
+@dataclass(frozen=True)
+class ResolvedModel:
+    """A discrete model and the hash that identifies it in compiled manifests."""
+
+    model: DiscreteModel
+    hash: str
+
+
+def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedModel:
+    """``"nominal"``, ``"true"``, a trained model, its directory, or a :class:`DiscreteModel`.
+
+    ``system`` is needed for the names and for model directories (checked against the model's
+    own); a trained model knows its system.
+    """
+    if isinstance(model, DiscreteModel):
+        return ResolvedModel(model, model.kind)
+    if isinstance(model, (str, Path)):
+        if system is None:
+            raise ValueError(f"resolve: model {str(model)!r} needs a system")
+        return ResolvedModel(*resolve_model(get_system(system), str(model)))
+    return ResolvedModel(hybrid_model(model.system, model.net), model.hash)
+
+
+def train(run: Run, system: System | str, settings: TrainingSettings | None = None, *,
+          observer: str | None = None, full_state: bool = False, progress: bool = True) -> TrainedModel:
+    """Train the KNODE residual on ``run`` (Alg. 1 phase 1); see :func:`training.train_on_run`.
+
+    ``settings`` defaults to :data:`~learnest_codegen.training.QUICK_TRAINING`.
+    """
+    from .training import QUICK_TRAINING, train_on_run
+
+    return train_on_run(run, get_system(system), settings or QUICK_TRAINING, observer=observer,
+                        full_state=full_state, progress=progress)
+
+
+def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
+                      system: System | str | None = None, settings: Any = None):
+    """Generate, build and load one estimator of ``model``; returns the compiled estimator.
+
+    Parameters
+    ----------
+    model : see :func:`resolve`.
+    estimator : a name of :data:`~learnest_codegen.compilation.ESTIMATOR_NAMES`.
+    out : folder of compiled estimators (one subfolder each; unchanged builds are reused).
+    settings : the estimator's settings (default: the system's, as ``learnest-compile``).
+    """
+    resolved = resolve(model, system)
+    compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
+                       settings={estimator: settings} if settings is not None else None)
+    return load_estimator(estimator_dir(Path(out), resolved.model, estimator),
+                          expect={"model_hash": resolved.hash})
+
+
+def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None):
+    """Load a compiled estimator folder, whichever estimator its manifest names."""
+    name = read_manifest(Path(directory)).get("estimator")
+    return estimator_kind(str(name)).compiled(directory, expect=expect)
+
+
+def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: System | str | None = None,
+                        settings: Any = None):
+    """The Python reference (FilterPy UKF, CasADi ``nlpsol`` MHE) of ``model``."""
+    resolved = resolve(model, system)
+    kind = estimator_kind(estimator)
+    return kind.python(resolved.model, settings or kind.default_settings(resolved.model))
+
+
+def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: System | str | None = None,
+             label: str = "") -> EstimateResult:
+    """Run ``estimator`` over ``run`` from ``x0`` (default: the system's ``x0``) and time it.
+
+    ``system`` defaults to the built-in one the run names. The run must be sampled at the
+    system's ``dt``, the step the estimator was built for. The result's ``mse(run.x)`` scores it
+    when the truth is known.
+    """
+    system = get_system(system or run.system)
+    check_sampling(run, system.dt, label or "evaluate")
+    x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
+    return run_estimator(estimator, run, x0, label or type(estimator).__name__)
+
+
+__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "load_estimator",
+           "reference_estimator", "resolve", "simulate", "train"]
