@@ -220,25 +220,21 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators) -> None
 @_friendly
 def estimate(system_name, data, estimator, model, backend, compiled, out, resample, force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state."""
-    from .compilation import compile_estimators, estimator_dir, estimator_kind, resolve_model
     from .evaluation import mse, run_estimator
     from .outputs import atomic_file, claim_output
+    from .pipeline import load_estimator, make_estimator, resolve
 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)
     system = _system(system_name)
     run = _read_run(data, system, resample)
-    kind = estimator_kind(estimator)
-    discrete, model_hash = resolve_model(system, model)
-    if backend == "python":
-        est = kind.python(discrete, kind.default_settings(discrete))
-    else:
-        if compiled is None:
-            root = Path(out).resolve().parent / ".learnest_compiled"
-            compile_estimators(discrete, root, model_hash=model_hash, estimators=(estimator,))
-            compiled = estimator_dir(root, discrete, estimator)
-        est = kind.compiled(compiled, expect={"system": system.name, "model_hash": model_hash,
-                                              "dt": system.dt})
+    resolved = resolve(model, system)
+    if backend == "c" and compiled is not None:
+        est = load_estimator(compiled, expect={"estimator": estimator, "system": system.name,
+                                               "model_hash": resolved.hash, "dt": system.dt})
+    else:  # compiled on demand next to the output (reused while the model is unchanged)
+        est = make_estimator(resolved, estimator, backend=backend, system=system,
+                             out=Path(out).resolve().parent / ".learnest_compiled")
     result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
     with atomic_file(out) as tmp:

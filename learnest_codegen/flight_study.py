@@ -183,15 +183,18 @@ def scores(x_hat: np.ndarray, reference: np.ndarray) -> dict[str, float]:
 # --- running estimators ---------------------------------------------------------------------------
 
 
-def _run_method(directory: Path, model, estimator: str, model_hash: str, case: Case) -> dict:
-    from .compilation import estimator_dir, estimator_kind
+def _estimators(model, out: Path, settings: StudySettings) -> dict:
+    """The study's compiled estimators of ``model`` (see :func:`pipeline.resolve`), by name."""
+    from .pipeline import make_estimator
+
+    return {name: make_estimator(model, name, system=QUADROTOR, out=out) for name in settings.estimators}
+
+
+def _run_method(estimator, case: Case) -> dict:
     from .evaluation import run_estimator
 
-    kind = estimator_kind(estimator)
-    compiled = kind.compiled(estimator_dir(directory, model, estimator),
-                             expect={"system": model.system.name, "model_hash": model_hash})
     try:
-        result = run_estimator(compiled, case.run, initial_state(case.run), estimator)
+        result = run_estimator(estimator, case.run, initial_state(case.run), type(estimator).__name__)
     except LearnestError as exc:  # an Ipopt failure on one case is a result, not the end
         return {"error": f"{type(exc).__name__}: {exc}", "mse": float("nan")}
     return {**scores(result.x_hat, case.reference), "us_per_step": result.seconds_per_step * 1e6}
@@ -200,12 +203,7 @@ def _run_method(directory: Path, model, estimator: str, model_hash: str, case: C
 def nominal_results(cases: Sequence[Case], out: Path, settings: StudySettings,
                     progress: bool = True) -> dict[str, dict]:
     """The nominal MHE and UKF (and the onboard EKF) on every case, cached in ``OUT/nominal``."""
-    from .compilation import compile_estimators
-    from .export import prior_model
-
-    model = prior_model(QUADROTOR)
-    directory = out / "compiled" / "nominal"
-    compile_estimators(model, directory, model_hash="nominal", estimators=settings.estimators)
+    estimators = _estimators("nominal", out / "compiled" / "nominal", settings)
     results = {}
     for case in tqdm(cases, desc="nominal estimators", disable=not progress, unit="case"):
         path = out / "nominal" / f"{case.name}.json"
@@ -214,7 +212,7 @@ def nominal_results(cases: Sequence[Case], out: Path, settings: StudySettings,
         if path.is_file() and json.loads(path.read_text()).get("hash") == ident:
             results[case.name] = json.loads(path.read_text())["methods"]
             continue
-        methods = {label: _run_method(directory, model, est, "nominal", case)
+        methods = {label: _run_method(estimators[est], case)
                    for label, est, kind in METHODS if kind == "nominal" and est in settings.estimators}
         if case.onboard is not None:
             methods[ONBOARD] = scores(case.onboard, case.reference)
@@ -232,8 +230,6 @@ def train_and_test(train: Case, tests: Sequence[Case], features: str, out: Path,
     "hash", "training": {...}, "cases": {case: {label: scores}}}``; a file with the same
     configuration hash is reused unless ``force``.
     """
-    from .compilation import compile_estimators
-    from .export import hybrid_model
     from .training import train_on_run
 
     system = feature_system(features)
@@ -255,14 +251,13 @@ def train_and_test(train: Case, tests: Sequence[Case], features: str, out: Path,
     finally:
         torch.set_num_threads(threads)
     trained.save(work / "model")
-    model = hybrid_model(system, trained.net)
     compile_start = time.perf_counter()
-    compile_estimators(model, work / "compiled", model_hash=trained.hash, estimators=settings.estimators)
+    estimators = _estimators(trained, work / "compiled", settings)
     compile_seconds = time.perf_counter() - compile_start
     cases = {}
     bar = tqdm(tests, desc=f"KNODE ({train.name}, {features})", disable=not progress, unit="case")
     for case in bar:
-        cases[case.name] = {label: _run_method(work / "compiled", model, est, trained.hash, case)
+        cases[case.name] = {label: _run_method(estimators[est], case)
                             for label, est, kind in METHODS if kind == "knode" and est in settings.estimators}
     results = {"train": train.name, "features": features, "hash": ident,
                "training": {k: trained.meta[k] for k in ("train_seconds", "best_epoch", "final_loss",

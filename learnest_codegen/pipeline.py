@@ -33,7 +33,7 @@ from .systems import System, get_system
 if TYPE_CHECKING:
     from .training import TrainedModel, TrainingSettings
 
-ModelLike = Union[str, Path, "TrainedModel", DiscreteModel]
+ModelLike = Union[str, Path, "TrainedModel", DiscreteModel, "ResolvedModel"]
 
 
 def simulate(system: System | str, seed: int = 0, *, duration: float | None = None) -> Run:
@@ -52,12 +52,18 @@ class ResolvedModel:
 
 
 def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedModel:
-    """``"nominal"``, ``"true"``, a trained model, its directory, or a :class:`DiscreteModel`.
+    """``"nominal"``, ``"true"``, a trained model, its directory, a :class:`DiscreteModel` (nominal
+    or true) or an already resolved model.
 
     ``system`` is needed for the names and for model directories (checked against the model's
     own); a trained model knows its system.
     """
-    if isinstance(model, DiscreteModel):
+    if isinstance(model, ResolvedModel):
+        return model
+    if isinstance(model, DiscreteModel):  # nominal and true models are identified by their kind
+        if model.kind not in ("nominal", "true"):
+            raise ValueError("resolve: a KNODE DiscreteModel carries no identity; pass the trained "
+                             "model (or its directory) instead")
         return ResolvedModel(model, model.kind)
     if isinstance(model, (str, Path)):
         if system is None:
@@ -78,22 +84,37 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
                         full_state=full_state, progress=progress)
 
 
-def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
-                      system: System | str | None = None, settings: Any = None):
-    """Generate, build and load one estimator of ``model``; returns the compiled estimator.
+def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
+                   out: str | Path = "generated", system: System | str | None = None,
+                   settings: Any = None):
+    """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
     ----------
     model : see :func:`resolve`.
     estimator : a name of :data:`~learnest_codegen.compilation.ESTIMATOR_NAMES`.
+    backend : ``"c"`` (generated C through ctypes) or ``"python"`` (FilterPy UKF, CasADi
+        ``nlpsol`` MHE).
     out : folder of compiled estimators (one subfolder each; unchanged builds are reused).
     settings : the estimator's settings (default: the system's, as ``learnest-compile``).
     """
     resolved = resolve(model, system)
+    kind = estimator_kind(estimator)
+    if backend == "python":
+        return kind.python(resolved.model, settings or kind.default_settings(resolved.model))
+    if backend != "c":
+        raise ValueError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
     compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
                        settings={estimator: settings} if settings is not None else None)
     return load_estimator(estimator_dir(Path(out), resolved.model, estimator),
-                          expect={"model_hash": resolved.hash})
+                          expect={"system": resolved.model.system.name, "model_hash": resolved.hash,
+                                  "dt": resolved.model.dt})
+
+
+def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
+                      system: System | str | None = None, settings: Any = None):
+    """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
+    return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None):
@@ -105,9 +126,7 @@ def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = 
 def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: System | str | None = None,
                         settings: Any = None):
     """The Python reference (FilterPy UKF, CasADi ``nlpsol`` MHE) of ``model``."""
-    resolved = resolve(model, system)
-    kind = estimator_kind(estimator)
-    return kind.python(resolved.model, settings or kind.default_settings(resolved.model))
+    return make_estimator(model, estimator, backend="python", system=system, settings=settings)
 
 
 def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: System | str | None = None,
@@ -125,4 +144,4 @@ def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: Syste
 
 
 __all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "load_estimator",
-           "reference_estimator", "resolve", "simulate", "train"]
+           "make_estimator", "reference_estimator", "resolve", "simulate", "train"]
