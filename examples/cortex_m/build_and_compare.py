@@ -5,7 +5,7 @@ Steps: generate the UKF's C for a cartpole model into ``<out>/gen`` (``generate_
 and measurements per step), ``make`` the firmware (arm-none-eabi-gcc) and the host build (gcc)
 of the same loop, run the firmware in ``qemu-system-arm -M mps2-an386`` and the host binary,
 and compare their estimates step by step. Prints the comparison, flash/RAM sizes and stack use,
-and writes them to ``<out>/report.json``.
+and writes them to ``<out>/report_<machine>.json``.
 
     python examples/cortex_m/build_and_compare.py --model nominal --steps 1000 --out build/cm
 
@@ -37,6 +37,8 @@ from learnest_codegen.simulation import simulate
 EXAMPLE_DIR = Path(__file__).resolve().parent
 TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm", "gcc", "make")
 QEMU_TIMEOUT_S = 300
+MACHINES = {"mps2-an386": "Cortex-M4F (single-precision FPU)",
+            "mps2-an500": "Cortex-M7 (double-precision FPU)"}
 _LINE = re.compile(r"x (\d+) (-?\d+) ((?:[0-9a-f]{16} )+)(\d+)")
 
 
@@ -143,16 +145,27 @@ def _run(command: list[str], *, timeout: float | None = None, what: str) -> str:
     return proc.stdout
 
 
-def build(gen_dir: Path, build_dir: Path, jobs: int = 2) -> dict[str, Path]:
-    """``make`` the firmware ELF and the host binary; returns their paths."""
+def _check_machine(machine: str) -> str:
+    if machine not in MACHINES:
+        raise ValueError(f"unknown QEMU machine {machine!r}; choose from {list(MACHINES)}")
+    return machine
+
+
+def build(gen_dir: Path, build_dir: Path, *, machine: str = "mps2-an386",
+          jobs: int = 2) -> dict[str, Path]:
+    """``make`` the firmware ELF for ``machine`` and the host binary; returns their paths.
+
+    Use one ``build_dir`` per machine: make does not rebuild objects when only flags change.
+    """
     _run(["make", "-C", str(EXAMPLE_DIR), f"-j{jobs}", f"GEN={Path(gen_dir).resolve()}",
-          f"BUILD={Path(build_dir).resolve()}", "all"], what="make")
+          f"BUILD={Path(build_dir).resolve()}", f"MACHINE={_check_machine(machine)}", "all"],
+         what="make")
     return {"elf": Path(build_dir) / "arm" / "fw.elf", "host": Path(build_dir) / "host" / "loop"}
 
 
-def qemu_command(elf: Path) -> list[str]:
+def qemu_command(elf: Path, machine: str = "mps2-an386") -> list[str]:
     """The QEMU call of the Makefile's ``run-qemu`` (see there for ``-icount``)."""
-    return ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none",
+    return ["qemu-system-arm", "-M", _check_machine(machine), "-nographic", "-monitor", "none",
             "-serial", "none", "-icount", "shift=0,sleep=off",
             "-semihosting-config", "enable=on,target=native", "-kernel", str(elf)]
 
@@ -189,8 +202,9 @@ def parse_output(text: str, nx: int) -> LoopOutput:
     return LoopOutput(X, np.array(status), np.array(busy), summary)
 
 
-def run_qemu(elf: Path, nx: int, timeout: float = QEMU_TIMEOUT_S) -> LoopOutput:
-    return parse_output(_run(qemu_command(elf), timeout=timeout, what="qemu"), nx)
+def run_qemu(elf: Path, nx: int, *, machine: str = "mps2-an386",
+             timeout: float = QEMU_TIMEOUT_S) -> LoopOutput:
+    return parse_output(_run(qemu_command(elf, machine), timeout=timeout, what="qemu"), nx)
 
 
 def run_host(binary: Path, nx: int) -> LoopOutput:
@@ -239,14 +253,69 @@ def stack_frames(build_dir: Path) -> list[tuple[str, int, str]]:
     return sorted(frames, key=lambda f: -f[1])
 
 
+def untrained_knode(system, seed: int = 0) -> DiscreteModel:
+    """A KNODE model with ``system``'s default residual net, untrained (seeded initialisation)."""
+    import torch
+
+    from learnest_codegen.export import hybrid_model
+    from learnest_codegen.training import make_net
+
+    torch.manual_seed(seed)
+    return hybrid_model(system, make_net(system))
+
+
+_CI_NODE = re.compile(r'node: \{ title: "([^"]+)" label: "[^"]*?(\d+) bytes \((\w+)')
+_CI_EDGE = re.compile(r'edge: \{ sourcename: "([^"]+)" targetname: "([^"]+)"')
+
+
+def worst_stack_path(build_dir: Path, root: str = "main") -> dict:
+    """The deepest call chain from ``root`` by the frames of ``-fcallgraph-info=su`` (.ci files).
+
+    Returns ``{"bytes", "path" [(function, bytes)], "unknown" [functions without frame data]}``;
+    ``unknown`` are library routines (libm, libgcc's soft-float, memcpy), which this sum leaves
+    out; ``bytes`` is then a lower bound, and the loop's painted-stack peak the measured value.
+    Frames need no dynamic part (``static``), or the bound is void and ``ValueError`` says so.
+    """
+    frames, edges = {}, {}
+    for ci in (Path(build_dir) / "arm").glob("*.ci"):
+        text = ci.read_text()
+        for title, size, kind in _CI_NODE.findall(text):
+            if kind != "static":
+                raise ValueError(f"worst_stack_path: {title} has a {kind} frame")
+            frames[title] = int(size)
+        for source, target in _CI_EDGE.findall(text):
+            edges.setdefault(source, set()).add(target)
+    by_name = {title.rsplit(":", 1)[-1]: title for title in frames}
+    unknown: set[str] = set()
+
+    def deepest(title: str, seen: tuple[str, ...]) -> tuple[int, list]:
+        title = title if title in frames else by_name.get(title, title)
+        if title not in frames:
+            unknown.add(title)
+            return 0, []
+        if title in seen:
+            raise ValueError(f"worst_stack_path: recursion through {title}")
+        best = max((deepest(t, seen + (title,)) for t in edges.get(title, ())),
+                   key=lambda r: r[0], default=(0, []))
+        name = title.rsplit(":", 1)[-1]
+        return frames[title] + best[0], [(name, frames[title])] + best[1]
+
+    total, path = deepest(root, ())
+    return {"bytes": total, "path": path, "unknown": sorted(unknown)}
+
+
 # -- command line --------------------------------------------------------------------------
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="nominal",
-                        help="nominal, true, or a trained model directory (default: nominal)")
+                        help="nominal, true, a trained model directory, or untrained (a KNODE "
+                             "with the default net at its seed-0 initialisation: the same C as "
+                             "a trained one, for footprint figures) (default: nominal)")
     parser.add_argument("--steps", type=int, default=1000, help="samples of the run (default 1000)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the simulated run (default 1)")
+    parser.add_argument("--machine", choices=list(MACHINES), default="mps2-an386",
+                        help="QEMU machine: " + "; ".join(f"{k} = {v}" for k, v in MACHINES.items()))
     parser.add_argument("--out", type=Path, default=Path("build/cortex_m"))
     args = parser.parse_args(argv)
     missing = missing_tools()
@@ -256,13 +325,15 @@ def main(argv: list[str] | None = None) -> int:
     from learnest_codegen.compilation import resolve_model
 
     system = get_system("cartpole")
-    model, _ = resolve_model(system, args.model)
+    model = untrained_knode(system) if args.model == "untrained" else resolve_model(system, args.model)[0]
     gen = generate(model, args.out / "gen", steps=args.steps, seed=args.seed)
-    paths = build(gen.directory, args.out / "build")
-    fw, host = run_qemu(paths["elf"], model.nx), run_host(paths["host"], model.nx)
+    build_dir = args.out / f"build_{args.machine}"
+    paths = build(gen.directory, build_dir, machine=args.machine)
+    fw = run_qemu(paths["elf"], model.nx, machine=args.machine)
+    host = run_host(paths["host"], model.nx)
     rel = relative_difference(fw.X, host.X)
     report = {
-        "model": args.model, "prefix": gen.prefix, "steps": args.steps,
+        "model": args.model, "machine": args.machine, "prefix": gen.prefix, "steps": args.steps,
         "max_relative_difference": float(rel.max()),
         "bit_identical_steps": int(np.all(fw.X == host.X, axis=1).sum()),
         "mse_vs_truth": float(np.mean((fw.X - gen.X_true) ** 2)),
@@ -271,10 +342,11 @@ def main(argv: list[str] | None = None) -> int:
             "mean": float(fw.busy_ticks.mean() * 1e9 / fw.summary["tick_hz"]),
             "max": float(fw.busy_ticks.max() * 1e9 / fw.summary["tick_hz"])},
         "host_ns_per_step_median": float(np.median(host.busy_ticks)),
-        "sections": section_sizes(paths["elf"]), "objects": object_sizes(args.out / "build"),
-        "largest_stack_frames": stack_frames(args.out / "build")[:8],
+        "sections": section_sizes(paths["elf"]), "objects": object_sizes(build_dir),
+        "largest_stack_frames": stack_frames(build_dir)[:8],
+        "worst_stack_path": worst_stack_path(build_dir),
     }
-    (args.out / "report.json").write_text(json.dumps(report, indent=2))
+    (args.out / f"report_{args.machine}.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
     return 0 if rel.max() <= 1e-6 and fw.summary["status"] == 0 else 1
 

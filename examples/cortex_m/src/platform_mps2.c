@@ -1,4 +1,4 @@
-/* platform_mps2.c: platform.h on a bare-metal Cortex-M under QEMU (mps2-an386).
+/* platform_mps2.c: platform.h on a bare-metal Cortex-M under QEMU (mps2-an386, mps2-an500).
  *
  * SysTick, clocked by the 25 MHz system clock, interrupts once per sample period; the loop
  * sleeps (WFI) in between. Output and exit go through Arm semihosting (BKPT 0xAB), which QEMU

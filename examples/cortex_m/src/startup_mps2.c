@@ -1,4 +1,5 @@
-/* startup_mps2.c: vector table and reset handler for a Cortex-M4F on QEMU's mps2-an386.
+/* startup_mps2.c: vector table and reset handler for QEMU's mps2-an386 (Cortex-M4F) and
+ * mps2-an500 (Cortex-M7).
  *
  * Reset_Handler enables the FPU, copies .data from flash to RAM, zeroes .bss, paints the unused
  * stack with a pattern (platform_stack_peak() later finds the high-water mark) and calls main.
