@@ -1,0 +1,25 @@
+"""The package reads in the order data flows: imports point one way and form no cycle."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "import_graph.py"
+spec = importlib.util.spec_from_file_location("import_graph", SCRIPT)
+import_graph = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(import_graph)
+
+
+def test_every_module_has_a_stage_and_imports_flow_one_way():
+    edges = import_graph.graph()
+    assert len(edges) > 30 and "pipeline" in edges and "cli" in edges
+    assert import_graph.violations(edges) == []
+    assert import_graph.cycles(edges) == []
+
+
+def test_the_checker_sees_an_upward_import_and_a_cycle():
+    edges = {"systems": {"errors"}, "errors": set(), "runtime.ukf": {"estimators.ukf"},
+             "estimators.ukf": {"runtime.ukf"}}
+    assert import_graph.violations(edges) == ["estimators.ukf (stage 6) imports runtime.ukf (stage 8)"]
+    assert import_graph.cycles(edges) == [["estimators.ukf", "runtime.ukf", "estimators.ukf"]]
