@@ -222,3 +222,37 @@ def test_one_bad_flight_is_skipped_and_listed(tmp_path):
     assert sorted(c.name for c in cases) == sorted(f.stem for f in flights)
     assert list(skipped) == ["grounded_2s"] and "airborne" in skipped["grounded_2s"]
     json.dumps(skipped)  # goes into quadrotor.json as it is
+
+
+# --- compiled libraries ---------------------------------------------------------------------------
+
+
+def test_a_truncated_or_altered_library_is_refused_before_it_is_opened(tmp_path):
+    """Finding 1: a library cut short killed the process inside dlopen (SIGBUS, no message).
+
+    The loading runs in a child process, so a regression crashes the child, not the test run.
+    """
+    import subprocess
+    import sys
+
+    from learnest_codegen.pipeline import compile_estimator
+
+    compile_estimator("nominal", "ukf", system="cartpole", out=tmp_path)
+    folder = tmp_path / "cartpole_nominal_ukf"
+    library = next(folder.glob("lib*.so"))
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["library_bytes"] == library.stat().st_size and len(manifest["library_sha256"]) == 64
+    load = ("import sys; from learnest_codegen.pipeline import load_estimator\n"
+            "try:\n    load_estimator(sys.argv[1])\nexcept Exception as e:\n"
+            "    print(type(e).__name__, e); sys.exit(3)\nprint('loaded')")
+    good = library.read_bytes()
+    for damaged in (good[: len(good) // 3], good[:-1] + bytes([good[-1] ^ 1])):
+        library.write_bytes(damaged)
+        child = subprocess.run([sys.executable, "-c", load, str(folder)], capture_output=True, text=True,
+                               timeout=120)
+        assert child.returncode == 3, (child.returncode, child.stdout, child.stderr)
+        assert "ModelMismatchError" in child.stdout and "recompile" in child.stdout
+    library.write_bytes(good)
+    child = subprocess.run([sys.executable, "-c", load, str(folder)], capture_output=True, text=True,
+                           timeout=120)
+    assert child.stdout.strip() == "loaded", child.stderr

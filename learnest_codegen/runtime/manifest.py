@@ -2,11 +2,14 @@
 
 The runtime checks a manifest against what the caller expects before loading a library, so a
 library built for another system, model kind or dimension fails with a clear message instead of
-producing garbage. This module must not import torch.
+producing garbage. The manifest also records the library's size and SHA-256, checked before the
+library is opened: a file cut short by an interrupted copy or a full disk would otherwise kill
+the process inside ``dlopen`` (SIGBUS) with no message. This module must not import torch.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any, Mapping
@@ -17,11 +20,45 @@ MANIFEST = "manifest.json"
 FORMAT_VERSION = 1
 
 
+def library_digest(path: Path) -> dict:
+    """``{"library_bytes", "library_sha256"}`` of a built library file."""
+    data = Path(path).read_bytes()
+    return {"library_bytes": len(data), "library_sha256": hashlib.sha256(data).hexdigest()}
+
+
 def write_manifest(directory: Path, content: Mapping[str, Any]) -> Path:
-    """Write ``directory/manifest.json`` (adds ``format_version``)."""
-    path = Path(directory) / MANIFEST
+    """Write ``directory/manifest.json`` (adds ``format_version`` and, when ``content`` names a
+    built ``library``, its size and SHA-256)."""
+    directory = Path(directory)
+    content = dict(content)
+    library = directory / str(content.get("library", ""))
+    if "library" in content and library.is_file():
+        content.update(library_digest(library))
+    path = directory / MANIFEST
     path.write_text(json.dumps({"format_version": FORMAT_VERSION, **content}, indent=2, sort_keys=True))
     return path
+
+
+def verify_library(directory: Path, manifest: Mapping[str, Any]) -> Path:
+    """The library file the manifest names, after checking its size and SHA-256 against it.
+
+    Raises :class:`ModelMismatchError` (before anything opens the file) when it is missing,
+    shorter or longer than built, or altered.
+    """
+    library = Path(directory) / str(manifest.get("library", ""))
+    if not library.is_file():
+        raise FileNotFoundError(f"compiled library {library} does not exist; regenerate the folder")
+    expected_bytes = manifest.get("library_bytes")
+    if expected_bytes is None:  # a folder built before the manifest recorded the digest
+        return library
+    size = library.stat().st_size
+    if size != expected_bytes:
+        raise ModelMismatchError(f"{library} has {size} bytes, but {expected_bytes} were built "
+                                 "(cut short by an interrupted copy or a full disk?); recompile it")
+    if library_digest(library)["library_sha256"] != manifest.get("library_sha256"):
+        raise ModelMismatchError(f"{library} is not the library that was built here (its SHA-256 "
+                                 "differs from the manifest's); recompile it")
+    return library
 
 
 def read_manifest(directory: Path) -> dict:
@@ -36,6 +73,8 @@ def read_manifest(directory: Path) -> dict:
     if manifest.get("format_version") != FORMAT_VERSION:
         raise ModelMismatchError(f"{path}: format_version {manifest.get('format_version')!r}, "
                                  f"this runtime reads {FORMAT_VERSION}; recompile")
+    if "library" in manifest:
+        verify_library(directory, manifest)
     return manifest
 
 
