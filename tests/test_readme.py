@@ -1,8 +1,12 @@
-"""The README's Python quick start runs as written, and every link of the README and docs/ resolves."""
+"""The README's Python quick start runs as written, every link of the README and docs/ resolves,
+and docs/ builds as a site (mkdocs, strict: a broken link or anchor fails)."""
 
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -55,3 +59,13 @@ def test_links_resolve(page):
     path = ROOT / page
     missing = [t for t in _links(path) if not (path.parent / t).exists()]
     assert not missing, f"{page} links to missing files: {missing}"
+
+
+def test_docs_site_builds_strictly(tmp_path):
+    if shutil.which("mkdocs") is None and not (Path(sys.executable).parent / "mkdocs").exists():
+        pytest.skip("mkdocs is not installed (pip install -e .[test])")
+    mkdocs = shutil.which("mkdocs") or str(Path(sys.executable).parent / "mkdocs")
+    result = subprocess.run([mkdocs, "build", "--strict", "--site-dir", str(tmp_path / "site")],
+                            cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (tmp_path / "site" / "results" / "index.html").is_file()
