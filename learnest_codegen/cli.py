@@ -271,7 +271,7 @@ def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_
 
     The training defaults are ``QUICK_TRAINING`` (learnest_codegen.training; a test keeps
     them equal: this module imports no torch)."""
-    from .demo import run_demo
+    from .experiments.demo import run_demo
     from .training import QUICK_TRAINING
 
     training = replace(QUICK_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
@@ -289,7 +289,7 @@ def reproduce() -> None:
 
 @reproduce.command("table1")
 @click.option("--tasks", default="cartpole,ground_robot", show_default=True,
-              help="comma-separated tasks (see learnest_codegen.reproduce.DEFAULT_TASKS)")
+              help="comma-separated tasks (see learnest_codegen.experiments.DEFAULT_TASKS)")
 @click.option("--seeds", default=15, show_default=True, type=click.IntRange(min=1),
               help="jobs per task; job s trains on seed 2s and tests on seed 2s+1")
 @click.option("--epochs", type=click.IntRange(min=1), default=None,
@@ -318,7 +318,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
     import os
     import time
 
-    from . import reproduce as rep
+    from . import experiments as rep
 
     start = time.perf_counter()
     if combine_only:
@@ -372,7 +372,7 @@ def quadrotor(data, simulated, train_names, all_train, features, matrix, estimat
     Savitzky-Golay reference states. Writes OUT/quadrotor.{md,json,png}.
     """
 
-    from . import flight_study as fs
+    from .experiments import quadrotor as fs
     from .recordings import data_root
 
     split = lambda text: [p.strip() for p in text.split(",") if p.strip()]  # noqa: E731

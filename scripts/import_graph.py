@@ -33,7 +33,7 @@ STAGES = [
     ("evaluation", 9), ("plotting", 9), ("pipeline", 9),
     ("diagnosis", 10), ("diagnosis_report", 10), ("diagnosis_selftest", 10), ("effects", 10),
     ("effect_fit", 10),
-    ("experiments", 11), ("demo", 11), ("reproduce", 11), ("flight_study", 11),
+    ("experiments", 11),
     ("cli", 12),
     ("__init__", 13),  # the package's public API re-exports from every stage
 ]

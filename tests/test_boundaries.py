@@ -197,7 +197,7 @@ def test_absurd_measurement_on_the_python_backend_is_one_line(short_run, tmp_pat
 
 def test_one_bad_flight_is_skipped_and_listed(tmp_path):
     """Finding 8: a flight that never leaves the ground stopped the whole quadrotor study."""
-    from learnest_codegen import flight_study as fs
+    from learnest_codegen.experiments import quadrotor as fs
     from learnest_codegen.recordings.crazyflie import list_flights
 
     root = data_root(None)

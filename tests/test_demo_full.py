@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from learnest_codegen import get_system
-from learnest_codegen.demo import run_demo
+from learnest_codegen.experiments.demo import run_demo
 
 
 @pytest.mark.slow

@@ -10,8 +10,8 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from learnest_codegen import flight_study as fs
 from learnest_codegen.errors import DataError, UnknownNameError
+from learnest_codegen.experiments import quadrotor as fs
 from learnest_codegen.recordings import crazyflie as nb
 from learnest_codegen.recordings import data_root
 from learnest_codegen.simulation import simulate

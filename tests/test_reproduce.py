@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from learnest_codegen import reproduce as rep
+from learnest_codegen import experiments as rep
 from learnest_codegen.cli import cli
 from learnest_codegen.errors import UnknownNameError
 
@@ -128,7 +128,7 @@ def fake_job(job: rep.Job) -> dict:
     """Stands in for run_job in the workers (module level: picklable)."""
     results = known_results(job.task, job.seed, job.config_hash(), job.backend)
     results["code"] = rep.code_hash()
-    rep._write_json(job.result_path, results)
+    rep.write_json(job.result_path, results)
     return results
 
 
@@ -210,7 +210,7 @@ def test_cli_reports_failed_jobs_and_exits_nonzero(tmp_path, monkeypatch):
 
 def test_combine_gap_closure_in_closed_form(tmp_path):
     for seed in (0, 1):
-        rep._write_json(rep.result_path(tmp_path, "cartpole", seed), known_results("cartpole", seed))
+        rep.write_json(rep.result_path(tmp_path, "cartpole", seed), known_results("cartpole", seed))
     (tmp_path / "runs" / "cartpole" / "seed_9.error.json").write_text("{}")  # ignored
     r = invoke(["--combine-only", "--out", tmp_path])
     assert r.exit_code == 0, r.output

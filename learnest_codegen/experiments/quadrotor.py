@@ -55,13 +55,14 @@ from typing import Iterable, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from .data import Run
-from .errors import DataError, LearnestError, UnknownNameError
-from .network import NetworkSettings
-from .reproduce import _hash, _write_json
-from .systems import System
-from .systems.quadrotor import QUADROTOR, QUADROTOR_STATE
-from .training import TrainingSettings
+from ..data import Run
+from ..errors import DataError, LearnestError, UnknownNameError
+from ..network import NetworkSettings
+from ..systems import System
+from ..systems.quadrotor import QUADROTOR, QUADROTOR_STATE
+from ..training import TrainingSettings
+from .store import content_hash as _hash
+from .store import write_json as _write_json
 
 FEATURES: dict[str, System] = {"state": QUADROTOR_STATE, "thrust": QUADROTOR}
 METHODS = (("MHE", "mhe", "nominal"), ("KNODE-MHE", "mhe", "knode"),
@@ -123,7 +124,7 @@ def flight_cases(root: str | Path, *, skipped: dict[str, str] | None = None,
     rate) raises :class:`DataError`; with a ``skipped`` dict it is left out instead and its
     reason recorded there under the file's name, so one bad recording does not stop a study.
     """
-    from .recordings.crazyflie import list_flights, read_flight
+    from ..recordings.crazyflie import list_flights, read_flight
 
     paths = list_flights(root)
     if not paths:
@@ -149,7 +150,7 @@ def flight_cases(root: str | Path, *, skipped: dict[str, str] | None = None,
 
 def simulated_cases(seeds: Iterable[int], duration: float | None = None) -> list[Case]:
     """Simulated quadrotor runs (seeded reference shape, speed and battery) with their truth."""
-    from .simulation import simulate
+    from ..simulation import simulate
 
     cases = []
     for seed in seeds:
@@ -185,13 +186,13 @@ def scores(x_hat: np.ndarray, reference: np.ndarray) -> dict[str, float]:
 
 def _estimators(model, out: Path, settings: StudySettings) -> dict:
     """The study's compiled estimators of ``model`` (see :func:`pipeline.resolve`), by name."""
-    from .pipeline import make_estimator
+    from ..pipeline import make_estimator
 
     return {name: make_estimator(model, name, system=QUADROTOR, out=out) for name in settings.estimators}
 
 
 def _run_method(estimator, case: Case) -> dict:
-    from .evaluation import run_estimator
+    from ..evaluation import run_estimator
 
     try:
         result = run_estimator(estimator, case.run, initial_state(case.run), type(estimator).__name__)
@@ -230,7 +231,7 @@ def train_and_test(train: Case, tests: Sequence[Case], features: str, out: Path,
     "hash", "training": {...}, "cases": {case: {label: scores}}}``; a file with the same
     configuration hash is reused unless ``force``.
     """
-    from .training import train_on_run
+    from ..training import train_on_run
 
     system = feature_system(features)
     path = out / "runs" / train.name / f"{features}.json"
@@ -333,7 +334,7 @@ def markdown(summaries: Sequence[Summary], matrix: Sequence[Summary] = ()) -> st
 
 def plot_boxes(summaries: Sequence[Summary], path: Path) -> Path:
     """Fig. 3 of the paper: box plots of the per-case overall MSE, one panel per study."""
-    from .plotting import _save, plt
+    from ..plotting import _save, plt
 
     fig, axes = plt.subplots(1, len(summaries), figsize=(4.5 * len(summaries), 4), squeeze=False)
     for ax, s in zip(axes[0], summaries):

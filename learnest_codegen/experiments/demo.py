@@ -16,14 +16,14 @@ from pathlib import Path
 import click
 import numpy as np
 
-from .compilation import compile_estimators, estimator_dir, estimator_kind
-from .data import write_run
-from .evaluation import EstimateResult, format_table, mse_per_state, run_estimator
-from .export import hybrid_model, prior_model, true_model
-from .plotting import plot_errors, plot_estimates, plot_loss
-from .simulation import simulate
-from .systems import System
-from .training import QUICK_TRAINING, TrainingSettings, train_on_run
+from ..compilation import compile_estimators, estimator_dir, estimator_kind
+from ..data import write_run
+from ..evaluation import EstimateResult, format_table, mse_per_state, run_estimator
+from ..export import hybrid_model, prior_model, true_model
+from ..plotting import plot_errors, plot_estimates, plot_loss
+from ..simulation import simulate
+from ..systems import System
+from ..training import QUICK_TRAINING, TrainingSettings, train_on_run
 
 LABELS = {"nominal": "", "knode": "KNODE-", "true": ""}
 
