@@ -19,6 +19,7 @@ from learnest_codegen import get_system, simulation
 from learnest_codegen.codegen.mhe import generate_mhe
 from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe
 from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.data import write_run
 from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, SolverError
 from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
 from learnest_codegen.export import hybrid_model, prior_model
@@ -248,3 +249,31 @@ def test_settings_validation():
         with pytest.raises(ValueError):
             GaussNewtonSettings(**bad)
     assert GaussNewtonSettings(precision="float32").tolerance == 1e-4
+
+
+def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
+    from click.testing import CliRunner
+
+    from learnest_codegen.cli import cli, compile_standalone
+
+    run = simulation.simulate(cartpole, seed=5, duration=100 * cartpole.dt)
+    data = tmp_path / "run.csv"
+    write_run(run, cartpole, data)
+    runner = CliRunner()
+    result = runner.invoke(compile_standalone, ["--nominal", "--system", "cartpole", "--estimator",
+                                                "mhe_rti", "--out", str(tmp_path / "gen")])
+    assert result.exit_code == 0, result.output
+    directory = tmp_path / "gen" / "cartpole_nominal_mhe_rti"
+    result = runner.invoke(cli, ["estimate", "--system", "cartpole", "--data", str(data),
+                                 "--estimator", "mhe_rti", "--compiled", str(directory),
+                                 "--out", str(tmp_path / "est.csv")])
+    assert result.exit_code == 0, result.output
+    written = np.loadtxt(tmp_path / "est.csv", delimiter=",", skiprows=1)[:, 1:]
+    expected = CompiledEmbeddedMHE(directory).run(run.u, run.y, cartpole.x0)
+    np.testing.assert_allclose(written, expected, rtol=0, atol=1e-12)
+    result = runner.invoke(compile_standalone, ["--nominal", "--estimator", "mhe", "--precision",
+                                                "float32", "--out", str(tmp_path / "gen")])
+    assert result.exit_code == 2 and "cannot be generated in float32" in result.output
+    result = runner.invoke(cli, ["estimate", "--data", str(data), "--estimator", "mhe_rti",
+                                 "--backend", "python", "--out", str(tmp_path / "x.csv")])
+    assert result.exit_code == 2 and "no Python reference" in result.output
