@@ -98,12 +98,20 @@ def model_functions(model: DiscreteModel, prefix: str) -> tuple[cs.Function, ...
     ``A = dF/dx`` and ``C = dh/dx`` by CasADi's AD, dense (the C indexes them column-major).
     """
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
-    F, h = model.F(x, u), model.h(x, u)
     return (
-        cs.Function(f"{prefix}_dyn", [x, u], [F, cs.densify(cs.jacobian(F, x))], ["x", "u"], ["F", "A"]),
-        cs.Function(f"{prefix}_meas", [x, u], [h, cs.densify(cs.jacobian(h, x))], ["x", "u"], ["h", "C"]),
-        cs.Function(f"{prefix}_F", [x, u], [F], ["x", "u"], ["x_next"]),
+        _with_jacobian(f"{prefix}_dyn", model.F(x, u), x, u, ("F", "A")),
+        _with_jacobian(f"{prefix}_meas", model.h(x, u), x, u, ("h", "C")),
+        cs.Function(f"{prefix}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"]),
     )
+
+
+def _with_jacobian(name: str, value: cs.SX, x: cs.SX, u: cs.SX, names: tuple[str, str]) -> cs.Function:
+    """``name(x, u) -> (value, d value / dx)``; value and Jacobian share their common
+    subexpressions (``cs.cse`` over both: 16 % fewer operations for the KNODE cartpole)."""
+    n = value.numel()
+    both = cs.cse(cs.vertcat(value, cs.vec(cs.densify(cs.jacobian(value, x)))))
+    return cs.Function(name, [x, u], [both[:n], cs.reshape(both[n:], n, x.numel())], ["x", "u"],
+                       list(names))
 
 
 def model_instructions(model: DiscreteModel) -> dict[str, int]:
