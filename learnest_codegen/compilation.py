@@ -33,8 +33,9 @@ def _registry() -> dict[str, EstimatorKind]:
     from .codegen.mhe_gn import generate_embedded_mhe
     from .codegen.ukf import generate_ukf
     from .estimators.mhe import MHE
-    from .estimators.mhe_gn import PRECISIONS, GaussNewtonSettings
+    from .estimators.mhe_gn import GaussNewtonSettings
     from .estimators.mhe_problem import MHESettings, steady_state_arrival
+    from .estimators.precision import PRECISIONS
     from .estimators.ukf import UKF, UKFSettings
     from .runtime.mhe import CompiledMHE
     from .runtime.mhe_gn import CompiledEmbeddedMHE
@@ -53,7 +54,7 @@ def _registry() -> dict[str, EstimatorKind]:
     return {
         "mhe": EstimatorKind(mhe_defaults, generate_mhe, MHE, CompiledMHE),
         "ukf": EstimatorKind(lambda model: UKFSettings.from_system(model.system), generate_ukf, UKF,
-                             CompiledUKF),
+                             CompiledUKF, tuple(PRECISIONS)),
         # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser,
         # so that MHE is its Python reference
         "mhe_gn": EstimatorKind(mhe_defaults, embedded("converged"), MHE, CompiledEmbeddedMHE,

@@ -16,8 +16,9 @@ from pathlib import Path
 import casadi as cs
 
 from .. import toolchain
-from ..estimators.mhe_gn import PRECISIONS, GaussNewtonSettings
+from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
+from ..estimators.precision import PRECISIONS
 from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, read_manifest, write_manifest
 from ..runtime.status import STATUS_NAMES

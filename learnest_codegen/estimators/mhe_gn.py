@@ -16,8 +16,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from .precision import check_precision
+
 MODES = ("converged", "rti")
-PRECISIONS = {"float64": "double", "float32": "float"}
 # The step tolerance a precision can reach: ~1e6 ulps of O(1) states.
 DEFAULT_TOLERANCE = {"float64": 1e-10, "float32": 1e-4}
 
@@ -43,9 +44,7 @@ class GaussNewtonSettings:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"GaussNewtonSettings.precision must be one of {tuple(PRECISIONS)}, "
-                             f"got {self.precision!r}")
+        check_precision(self.precision, "GaussNewtonSettings")
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) \
                 or self.max_iterations < 1:
             raise ValueError(f"GaussNewtonSettings.max_iterations must be an integer >= 1, "

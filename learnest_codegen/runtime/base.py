@@ -47,7 +47,7 @@ class CompiledEstimator:
         self.real_pointer = np.ctypeslib.ndpointer(dtype=self.dtype, flags="C_CONTIGUOUS")
         library = self.directory / m["library"]
         if not library.is_file():
-            raise FileNotFoundError(f"{self.where}: library {library} not found (rebuild the estimator)")
+            raise FileNotFoundError(f"{self.where}: library {library} does not exist (rebuild the estimator)")
         self._lib = ctypes.CDLL(str(library))
         self._c = {}
         for name, (restype, argtypes) in self.signatures().items():
