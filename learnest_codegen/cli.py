@@ -146,7 +146,8 @@ ESTIMATOR_HELP = ("mhe: the MHE solved by Ipopt (the reference); ukf: the UKF; m
                   "embedded MHE (Gauss-Newton, no Ipopt, no malloc) iterated to convergence, the "
                   "same estimates as mhe; mhe_rti: the embedded MHE with one Gauss-Newton "
                   "iteration per sample (real-time iteration, fastest)")
-PRECISION_HELP = "C real type: float32 for single-precision FPUs (ukf, mhe_gn and mhe_rti)"
+PRECISION_HELP = ("C real type: float32 for single-precision FPUs (ukf, mhe_gn and mhe_rti; the "
+                  "float32 UKF uses sigma-point spread alpha = 0.5)")
 
 COMPILE_OPTIONS = [
     click.argument("model_dir", required=False, type=click.Path(file_okay=False)),

@@ -89,6 +89,19 @@ def resolve_model(system: System, model: str) -> tuple[DiscreteModel, str]:
     return hybrid_model(system, trained.net), trained.hash
 
 
+def float32_ukf_settings(settings):
+    """The float32 UKF's default: ``settings`` with alpha raised to ``FLOAT32_MIN_ALPHA`` (0.5).
+
+    A small alpha makes the sigma-point weights cancel, which single precision cannot afford
+    (see ``codegen/ukf.py``); explicit settings with a smaller alpha are refused there.
+    """
+    from dataclasses import replace
+
+    from .codegen.ukf import FLOAT32_MIN_ALPHA
+
+    return replace(settings, alpha=max(settings.alpha, FLOAT32_MIN_ALPHA))
+
+
 def precision_problem(estimators: tuple[str, ...], precision: str) -> str | None:
     """Why ``estimators`` cannot be generated in ``precision``, or None when they can."""
     if precision not in PRECISION_NAMES:
@@ -122,6 +135,8 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
     results = {}
     for name, kind in kinds.items():
         chosen = (settings or {}).get(name) or kind.default_settings(model)
+        if name == "ukf" and precision == "float32" and not (settings or {}).get(name):
+            chosen = float32_ukf_settings(chosen)
         directory = estimator_dir(Path(out), model, name, precision)
         directory.mkdir(parents=True, exist_ok=True)
         extra = {} if precision == "float64" else {"precision": precision}

@@ -278,3 +278,37 @@ def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
     result = runner.invoke(cli, ["estimate", "--data", str(data), "--estimator", "mhe_rti",
                                  "--backend", "python", "--out", str(tmp_path / "x.csv")])
     assert result.exit_code == 2 and "no Python reference" in result.output
+
+
+def test_float32_embedded_mhe_and_ukf_track_float64(builds, parity_run, cartpole, tmp_path):
+    """float32 builds (single-precision FPUs): the embedded MHE's MSE within 1 % of float64 on
+    the cartpole; the UKF's within 1 % on the ground robot (on the cartpole its covariance
+    loses too many digits: docs/embedded_mhe.md)."""
+    model = prior_model(cartpole)
+    settings = estimator_kind("mhe").default_settings(model)
+    solver = GaussNewtonSettings(mode="rti", precision="float32")
+    rti32 = CompiledEmbeddedMHE(generate_embedded_mhe(model, settings, tmp_path / "rti32",
+                                                      solver=solver).directory)
+    assert rti32.dtype == np.float32 and rti32.manifest["precision"] == "float32"
+    X32 = rti32.run(parity_run.u, parity_run.y, cartpole.x0)
+    X64 = CompiledEmbeddedMHE(builds["nominal", "mhe_rti"]).run(parity_run.u, parity_run.y, cartpole.x0)
+    assert 0 < np.max(np.abs(X32 - X64)) < 1e-2  # it is single precision, and close
+    assert abs(mse(X32, parity_run.x) - mse(X64, parity_run.x)) <= 0.01 * mse(X64, parity_run.x)
+    with pytest.raises(ModelMismatchError, match="precision"):
+        CompiledEmbeddedMHE(rti32.directory, solver=GaussNewtonSettings(mode="rti"))
+
+    from learnest_codegen.codegen.ukf import generate_ukf
+    from learnest_codegen.estimators.ukf import UKFSettings
+    from learnest_codegen.runtime.ukf import CompiledUKF
+
+    robot = get_system("ground_robot")
+    run = simulation.simulate(robot, seed=1, duration=10.0)
+    robot_model, ukf_settings = prior_model(robot), UKFSettings.from_system(robot, alpha=0.5)
+    with pytest.raises(ValueError, match="float32 UKF needs alpha >= 0.5"):
+        generate_ukf(robot_model, UKFSettings.from_system(robot), tmp_path / "bad", precision="float32")
+    X = {p: CompiledUKF(generate_ukf(robot_model, ukf_settings, tmp_path / f"ukf_{p}",
+                                     precision=p).directory).run(run.u, run.y, robot.x0)
+         for p in ("float64", "float32")}
+    ref = mse(X["float64"], run.x)
+    assert 0 < np.max(np.abs(X["float32"] - X["float64"])) and \
+        abs(mse(X["float32"], run.x) - ref) <= 0.01 * ref
