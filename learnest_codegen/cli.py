@@ -153,9 +153,11 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
 
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
-             estimators: tuple[str, ...]) -> dict:
-    from .compilation import compile_estimators, resolve_model
+             estimators: tuple[str, ...], precision: str = "float64") -> dict:
+    from .compilation import compile_estimators, precision_problem, resolve_model
 
+    if precision_problem(estimators, precision):
+        raise click.UsageError(precision_problem(estimators, precision))
     if nominal:
         system = _system(system_name or "cartpole")
         model, model_hash = resolve_model(system, "nominal")
@@ -166,12 +168,22 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         if system_name is None and meta_path.is_file():
             system_name = json.loads(meta_path.read_text()).get("system")
         model, model_hash = resolve_model(_system(system_name or "cartpole"), model_dir)
-    results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators)
+    results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators,
+                                 precision=precision)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    f"built in {res.build_seconds:.2f} s{', reused' if res.build_seconds == 0 else ''})")
     return results
 
+
+# the names of compilation.ESTIMATOR_NAMES (not imported here: it would load casadi for --help)
+ESTIMATOR_CHOICES = ["mhe", "ukf", "mhe_gn", "mhe_rti"]
+ESTIMATOR_HELP = ("mhe: the MHE solved by Ipopt (the reference); ukf: the UKF; mhe_gn: the "
+                  "embedded MHE (Gauss-Newton, no Ipopt, no malloc) iterated to convergence, the "
+                  "same estimates as mhe; mhe_rti: the embedded MHE with one Gauss-Newton "
+                  "iteration per sample (real-time iteration, fastest)")
+PRECISION_HELP = ("C real type: float32 for single-precision FPUs (ukf, mhe_gn and mhe_rti; the "
+                  "float32 UKF uses sigma-point spread alpha = 0.5)")
 
 COMPILE_OPTIONS = [
     click.argument("model_dir", required=False, type=click.Path(file_okay=False)),
@@ -179,8 +191,10 @@ COMPILE_OPTIONS = [
                  help="output directory (one subdirectory per estimator)"),
     click.option("--system", "system_name", default=None, help=SYSTEM_HELP + " (default: the model's)"),
     click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
-    click.option("--estimator", "estimators", multiple=True, type=click.Choice(["mhe", "ukf"]),
-                 default=("mhe", "ukf"), show_default=True),
+    click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
+                 default=("mhe", "ukf"), show_default=True, help=ESTIMATOR_HELP),
+    click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
+                 show_default=True, help=PRECISION_HELP),
 ]
 
 
@@ -193,33 +207,40 @@ def _with_compile_options(fn):
 @cli.command("compile")
 @_with_compile_options
 @_friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators) -> None:
-    """Generate C for the MHE (with Ipopt) and the UKF of a model and build shared libraries."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators))
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision) -> None:
+    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
+    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @_friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators) -> None:
-    """Generate C for the MHE (with Ipopt) and the UKF of a model and build shared libraries."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators))
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision) -> None:
+    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
+    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision)
 
 
 @cli.command()
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
 @click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="run CSV")
-@click.option("--estimator", type=click.Choice(["mhe", "ukf"]), required=True)
+@click.option("--estimator", type=click.Choice(ESTIMATOR_CHOICES), required=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
 @click.option("--compiled", type=click.Path(file_okay=False), default=None,
               help="compiled estimator directory (C backend; default: compile on demand)")
+@click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
+              show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
 @RESAMPLE
 @FORCE
 @_friendly
-def estimate(system_name, data, estimator, model, backend, compiled, out, resample, force) -> None:
+def estimate(system_name, data, estimator, model, backend, compiled, precision, out, resample,
+             force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state."""
+    from .compilation import precision_problem
+
+    if backend == "c" and compiled is None and precision_problem((estimator,), precision):
+        raise click.UsageError(precision_problem((estimator,), precision))
     from .evaluation import mse, run_estimator
     from .outputs import atomic_file, claim_output
     from .pipeline import load_estimator, make_estimator, resolve
@@ -233,7 +254,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, out, resamp
         est = load_estimator(compiled, expect={"estimator": estimator, "system": system.name,
                                                "model_hash": resolved.hash, "dt": system.dt})
     else:  # compiled on demand next to the output (reused while the model is unchanged)
-        est = make_estimator(resolved, estimator, backend=backend, system=system,
+        est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
                              out=Path(out).resolve().parent / ".learnest_compiled")
     result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)

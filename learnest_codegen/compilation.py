@@ -23,34 +23,55 @@ class EstimatorKind:
 
     default_settings: Callable[[DiscreteModel], Any]
     generate: Callable[..., Any]
-    python: Callable[..., Any]
+    python: Callable[..., Any] | None  # None: no Python reference (RTI is defined by its C)
     compiled: Callable[..., Any]
+    precisions: tuple[str, ...] = ("float64",)
 
 
 def _registry() -> dict[str, EstimatorKind]:
     from .codegen.mhe import generate_mhe
+    from .codegen.mhe_gn import generate_embedded_mhe
     from .codegen.ukf import generate_ukf
     from .estimators.mhe import MHE
+    from .estimators.mhe_gn import GaussNewtonSettings
     from .estimators.mhe_problem import MHESettings, steady_state_arrival
+    from .estimators.precision import PRECISIONS
     from .estimators.ukf import UKF, UKFSettings
     from .runtime.mhe import CompiledMHE
+    from .runtime.mhe_gn import CompiledEmbeddedMHE
     from .runtime.ukf import CompiledUKF
 
     def mhe_defaults(model: DiscreteModel) -> MHESettings:
         return steady_state_arrival(model, MHESettings.from_system(model.system))
 
+    def embedded(mode: str) -> Callable[..., Any]:
+        def generate(model, settings, directory, *, model_hash: str = "", precision: str = "float64"):
+            solver = GaussNewtonSettings(mode=mode, precision=precision)
+            return generate_embedded_mhe(model, settings, directory, solver=solver,
+                                         model_hash=model_hash)
+        return generate
+
     return {
         "mhe": EstimatorKind(mhe_defaults, generate_mhe, MHE, CompiledMHE),
         "ukf": EstimatorKind(lambda model: UKFSettings.from_system(model.system), generate_ukf, UKF,
-                             CompiledUKF),
+                             CompiledUKF, tuple(PRECISIONS)),
+        # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser,
+        # so that MHE is its Python reference
+        "mhe_gn": EstimatorKind(mhe_defaults, embedded("converged"), MHE, CompiledEmbeddedMHE,
+                                tuple(PRECISIONS)),
+        "mhe_rti": EstimatorKind(mhe_defaults, embedded("rti"), None, CompiledEmbeddedMHE,
+                                 tuple(PRECISIONS)),
     }
 
 
-ESTIMATOR_NAMES = ("mhe", "ukf")
+# mhe: Ipopt; mhe_gn / mhe_rti: the embedded Gauss-Newton MHE, converged / real-time iteration
+ESTIMATOR_NAMES = ("mhe", "ukf", "mhe_gn", "mhe_rti")
+DEFAULT_ESTIMATORS = ("mhe", "ukf")
+PRECISION_NAMES = ("float64", "float32")
 
 
 def estimator_kind(name: str) -> EstimatorKind:
-    """Look up an estimator by name (``"mhe"`` or ``"ukf"``)."""
+    """Look up an estimator by name (one of :data:`ESTIMATOR_NAMES`)."""
     if name not in ESTIMATOR_NAMES:
         raise UnknownNameError(f"unknown estimator {name!r}; choose from {list(ESTIMATOR_NAMES)}")
     return _registry()[name]
@@ -68,20 +89,56 @@ def resolve_model(system: System, model: str) -> tuple[DiscreteModel, str]:
     return hybrid_model(system, trained.net), trained.hash
 
 
-def estimator_dir(out: Path, model: DiscreteModel, name: str) -> Path:
-    """Where an estimator of ``model`` is compiled to inside ``out``."""
-    return Path(out) / f"{model.system.name}_{model.kind}_{name}"
+def float32_ukf_settings(settings):
+    """The float32 UKF's default: ``settings`` with alpha raised to ``FLOAT32_MIN_ALPHA`` (0.5).
+
+    A small alpha makes the sigma-point weights cancel, which single precision cannot afford
+    (see ``codegen/ukf.py``); explicit settings with a smaller alpha are refused there.
+    """
+    from dataclasses import replace
+
+    from .codegen.ukf import FLOAT32_MIN_ALPHA
+
+    return replace(settings, alpha=max(settings.alpha, FLOAT32_MIN_ALPHA))
+
+
+def precision_problem(estimators: tuple[str, ...], precision: str) -> str | None:
+    """Why ``estimators`` cannot be generated in ``precision``, or None when they can."""
+    if precision not in PRECISION_NAMES:
+        return f"unknown precision {precision!r}; choose from {list(PRECISION_NAMES)}"
+    unsupported = [name for name in estimators if precision not in estimator_kind(name).precisions]
+    if unsupported:
+        able = [n for n in ESTIMATOR_NAMES if precision in estimator_kind(n).precisions]
+        return f"estimator(s) {unsupported} cannot be generated in {precision}; it is available for {able}"
+    return None
+
+
+def estimator_dir(out: Path, model: DiscreteModel, name: str, precision: str = "float64") -> Path:
+    """Where an estimator of ``model`` is compiled to inside ``out`` (float32 builds apart)."""
+    suffix = "" if precision == "float64" else f"_{precision}"
+    return Path(out) / f"{model.system.name}_{model.kind}_{name}{suffix}"
 
 
 def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str,
-                       estimators: tuple[str, ...] = ESTIMATOR_NAMES,
-                       settings: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Generate and build ``estimators`` for ``model`` under ``out``; returns name -> result."""
+                       estimators: tuple[str, ...] = DEFAULT_ESTIMATORS,
+                       settings: Mapping[str, Any] | None = None,
+                       precision: str = "float64") -> dict[str, Any]:
+    """Generate and build ``estimators`` for ``model`` under ``out``; returns name -> result.
+
+    ``precision`` (``"float64"`` or ``"float32"``) is the C real type; an estimator that is
+    not generated in it raises :class:`ValueError`.
+    """
+    problem = precision_problem(estimators, precision)
+    if problem:
+        raise ValueError(problem)
+    kinds = {name: estimator_kind(name) for name in estimators}
     results = {}
-    for name in estimators:
-        kind = estimator_kind(name)
+    for name, kind in kinds.items():
         chosen = (settings or {}).get(name) or kind.default_settings(model)
-        directory = estimator_dir(Path(out), model, name)
+        if name == "ukf" and precision == "float32" and not (settings or {}).get(name):
+            chosen = float32_ukf_settings(chosen)
+        directory = estimator_dir(Path(out), model, name, precision)
         directory.mkdir(parents=True, exist_ok=True)
-        results[name] = kind.generate(model, chosen, directory, model_hash=model_hash)
+        extra = {} if precision == "float64" else {"precision": precision}
+        results[name] = kind.generate(model, chosen, directory, model_hash=model_hash, **extra)
     return results

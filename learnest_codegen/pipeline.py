@@ -86,7 +86,7 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
-                   settings: Any = None):
+                   settings: Any = None, precision: str = "float64"):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -97,24 +97,30 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
         ``nlpsol`` MHE).
     out : folder of compiled estimators (one subfolder each; unchanged builds are reused).
     settings : the estimator's settings (default: the system's, as ``learnest-compile``).
+    precision : the C real type, ``"float64"`` or ``"float32"`` (UKF and embedded MHE).
     """
     resolved = resolve(model, system)
     kind = estimator_kind(estimator)
     if backend == "python":
+        if kind.python is None:
+            raise ValueError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
         return kind.python(resolved.model, settings or kind.default_settings(resolved.model))
     if backend != "c":
         raise ValueError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
     compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
-                       settings={estimator: settings} if settings is not None else None)
-    return load_estimator(estimator_dir(Path(out), resolved.model, estimator),
+                       settings={estimator: settings} if settings is not None else None,
+                       precision=precision)
+    return load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
                           expect={"system": resolved.model.system.name, "model_hash": resolved.hash,
                                   "dt": resolved.model.dt})
 
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
-                      system: System | str | None = None, settings: Any = None):
+                      system: System | str | None = None, settings: Any = None,
+                      precision: str = "float64"):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
-    return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings)
+    return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
+                          precision=precision)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None):

@@ -177,8 +177,10 @@ def test_ctypes_step_equals_c_run(built, data, cartpole):
 
 
 def test_plain_c_program_uses_library(built, data, cartpole, tmp_path):
+    """A plain C main with two filters in static workspaces, stepped interleaved: the first
+    reproduces the ctypes run bit for bit, the second (other data) does not disturb it."""
     gen = built["nominal"]
-    T, p = 20, gen.prefix
+    T, p, P = 20, gen.prefix, gen.prefix.upper()
     settings = UKFSettings.from_system(cartpole)
 
     def c_array(name, values):
@@ -188,14 +190,19 @@ def test_plain_c_program_uses_library(built, data, cartpole, tmp_path):
         "#include <stdio.h>", f'#include "{p}_api.h"',
         c_array("x0", cartpole.x0), c_array("P0", settings.P0()), c_array("Q", settings.Q()),
         c_array("R", settings.R()), c_array("U", data["U"][:T]), c_array("Y", data["Y"][:T]),
+        f"static unsigned char mem_a[{P}_WORKSPACE_BYTES], mem_b[{P}_WORKSPACE_BYTES];",
         "int main(void) {",
-        f"    double x[{p.upper()}_NX];",
-        f"    if ({p}_init(x0, P0, Q, R) != {p.upper()}_OK) return 1;",
+        f"    double x[{P}_NX], other[{P}_NY] = {{0.1, -0.2}};",
+        f"    {p}_t *a, *b;",
+        f"    if ({p}_workspace_size() > sizeof mem_a) return 3;",
+        f"    if ({p}_init(mem_a, sizeof mem_a, x0, P0, Q, R, &a) != LEARNEST_OK) return 1;",
+        f"    if ({p}_init(mem_b, sizeof mem_b, P0, P0, Q, R, &b) != LEARNEST_OK) return 1;",
         f"    for (int k = 0; k < {T}; ++k) {{",
-        f"        if ({p}_step(&U[(k > 0 ? k - 1 : 0) * {p.upper()}_NU], &Y[k * {p.upper()}_NY]))",
+        f"        if ({p}_step(a, &U[(k > 0 ? k - 1 : 0) * {P}_NU], &Y[k * {P}_NY]))",
         "            return 2;",
-        f"        {p}_get_state(x);",
-        f"        for (int i = 0; i < {p.upper()}_NX; ++i) printf(\"%.17g \", x[i]);",
+        f"        if ({p}_step(b, &U[0], other)) return 2;",
+        f"        {p}_get_state(a, x);",
+        f"        for (int i = 0; i < {P}_NX; ++i) printf(\"%.17g \", x[i]);",
         '        printf("\\n");', "    }", "    return 0;", "}", ""])
     (tmp_path / "main.c").write_text(main)
     exe, lib_dir = tmp_path / "main", gen.directory
@@ -305,13 +312,17 @@ def test_covariance_not_positive_definite_raises_solver_error(any_ukf, cartpole)
     np.testing.assert_array_equal(any_ukf.x, cartpole.x0)
 
 
-def test_two_compiled_filters_on_one_library_refuse_to_share(built, cartpole):
-    first, second = (CompiledUKF(built["nominal"].directory) for _ in range(2))
+def test_two_compiled_filters_on_one_library_are_independent(built, data, cartpole):
+    """Each CompiledUKF owns its workspace: stepping one does not move the other."""
+    U, Y = data["U"][:50], data["Y"][:50]
+    first, second = (CompiledUKF(built["knode"].directory) for _ in range(2))
+    X_alone = first.run(U, Y, cartpole.x0)
     first.reset(cartpole.x0)
     second.reset(np.zeros(4))
-    with pytest.raises(RuntimeError, match="another CompiledUKF"):
-        first.step(np.zeros(1), np.zeros(2))
-    np.testing.assert_array_equal(second.x, np.zeros(4))
+    for k in range(len(Y)):
+        x_first = first.step(U[max(k - 1, 0)], Y[k])
+        second.step(-U[max(k - 1, 0)], Y[k] + 0.1)
+        np.testing.assert_array_equal(x_first, X_alone[k])
 
 
 def test_settings_validation(cartpole, models):

@@ -2,13 +2,10 @@
 
 :class:`CompiledMHE` has the interface of the Python reference
 :class:`~learnest_codegen.estimators.mhe.MHE` (``reset``, ``step``, ``x``, ``window``, ``run``)
-and checks ``manifest.json`` before loading the library.
-
-The C estimator keeps its state in static arrays and a process loads a library path only
-once, so every :class:`CompiledMHE` on the same directory drives the same C state. The last
-one to :meth:`~CompiledMHE.reset` owns it; the others raise instead of silently reading or
-moving someone else's window. For the same reason, rebuild into a new directory rather than
-over a library this process has loaded: ``dlopen`` would hand back the old one.
+and checks ``manifest.json`` before loading the library. Each instance owns its workspace (a
+numpy buffer handed to ``<prefix>_init``), so several estimators of one library run
+independently. Rebuild into a new directory rather than over a library this process has
+loaded: ``dlopen`` would hand back the old one.
 """
 
 from __future__ import annotations
@@ -19,27 +16,15 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..errors import ModelMismatchError, SolverError
+from ..errors import ModelMismatchError
 from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance, check_run_arrays, check_vector
 from ..estimators.mhe_problem import MHESettings
-from .manifest import check_manifest, read_manifest
+from .base import CompiledEstimator
 
-_DOUBLES = ctypes.POINTER(ctypes.c_double)
-_INT = ctypes.c_int
-_SIGNATURES = {  # symbol suffix: (restype, argtypes)
-    "init": (_INT, [_DOUBLES] * 4),
-    "step": (_INT, [_DOUBLES, _DOUBLES]),
-    "get_state": (None, [_DOUBLES]),
-    "get_window": (None, [_DOUBLES]),
-    "run": (_INT, [_INT, _DOUBLES, _DOUBLES, _DOUBLES]),
-    "samples": (_INT, []),
-    "sizes": (None, [ctypes.POINTER(_INT)] * 4),
-    "status_name": (ctypes.c_char_p, [_INT]),
-}
-_OWNERS: dict[str, object] = {}  # library path -> token of the instance that last reset it
+_INT, _HANDLE = ctypes.c_int, ctypes.c_void_p
 
 
-class CompiledMHE:
+class CompiledMHE(CompiledEstimator):
     """A compiled MHE loaded from its directory.
 
     Parameters
@@ -56,25 +41,36 @@ class CompiledMHE:
     x : (nx,) current estimate; window : (N+1, nx) current window solution, oldest first.
     """
 
+    ESTIMATORS = ("mhe",)
+
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,
                  settings: MHESettings | None = None):
-        self.directory = Path(directory)
-        self.manifest = read_manifest(self.directory)
-        where = f"CompiledMHE({self.directory})"
-        check_manifest(self.manifest, {"estimator": "mhe", **(expect or {})}, where)
+        super().__init__(directory, expect)
         m = self.manifest
-        self.nx, self.nu, self.ny, self.horizon = m["nx"], m["nu"], m["ny"], m["horizon"]
+        self.horizon = int(m["horizon"])
         self.settings = settings or MHESettings.from_json(m["settings"])
         if self.settings.horizon != self.horizon:
-            raise ModelMismatchError(f"{where}: settings.horizon is {self.settings.horizon}, "
+            raise ModelMismatchError(f"{self.where}: settings.horizon is {self.settings.horizon}, "
                                      f"the library was generated for {self.horizon}")
-        self.settings.check(self.nx, self.ny, where)
-        self._c = _load(self.directory / m["library"], m["prefix"], where)
-        self._check_sizes(where)
-        self._x = np.zeros(self.nx)
-        self._window = np.zeros((self.horizon + 1, self.nx))
+        self.settings.check(self.nx, self.ny, self.where)
+        self._check_sizes()
+        self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
+        self._handle: int | None = None
         self._P: np.ndarray | None = None
-        self._key, self._token = str((self.directory / m["library"]).resolve()), object()
+
+    def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
+        R, h = self.real_pointer, _HANDLE
+        return {
+            "workspace_size": (ctypes.c_size_t, []),
+            "init": (_INT, [ctypes.c_void_p, ctypes.c_size_t, R, R, R, R, ctypes.POINTER(_HANDLE)]),
+            "reset": (_INT, [h, R, R, R, R]),
+            "step": (_INT, [h, R, R]),
+            "run": (_INT, [h, _INT, R, R, R]),
+            "get_state": (_INT, [h, R]),
+            "get_window": (_INT, [h, R]),
+            "samples": (_INT, [h]),
+            "sizes": (None, [ctypes.POINTER(_INT)] * 4),
+        }
 
     @property
     def P(self):
@@ -83,20 +79,20 @@ class CompiledMHE:
 
     @property
     def x(self) -> np.ndarray:
-        self._owned("x")
-        self._c["get_state"](_ptr(self._x))
-        return self._x.copy()
+        x = np.empty(self.nx)
+        self.check_status("x", self._c["get_state"](self._started("x"), x))
+        return x
 
     @property
     def window(self) -> np.ndarray:
-        self._owned("window")
-        self._c["get_window"](_ptr(self._window))
-        return self._window.copy()
+        X = np.empty((self.horizon + 1, self.nx))
+        self.check_status("window", self._c["get_window"](self._started("window"), X))
+        return X
 
     @property
     def arrival_weight(self) -> np.ndarray:
         """(nx, nx) the weight ``P`` of the arrival cost in use."""
-        self._owned("arrival_weight")
+        self._started("arrival_weight")
         return self._P.copy()
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
@@ -105,15 +101,22 @@ class CompiledMHE:
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.nx)
-        self._check("init", self._c["init"](*(_ptr(np.ascontiguousarray(a)) for a in (x0, Q, R, P))))
-        _OWNERS[self._key], self._P = self._token, P
+        args = [np.ascontiguousarray(a, dtype=float) for a in (x0, Q, R, P)]
+        if self._handle is None:
+            handle = _HANDLE()
+            self.check_status("init", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
+                                                      *args, ctypes.byref(handle)))
+            self._handle = handle.value
+        else:
+            self.check_status("init", self._c["reset"](self._handle, *args))
+        self._P = P
 
     def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
-        self._owned("step")
+        handle = self._started("step")
         u = check_vector("CompiledMHE.step: u", u, self.nu)
         y = check_vector("CompiledMHE.step: y", y, self.ny)
-        self._check("step", self._c["step"](_ptr(u), _ptr(y)))
+        self.check_status("step", self._c["step"](handle, u, y), self._sample())
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
@@ -124,47 +127,23 @@ class CompiledMHE:
         """
         U, Y = check_run_arrays(U, Y, self.nu, self.ny, "CompiledMHE.run")
         self.reset(x0, P0)
-        U, Y = np.ascontiguousarray(U), np.ascontiguousarray(Y)
         X_hat = np.empty((len(Y), self.nx))
-        self._check("run", self._c["run"](len(Y), _ptr(U), _ptr(Y), _ptr(X_hat)))
+        self.check_status("run", self._c["run"](self._handle, len(Y), np.ascontiguousarray(U),
+                                                np.ascontiguousarray(Y), X_hat), self._sample())
         return X_hat
 
-    def _check(self, call: str, code: int) -> None:
-        if code != 0:
-            name = self._c["status_name"](code).decode()
-            raise SolverError(f"CompiledMHE.{call} ({self.directory.name}, sample "
-                              f"{self._c['samples']()}): C returned {code} ({name})")
+    def _sample(self) -> str:
+        return f", sample {self._c['samples'](self._handle)}"
 
-    def _owned(self, what: str) -> None:
-        if _OWNERS.get(self._key) is not self._token:
-            raise RuntimeError(f"CompiledMHE.{what}: call reset() first (another CompiledMHE "
-                               f"on {self.directory} may have reset the shared C state)")
+    def _started(self, what: str) -> int:
+        if self._handle is None:
+            raise RuntimeError(f"CompiledMHE.{what}: call reset(x0) first")
+        return self._handle
 
-    def _check_sizes(self, where: str) -> None:
+    def _check_sizes(self) -> None:
         sizes = [_INT() for _ in range(4)]
         self._c["sizes"](*(ctypes.byref(s) for s in sizes))
         got = tuple(s.value for s in sizes)
         if got != (self.nx, self.nu, self.ny, self.horizon):
-            raise ModelMismatchError(f"{where}: library sizes (nx, nu, ny, N) = {got}, manifest "
+            raise ModelMismatchError(f"{self.where}: library sizes (nx, nu, ny, N) = {got}, manifest "
                                      f"says {(self.nx, self.nu, self.ny, self.horizon)}")
-
-
-def _load(library: Path, prefix: str, where: str) -> dict[str, Any]:
-    """Load ``library`` and type each ``<prefix>_<name>`` symbol once."""
-    if not library.is_file():
-        raise FileNotFoundError(f"{where}: library {library} not found (rebuild the estimator)")
-    lib = ctypes.CDLL(str(library))
-    functions = {}
-    for name, (restype, argtypes) in _SIGNATURES.items():
-        try:
-            fn = getattr(lib, f"{prefix}_{name}")
-        except AttributeError as exc:
-            raise ModelMismatchError(f"{where}: {library.name} has no symbol {prefix}_{name}") from exc
-        fn.restype, fn.argtypes = restype, argtypes
-        functions[name] = fn
-    return functions
-
-
-def _ptr(a: np.ndarray):
-    return a.ctypes.data_as(_DOUBLES)
-

@@ -1,0 +1,57 @@
+"""The one status table of every generated estimator's C API (``learnest_status.h``).
+
+Each code is a name, a meaning and how the caller recovers. :mod:`..codegen.status` renders
+the table into the C header every estimator includes, and the ctypes bindings read names from
+it here, so C and Python cannot disagree. Zero and positive codes are not errors; negative
+codes are, and a step that returns one leaves the estimator as it was. Torch-free.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Status:
+    """One C return code: ``LEARNEST_<name>``."""
+
+    code: int
+    name: str
+    meaning: str
+    recovery: str
+
+
+STATUSES = (
+    Status(0, "OK", "the call did what it says", "nothing to do"),
+    Status(1, "MEASUREMENT_REJECTED",
+           "reserved (not produced yet): the innovation gate rejected the measurement; the "
+           "estimate is the prediction without it",
+           "not an error; keep stepping"),
+    Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
+           "call <prefix>_init on the workspace first"),
+    Status(-2, "BAD_ARGUMENT", "a NULL pointer, or a size or option out of range",
+           "fix the call; nothing was changed"),
+    Status(-3, "NONFINITE_INPUT", "an input (u, y, x0 or a weight) is NaN or infinite",
+           "drop the sample (or call reset); the estimator is unchanged"),
+    Status(-4, "NO_MEMORY", "the workspace is smaller than <prefix>_workspace_size()",
+           "give a larger buffer"),
+    Status(-5, "NONFINITE_RESULT", "the solution or covariance came out NaN or infinite",
+           "the estimator is unchanged; reset it, or check the weights and the model"),
+    Status(-6, "NOT_POSITIVE_DEFINITE",
+           "a Cholesky factorisation failed (covariance or normal equations not positive "
+           "definite)",
+           "the estimator is unchanged; reset it, or raise the noise covariances"),
+    Status(-7, "MAX_ITERATIONS", "the solver reached its iteration limit before its tolerance",
+           "the estimator is unchanged; raise the limit or the tolerance, or use RTI mode"),
+    Status(-8, "LINE_SEARCH_FAILED", "no step length decreased the cost",
+           "the estimator is unchanged; reset it near the true state"),
+    Status(-9, "SOLVER_FAILED", "the NLP solver (Ipopt) reported a failure",
+           "the estimator is unchanged; reset it, or check the weights"),
+)
+
+STATUS_NAMES = {s.code: s.name for s in STATUSES}
+
+
+def status_name(code: int) -> str:
+    """``"OK"``, ``"NOT_POSITIVE_DEFINITE"``, ... or ``"UNKNOWN(<code>)"``."""
+    return STATUS_NAMES.get(code, f"UNKNOWN({code})")
