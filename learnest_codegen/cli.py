@@ -237,10 +237,12 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
 def estimate(system_name, data, estimator, model, backend, compiled, precision, out, resample,
              force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state."""
-    from .compilation import precision_problem
+    from .compilation import estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
         raise click.UsageError(precision_problem((estimator,), precision))
+    if backend == "python" and estimator_kind(estimator).python is None:
+        raise click.UsageError(f"{estimator} has no Python reference (its C defines it); use --backend c")
     from .evaluation import mse, run_estimator
     from .outputs import atomic_file, claim_output
     from .pipeline import load_estimator, make_estimator, resolve

@@ -332,7 +332,7 @@ def test_bad_shapes_and_nan_raise(any_mhe, cartpole, data):
     Y[7, 1] = np.inf
     with pytest.raises(DataError, match="Y has a non-finite value at sample 7"):
         any_mhe.run(data["U"][:10], Y, cartpole.x0)
-    with pytest.raises(ValueError, match="not positive definite"):
+    with pytest.raises(ValueError, match="must be positive definite"):
         any_mhe.reset(cartpole.x0, -np.eye(4))
     with pytest.raises(AttributeError, match="no state covariance"):
         _ = any_mhe.P

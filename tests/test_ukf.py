@@ -20,7 +20,7 @@ from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
 from learnest_codegen.codegen.ukf import generate_ukf, merwe_weights, ukf_step_function, ukf_update_function
-from learnest_codegen.errors import BuildError, ModelMismatchError, ShapeError, SolverError
+from learnest_codegen.errors import BuildError, DataError, ModelMismatchError, ShapeError
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model
 from learnest_codegen.network import ResidualNet
@@ -267,8 +267,10 @@ def test_manifest_mismatch_raises(built):
     with pytest.raises(ModelMismatchError, match="model_kind"):
         CompiledUKF(directory, expect={"model_kind": "knode", "nx": 4})
     other_alpha = UKFSettings.from_system(get_system("cartpole"), alpha=0.5)
-    with pytest.raises(ModelMismatchError, match="alpha"):
-        CompiledUKF(directory, settings=other_alpha)
+    compiled_alpha = json.loads((directory / "manifest.json").read_text())["settings"]["alpha"]
+    assert compiled_alpha != 0.5
+    with pytest.raises(ModelMismatchError, match=rf"alpha: library has {compiled_alpha!r}, expected 0.5"):
+        CompiledUKF(directory, settings=other_alpha)  # the message used to swap the two
     with pytest.raises(FileNotFoundError, match="does not exist"):
         CompiledUKF(directory / "missing")
 
@@ -295,21 +297,39 @@ def test_bad_shapes_and_nan_raise(any_ukf, cartpole, data):
     any_ukf.reset(cartpole.x0)
     with pytest.raises(ShapeError, match=r"u: expected shape \(1,\), got \(2,\)"):
         any_ukf.step(np.zeros(2), np.zeros(2))
-    with pytest.raises(ValueError, match="y: expected finite"):
+    with pytest.raises(DataError, match="y: non-finite value"):
         any_ukf.step(np.zeros(1), np.array([0.0, np.nan]))
-    with pytest.raises(ShapeError, match=r"U: expected shape \(10, 1\), got \(9, 1\)"):
+    with pytest.raises(ShapeError, match=r"expected U \(T, 1\) and Y \(T, 2\).*got \(9, 1\) and \(10, 2\)"):
         any_ukf.run(data["U"][:9], data["Y"][:10], cartpole.x0)
     Y = data["Y"][:10].copy()
     Y[7, 1] = np.inf
-    with pytest.raises(ValueError, match=r"row\(s\) \[7\]"):
+    with pytest.raises(DataError, match="Y has a non-finite value at sample 7"):
         any_ukf.run(data["U"][:10], Y, cartpole.x0)
 
 
-def test_covariance_not_positive_definite_raises_solver_error(any_ukf, cartpole):
-    any_ukf.reset(cartpole.x0, -np.eye(4))
-    with pytest.raises(SolverError, match="state left as before"):
-        any_ukf.step(np.zeros(1), np.zeros(2))
-    np.testing.assert_array_equal(any_ukf.x, cartpole.x0)
+@pytest.mark.parametrize("P0, problem", [(-np.eye(4), "positive semidefinite"),
+                                         (np.eye(4) + np.triu(np.ones((4, 4)), 1), "symmetric")])
+def test_covariance_that_is_not_one_is_refused(any_ukf, cartpole, P0, problem):
+    """An indefinite or non-symmetric P0 used to be accepted and to yield non-PSD covariances."""
+    with pytest.raises(DataError, match=problem):
+        any_ukf.reset(cartpole.x0, P0)
+
+
+def test_c_init_refuses_what_is_not_a_covariance(built, cartpole):
+    """The C API checks P0, Q and R itself (a C caller has no Python validator in front)."""
+    ukf = CompiledUKF(built["nominal"].directory)
+    ukf.reset(cartpole.x0)
+    good = [ukf.real_array(a) for a in (cartpole.x0, ukf.settings.P0(), ukf.settings.Q(), ukf.settings.R())]
+    indefinite_Q = ukf.settings.Q().copy()
+    indefinite_Q[2, 2] = -1e-3
+    skew_R = ukf.settings.R() + np.array([[0.0, 1e-3], [0.0, 0.0]])
+    for which, bad in ((2, indefinite_Q), (3, skew_R), (1, -ukf.settings.P0())):
+        args = list(good)
+        args[which] = ukf.real_array(bad)
+        assert ukf._c["reset"](ukf._handle, *args) == -6  # LEARNEST_NOT_POSITIVE_DEFINITE
+    np.testing.assert_array_equal(ukf.x, cartpole.x0)  # unchanged
+    zero_Q = np.zeros((4, 4))  # semidefinite: allowed
+    assert ukf._c["reset"](ukf._handle, good[0], good[1], ukf.real_array(zero_Q), good[3]) == 0
 
 
 def test_two_compiled_filters_on_one_library_are_independent(built, data, cartpole):

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import DataError, ShapeError, SolverError
+from ..errors import SolverError
 from ..export import DiscreteModel
+from . import validation
 from .mhe_problem import MHESettings, ParamLayout, build_problem
 
 NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
@@ -75,7 +76,7 @@ class MHE:
         ``P0 (nx, nx)``, if given, is the covariance of that prior: the arrival weight becomes
         ``inv(P0)`` for the whole run (otherwise ``diag(1/arrival_std**2)`` from the settings).
         """
-        x0 = check_vector("MHE.reset: x0", x0, self.model.nx)
+        x0 = validation.vector("MHE.reset: x0", x0, self.model.nx)
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.model.nx)
@@ -93,8 +94,8 @@ class MHE:
         only enters ``h``. Returns the estimate ``x (nx,)``.
         """
         self._started()
-        u = check_vector("MHE.step: u", u, self.model.nu)
-        y = check_vector("MHE.step: y", y, self.model.ny)
+        u = validation.vector("MHE.step: u", u, self.model.nu)
+        y = validation.vector("MHE.step: y", y, self.model.ny)
         p, guess = self._advance(u, y)
         try:
             solution = self.problem.solver(x0=guess.ravel(), p=p)
@@ -113,7 +114,7 @@ class MHE:
         Sample 0 uses ``Y[0]`` only (with a zero input in ``h``); sample ``k >= 1`` is
         ``step(U[k-1], Y[k])``, so ``U[T-1]`` is not used.
         """
-        U, Y = check_run_arrays(U, Y, self.model.nu, self.model.ny, "MHE.run")
+        U, Y = validation.run_arrays("MHE.run", U, Y, self.model.nu, self.model.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
         X_hat[0] = self.step(np.zeros(self.model.nu), Y[0])
@@ -144,38 +145,7 @@ class MHE:
 
 def arrival_weight_from_covariance(P0: np.ndarray, nx: int) -> np.ndarray:
     """``inv(P0)`` for a symmetric positive-definite ``P0 (nx, nx)``, with clear errors."""
-    P0 = np.asarray(P0, dtype=float)
-    if P0.shape != (nx, nx):
-        raise ShapeError(f"MHE.reset: P0: expected shape ({nx}, {nx}), got {P0.shape}")
-    if not np.all(np.isfinite(P0)) or not np.allclose(P0, P0.T):
-        raise ValueError("MHE.reset: P0 must be finite and symmetric")
-    try:
-        L = np.linalg.cholesky(P0)
-    except np.linalg.LinAlgError as exc:
-        raise ValueError("MHE.reset: P0 is not positive definite (Cholesky failed)") from exc
+    P0 = validation.covariance("MHE.reset: P0", P0, nx, definite=True)
+    L = np.linalg.cholesky(P0)
     L_inv = np.linalg.inv(L)
     return L_inv.T @ L_inv
-
-
-def check_run_arrays(U, Y, nu: int, ny: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """``U (T, nu)``, ``Y (T, ny)`` as finite float arrays with ``T >= 1``, or a clear error."""
-    U, Y = np.asarray(U, dtype=float), np.asarray(Y, dtype=float)
-    if U.ndim != 2 or Y.ndim != 2 or U.shape[1] != nu or Y.shape[1] != ny \
-            or len(U) != len(Y) or len(Y) < 1:
-        raise ShapeError(f"{where}: expected U (T, {nu}) and Y (T, {ny}) with T >= 1, "
-                         f"got {U.shape} and {Y.shape}")
-    for name, A in (("U", U), ("Y", Y)):
-        if not np.all(np.isfinite(A)):
-            row = int(np.argwhere(~np.isfinite(A))[0, 0])
-            raise DataError(f"{where}: {name} has a non-finite value at sample {row}")
-    return U, Y
-
-
-def check_vector(where: str, value, n: int) -> np.ndarray:
-    """``value`` as a finite float64 ``(n,)`` array, or ShapeError / DataError."""
-    v = np.ascontiguousarray(value, dtype=float)
-    if v.shape != (n,):
-        raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise DataError(f"{where}: non-finite value {v}")
-    return v

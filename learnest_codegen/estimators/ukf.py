@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import ShapeError, SolverError
 from ..export import DiscreteModel
 from ..systems import System
+from . import validation
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -91,37 +92,6 @@ class UKFSettings:
         return np.diag(np.square(self.initial_std))
 
 
-def as_vector(name: str, value, n: int) -> np.ndarray:
-    """``value`` as a finite float64 array ``(n,)``; :class:`ShapeError` / ``ValueError`` otherwise."""
-    array = np.asarray(value, dtype=np.float64)
-    if array.shape != (n,):
-        raise ShapeError(f"{name}: expected shape ({n},), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: expected finite values, got {array}")
-    return array
-
-
-def as_matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
-    """``value`` as a finite float64 array of ``shape``; rows with non-finite values are named."""
-    array = np.asarray(value, dtype=np.float64)
-    if array.shape != tuple(shape):
-        raise ShapeError(f"{name}: expected shape {tuple(shape)}, got {array.shape}")
-    finite = np.isfinite(array)
-    if not finite.all():
-        rows = np.flatnonzero(~finite.reshape(array.shape[0], -1).all(axis=1))
-        raise ValueError(f"{name}: expected finite values, row(s) {rows[:5].tolist()} are not")
-    return array
-
-
-def check_run_arrays(where: str, U, Y, model) -> tuple[np.ndarray, np.ndarray]:
-    """``U (T, nu)`` and ``Y (T, ny)`` as finite float64 arrays with the same T."""
-    Y = np.asarray(Y, dtype=np.float64)
-    T = Y.shape[0] if Y.ndim == 2 else -1
-    if T < 0:
-        raise ShapeError(f"{where}: Y must be (T, {model.ny}), got {Y.shape}")
-    return as_matrix(f"{where} U", U, (T, model.nu)), as_matrix(f"{where} Y", Y, (T, model.ny))
-
-
 class UKF:
     """Reference UKF (FilterPy) with ``fx = model.step`` and ``hx = model.measure``.
 
@@ -155,9 +125,9 @@ class UKF:
     def reset(self, x0, P0=None) -> None:
         """Start from mean ``x0 (nx,)`` and covariance ``P0 (nx, nx)`` (default settings.P0())."""
         nx = self.model.nx
-        self._kf.x = as_vector("UKF.reset x0", x0, nx).copy()
+        self._kf.x = validation.vector("UKF.reset x0", x0, nx).copy()
         P0 = self.settings.P0() if P0 is None else P0
-        self._kf.P = as_matrix("UKF.reset P0", P0, (nx, nx)).copy()
+        self._kf.P = validation.covariance("UKF.reset P0", P0, nx).copy()
         self._first = True
 
     def step(self, u, y) -> np.ndarray:
@@ -169,8 +139,8 @@ class UKF:
         being positive definite.
         """
         self._require_reset("step")
-        u = as_vector("UKF.step u", u, self.model.nu)
-        y = as_vector("UKF.step y", y, self.model.ny)
+        u = validation.vector("UKF.step u", u, self.model.nu)
+        y = validation.vector("UKF.step y", y, self.model.ny)
         saved = self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f.copy()
         try:
             if self._first:
@@ -219,7 +189,7 @@ class UKF:
         X_hat : (T, nx) posterior means. Sample 0 is an update only (``h`` with ``U[0]``);
             sample k >= 1 is ``step(U[k-1], Y[k])``.
         """
-        U, Y = check_run_arrays("UKF.run", U, Y, self.model)
+        U, Y = validation.run_arrays("UKF.run", U, Y, self.model.nu, self.model.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
         for k in range(len(Y)):

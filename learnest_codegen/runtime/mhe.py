@@ -17,7 +17,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import ModelMismatchError
-from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance, check_run_arrays, check_vector
+from ..estimators import validation
+from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance
 from ..estimators.mhe_problem import MHESettings
 from .base import CompiledEstimator
 
@@ -97,7 +98,7 @@ class CompiledMHE(CompiledEstimator):
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from ``x0 (nx,)``; ``P0 (nx, nx)`` as in :meth:`MHE.reset`."""
-        x0 = check_vector("CompiledMHE.reset: x0", x0, self.nx)
+        x0 = validation.vector("CompiledMHE.reset: x0", x0, self.nx)
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.nx)
@@ -114,8 +115,8 @@ class CompiledMHE(CompiledEstimator):
     def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
         handle = self._started("step")
-        u = check_vector("CompiledMHE.step: u", u, self.nu)
-        y = check_vector("CompiledMHE.step: y", y, self.ny)
+        u = validation.vector("CompiledMHE.step: u", u, self.nu)
+        y = validation.vector("CompiledMHE.step: y", y, self.ny)
         self.check_status("step", self._c["step"](handle, u, y), self._sample())
         return self.x
 
@@ -125,7 +126,7 @@ class CompiledMHE(CompiledEstimator):
 
         Same convention as :meth:`MHE.run` (sample 0 uses ``Y[0]`` only).
         """
-        U, Y = check_run_arrays(U, Y, self.nu, self.ny, "CompiledMHE.run")
+        U, Y = validation.run_arrays("CompiledMHE.run", U, Y, self.nu, self.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.nx))
         self.check_status("run", self._c["run"](self._handle, len(Y), np.ascontiguousarray(U),

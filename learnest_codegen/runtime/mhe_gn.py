@@ -16,7 +16,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import ModelMismatchError
-from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance, check_run_arrays, check_vector
+from ..estimators import validation
+from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
 from .base import CompiledEstimator
@@ -110,7 +111,7 @@ class CompiledEmbeddedMHE(CompiledEstimator):
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from ``x0 (nx,)``; ``P0 (nx, nx)`` as in :meth:`MHE.reset`."""
-        x0 = check_vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
+        x0 = validation.vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.nx)
@@ -131,15 +132,15 @@ class CompiledEmbeddedMHE(CompiledEstimator):
         """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
         handle = self._started("step")
         name = type(self).__name__
-        u = self.real_array(check_vector(f"{name}.step: u", u, self.nu))
-        y = self.real_array(check_vector(f"{name}.step: y", y, self.ny))
+        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
+        y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
         self.check_status("step", self._c["step"](handle, u, y), self._sample())
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
             P0: np.ndarray | None = None) -> np.ndarray:
         """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` -> ``X_hat (T, nx)``."""
-        U, Y = check_run_arrays(U, Y, self.nu, self.ny, f"{type(self).__name__}.run")
+        U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
         self.check_status("run", self._c["run"](self._handle, len(Y), self.real_array(U),

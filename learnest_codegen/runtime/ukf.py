@@ -13,7 +13,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..errors import ModelMismatchError
-from ..estimators.ukf import UKFSettings, as_matrix, as_vector, check_run_arrays
+from ..estimators import validation
+from ..estimators.ukf import UKFSettings
 from .base import CompiledEstimator
 from .manifest import check_manifest
 
@@ -68,9 +69,9 @@ class CompiledUKF(CompiledEstimator):
         compiled = UKFSettings(**self.manifest["settings"])
         if settings is None:
             return compiled
-        check_manifest({k: getattr(settings, k) for k in ("alpha", "beta", "kappa")},
-                       {k: getattr(compiled, k) for k in ("alpha", "beta", "kappa")},
-                       f"{self.where} settings")
+        check_manifest({k: getattr(compiled, k) for k in ("alpha", "beta", "kappa")},
+                       {k: getattr(settings, k) for k in ("alpha", "beta", "kappa")},
+                       f"{self.where} settings (sigma-point constants are compiled in)")
         settings.validate_for(self.sizes)
         return settings
 
@@ -85,9 +86,9 @@ class CompiledUKF(CompiledEstimator):
     def reset(self, x0, P0=None) -> None:
         """Start from mean ``x0 (nx,)`` and covariance ``P0 (nx, nx)`` (default settings.P0())."""
         nx = self.sizes.nx
-        x0 = as_vector("CompiledUKF.reset x0", x0, nx)
+        x0 = validation.vector("CompiledUKF.reset x0", x0, nx)
         P0 = self.settings.P0() if P0 is None else P0
-        P0 = as_matrix("CompiledUKF.reset P0", P0, (nx, nx))
+        P0 = validation.covariance("CompiledUKF.reset P0", P0, nx)
         args = [self.real_array(a) for a in (x0, P0, self.settings.Q(), self.settings.R())]
         if self._handle is None:
             handle = _HANDLE()
@@ -100,8 +101,8 @@ class CompiledUKF(CompiledEstimator):
     def step(self, u, y) -> np.ndarray:
         """Filter one sample (same convention as ``UKF.step``); returns ``x (nx,)``."""
         handle = self._started("step")
-        u = self.real_array(as_vector("CompiledUKF.step u", u, self.sizes.nu))
-        y = self.real_array(as_vector("CompiledUKF.step y", y, self.sizes.ny))
+        u = self.real_array(validation.vector("CompiledUKF.step u", u, self.sizes.nu))
+        y = self.real_array(validation.vector("CompiledUKF.step y", y, self.sizes.ny))
         self.check_status("step", self._c["step"](handle, u, y), "; state left as before")
         return self.x
 
@@ -121,7 +122,7 @@ class CompiledUKF(CompiledEstimator):
 
     def run(self, U, Y, x0, P0=None) -> np.ndarray:
         """Filter a whole run in C; same arguments, result and convention as ``UKF.run``."""
-        U, Y = check_run_arrays("CompiledUKF.run", U, Y, self.sizes)
+        U, Y = validation.run_arrays("CompiledUKF.run", U, Y, self.sizes.nu, self.sizes.ny)
         self.reset(x0, P0)
         X_hat = np.full((len(Y), self.sizes.nx), np.nan, dtype=self.dtype)
         code = self._c["run"](self._handle, len(Y), self.real_array(U), self.real_array(Y), X_hat)

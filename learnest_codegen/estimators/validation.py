@@ -1,0 +1,70 @@
+"""The one set of checks every estimator, reference or compiled, applies to what it is given.
+
+Shapes fail with :class:`~learnest_codegen.errors.ShapeError`, values (non-finite numbers, a
+covariance that is not symmetric positive semidefinite) with
+:class:`~learnest_codegen.errors.DataError`; both are ``ValueError``\\ s. Each message names the
+call and the argument (``where``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import DataError, ShapeError
+
+#: Relative tolerance of the symmetry and semidefiniteness checks of a covariance.
+COVARIANCE_RTOL = 1e-9
+
+
+def vector(where: str, value, n: int) -> np.ndarray:
+    """``value`` as a finite float64 ``(n,)`` array."""
+    v = np.ascontiguousarray(value, dtype=float)
+    if v.shape != (n,):
+        raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise DataError(f"{where}: non-finite value in {v}")
+    return v
+
+
+def matrix(where: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``; the rows holding non-finite values are named."""
+    a = np.ascontiguousarray(value, dtype=float)
+    if a.shape != tuple(shape):
+        raise ShapeError(f"{where}: expected shape {tuple(shape)}, got {a.shape}")
+    finite = np.isfinite(a)
+    if not finite.all():
+        rows = np.flatnonzero(~finite.reshape(a.shape[0], -1).all(axis=1))
+        raise DataError(f"{where}: non-finite values in row(s) {rows[:5].tolist()}")
+    return a
+
+
+def covariance(where: str, value, n: int, *, definite: bool = False) -> np.ndarray:
+    """``value`` as a symmetric positive semidefinite ``(n, n)`` array (definite if asked).
+
+    Symmetry and the smallest eigenvalue are judged relative to the largest diagonal entry
+    (:data:`COVARIANCE_RTOL`): rounding passes, a real asymmetry or a negative direction not.
+    """
+    a = matrix(where, value, (n, n))
+    scale = float(np.max(np.abs(np.diag(a)), initial=0.0)) or 1.0
+    asym = float(np.max(np.abs(a - a.T), initial=0.0))
+    if asym > COVARIANCE_RTOL * scale:
+        raise DataError(f"{where}: a covariance must be symmetric; largest |A - A^T| is {asym:.3g}")
+    smallest = float(np.linalg.eigvalsh((a + a.T) / 2)[0])
+    if smallest < -COVARIANCE_RTOL * scale or (definite and smallest <= COVARIANCE_RTOL * scale):
+        kind = "positive definite" if definite else "positive semidefinite"
+        raise DataError(f"{where}: a covariance must be {kind}; its smallest eigenvalue is {smallest:.3g}")
+    return a
+
+
+def run_arrays(where: str, U, Y, nu: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
+    """``U (T, nu)``, ``Y (T, ny)`` as finite float64 arrays with the same ``T >= 1``."""
+    U, Y = np.asarray(U, dtype=float), np.asarray(Y, dtype=float)
+    if U.ndim != 2 or Y.ndim != 2 or U.shape[1] != nu or Y.shape[1] != ny \
+            or len(U) != len(Y) or len(Y) < 1:
+        raise ShapeError(f"{where}: expected U (T, {nu}) and Y (T, {ny}) with T >= 1, "
+                         f"got {U.shape} and {Y.shape}")
+    for name, A in (("U", U), ("Y", Y)):
+        if not np.all(np.isfinite(A)):
+            row = int(np.argwhere(~np.isfinite(A))[0, 0])
+            raise DataError(f"{where}: {name} has a non-finite value at sample {row}")
+    return np.ascontiguousarray(U), np.ascontiguousarray(Y)
