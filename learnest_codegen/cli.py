@@ -245,7 +245,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
         raise click.UsageError(f"{estimator} has no Python reference (its C defines it); use --backend c")
     from .evaluation import mse, run_estimator
     from .outputs import atomic_file, claim_output
-    from .pipeline import load_estimator, make_estimator, resolve
+    from .pipeline import expected_manifest, load_estimator, make_estimator, resolve
 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)
@@ -253,8 +253,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     run = _read_run(data, system, resample)
     resolved = resolve(model, system)
     if backend == "c" and compiled is not None:
-        est = load_estimator(compiled, expect={"estimator": estimator, "system": system.name,
-                                               "model_hash": resolved.hash, "dt": system.dt})
+        est = load_estimator(compiled, expect={"estimator": estimator, **expected_manifest(resolved)})
     else:  # compiled on demand next to the output (reused while the model is unchanged)
         est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
                              out=Path(out).resolve().parent / ".learnest_compiled")

@@ -111,8 +111,17 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
                        settings={estimator: settings} if settings is not None else None,
                        precision=precision)
     return load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
-                          expect={"system": resolved.model.system.name, "model_hash": resolved.hash,
-                                  "dt": resolved.model.dt})
+                          expect=expected_manifest(resolved))
+
+
+def expected_manifest(model: ModelLike, system: System | str | None = None) -> dict[str, Any]:
+    """What a compiled folder of ``model`` must record: the system's name and fingerprint (its
+    equations, parameters and noise, so a different system of the same name is refused), the
+    time step and the model's hash."""
+    resolved = resolve(model, system)
+    sys_ = resolved.model.system
+    return {"system": sys_.name, "system_fingerprint": sys_.fingerprint(), "dt": sys_.dt,
+            "model_hash": resolved.hash}
 
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
@@ -149,5 +158,5 @@ def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: Syste
     return run_estimator(estimator, run, x0, label or type(estimator).__name__)
 
 
-__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "load_estimator",
-           "make_estimator", "reference_estimator", "resolve", "simulate", "train"]
+__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "expected_manifest",
+           "load_estimator", "make_estimator", "reference_estimator", "resolve", "simulate", "train"]

@@ -235,9 +235,12 @@ def test_a_truncated_or_altered_library_is_refused_before_it_is_opened(tmp_path)
     import subprocess
     import sys
 
-    from learnest_codegen.pipeline import compile_estimator
+    from learnest_codegen.compilation import compile_estimators
+    from learnest_codegen.pipeline import resolve
 
-    compile_estimator("nominal", "ukf", system="cartpole", out=tmp_path)
+    # built but not loaded here: rewriting a library this process has mapped would crash it
+    compile_estimators(resolve("nominal", "cartpole").model, tmp_path, model_hash="nominal",
+                       estimators=("ukf",))
     folder = tmp_path / "cartpole_nominal_ukf"
     library = next(folder.glob("lib*.so"))
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -256,3 +259,23 @@ def test_a_truncated_or_altered_library_is_refused_before_it_is_opened(tmp_path)
     child = subprocess.run([sys.executable, "-c", load, str(folder)], capture_output=True, text=True,
                            timeout=120)
     assert child.stdout.strip() == "loaded", child.stderr
+
+
+def test_another_system_of_the_same_name_is_refused(tmp_path, short_run):
+    """Finding 4: a user's `cartpole` with another pole length passed the manifest check."""
+    import dataclasses
+
+    from learnest_codegen.errors import ModelMismatchError
+    from learnest_codegen.pipeline import compile_estimator, expected_manifest, load_estimator
+
+    cartpole = get_system("cartpole")
+    longer = dataclasses.replace(cartpole, params={**cartpole.params, "l": 0.6})
+    assert longer.name == cartpole.name and longer.fingerprint() != cartpole.fingerprint()
+    compile_estimator("nominal", "ukf", system=longer, out=tmp_path)
+    folder = tmp_path / "cartpole_nominal_ukf"
+    with pytest.raises(ModelMismatchError, match="system_fingerprint: library has"):
+        load_estimator(folder, expect=expected_manifest("nominal", cartpole))
+    load_estimator(folder, expect=expected_manifest("nominal", longer))  # its own system loads
+    code, out = run_cli("estimate", "--system", "cartpole", "--data", short_run, "--estimator", "ukf",
+                        "--compiled", folder, "--out", tmp_path / "est.csv")
+    assert_one_line_error(code, out, "system_fingerprint")

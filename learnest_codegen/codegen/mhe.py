@@ -80,6 +80,7 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     code_bytes = sum(f.stat().st_size for f in files)
     manifest = write_manifest(out, {
         "estimator": "mhe", "system": model.system.name, "model_kind": model.kind,
+        "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
         "horizon": settings.horizon, "settings": settings.to_json(), "model_hash": model_hash,
         "code_hash": toolchain.file_hash(*files), "casadi_version": cs.__version__,

@@ -81,6 +81,7 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     code_bytes = sum(f.stat().st_size for f in files)
     manifest = write_manifest(out, {
         "estimator": solver.estimator, "system": model.system.name, "model_kind": model.kind,
+        "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
         "horizon": settings.horizon, "settings": settings.to_json(), "solver": solver.to_json(),
         "precision": solver.precision, "model_hash": model_hash,

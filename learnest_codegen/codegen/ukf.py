@@ -205,6 +205,7 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
     code_bytes = sum(p.stat().st_size for p in sources)
     manifest = write_manifest(out_dir, {
         "estimator": "ukf", "system": model.system.name, "model_kind": model.kind,
+        "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
         "settings": settings.to_json(), "model_hash": model_hash,
         "code_hash": file_hash(*sources), "casadi_version": cs.__version__,

@@ -288,7 +288,7 @@ def run_job(job: Job) -> dict:
     import torch
 
     from ..evaluation import mse_per_state, run_estimator
-    from ..pipeline import load_estimator, make_estimator, resolve
+    from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
     from ..simulation import simulate
     from ..systems import get_system
     from ..training import train_on_run
@@ -330,7 +330,7 @@ def run_job(job: Job) -> dict:
             elif key in ("nominal", "true"):  # compiled once per task by compile_shared
                 estimators[key, name] = load_estimator(
                     Path(job.shared) / f"{system.name}_{key}_{name}",
-                    expect={"system": system.name, "model_hash": model.hash, "dt": system.dt})
+                    expect=expected_manifest(model))
             else:
                 estimators[key, name] = timed(f"compile_{key}", make_estimator, model, name,
                                               out=job.work_dir / "compiled" / key)

@@ -82,7 +82,8 @@ def check_manifest(manifest: Mapping[str, Any], expect: Mapping[str, Any] | None
     """Raise :class:`ModelMismatchError` listing every key where ``manifest`` differs from ``expect``."""
     if not expect:
         return
-    wrong = [f"{k}: library has {manifest.get(k)!r}, expected {v!r}"
+    wrong = [f"{k}: library has {manifest[k]!r}, expected {v!r}" if k in manifest
+             else f"{k}: not recorded (built by an older version; recompile)"
              for k, v in expect.items() if manifest.get(k) != v]
     if wrong:
         raise ModelMismatchError(f"{where}: compiled estimator does not match: " + "; ".join(wrong))
