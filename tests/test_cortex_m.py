@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 
 from learnest_codegen import get_system
+from learnest_codegen.errors import SolverError
+from learnest_codegen.estimators.ukf import UKFSettings
 from learnest_codegen.export import prior_model
 from learnest_codegen.runtime.ukf import CompiledUKF
 
@@ -98,6 +100,27 @@ def test_firmware_footprint_and_stack(knode):
     # The run data (U, Y as doubles) sits in flash, not RAM.
     assert sizes[".text"] > 8 * gen.U.size + 8 * gen.Y.size
     assert sizes["ram"] < 16 * 1024
+
+
+def test_failing_step_stops_the_firmware_with_its_status(tmp_path):
+    """A covariance that is not positive definite fails the first step (Cholesky -> NaN): the
+    loop prints the API's error code, stops, and QEMU and the host exit non-zero."""
+    system = get_system("cartpole")
+    model = prior_model(system)
+    gen = bc.generate(model, tmp_path / "gen", steps=5)
+    config = (gen.directory / "estimator_config.h").read_text()
+    P0 = UKFSettings.from_system(system).P0()
+    config = config.replace(bc.c_array("est_P0", P0, (16,)), bc.c_array("est_P0", -P0, (16,)))
+    (gen.directory / "estimator_config.h").write_text(config)
+    paths = bc.build(gen.directory, tmp_path / "build")
+    numeric_error = 4  # <PREFIX>_ERR_NUMERIC in the generated API header
+    assert f"#define {gen.prefix.upper()}_ERR_NUMERIC {numeric_error} " in \
+        (gen.directory / f"{gen.prefix}_api.h").read_text()
+    for run in (lambda: bc.run_qemu(paths["elf"], 4), lambda: bc.run_host(paths["host"], 4)):
+        with pytest.raises(SolverError, match="exit 1") as failure:
+            run()
+        assert f"x 0 {numeric_error} " in str(failure.value)
+        assert f"summary steps=1 status={numeric_error} " in str(failure.value)
 
 
 @pytest.mark.slow

@@ -7,12 +7,13 @@
  *     x <k> <status> <x_0> ... <x_{nx-1}> <busy_ticks>
  *
  * with every x_i as the 16 hex digits of its IEEE-754 binary64 bits (exact, and no printf or
- * heap needed), and busy_ticks the sample clock's ticks spent on the step. A last line
+ * heap needed), and busy_ticks the sample clock's ticks spent on the step. One last line,
  *
  *     summary steps=<T> status=<s> overruns=<n> busy_ticks_max=<t> busy_ticks_total=<t>
  *             tick_hz=<f> stack_peak_bytes=<b>
  *
- * closes the run (one line in the output). The program exits 0 when every step succeeded. */
+ * (wrapped here, a single line in the output) closes the run. The program exits 0 when every
+ * step succeeded; the loop stops at the first failing step. */
 #include <stdint.h>
 #include <string.h>
 
