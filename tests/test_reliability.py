@@ -285,3 +285,65 @@ def test_valgrind_long_plain_c_main_clean(system, estimator, tmp_path):
     """As the default memcheck, 300 samples of every estimator of both systems."""
     (target,) = fuzz_c_api.build_targets(tmp_path / "build", systems=(system,), estimators=(estimator,))
     check_memcheck(target, tmp_path, 300)
+
+
+# ---- long fuzz and soak (slow) ---------------------------------------------------------------
+
+@pytest.mark.slow
+def test_long_fuzz_every_estimator_both_systems_both_precisions(tmp_path):
+    """20,000 planned calls per embedded target (2,000 for the Ipopt MHE), cartpole and ground
+    robot, float64 and float32: no crash, hang, silent non-finite output or changed estimate."""
+    out = tmp_path / "fuzz.json"
+    result = fuzz_c_api.main(["--calls", "20000", "--ipopt-calls", "2000", "--seed", "1",
+                              "--build-dir", str(tmp_path / "build"), "--out", str(out)])
+    assert json.loads(out.read_text())["totals"] == result["totals"]
+    assert len(result["targets"]) == 14
+    for target in result["targets"]:
+        bad = {k: target[k] for k in BAD_COUNTS}
+        assert bad == dict.fromkeys(BAD_COUNTS, 0), (target["target"], target["events"][:3])
+
+
+bench_soak = load_script("bench_soak")
+
+
+@pytest.fixture(scope="module")
+def soak_result(tmp_path_factory):
+    """A shortened soak on the script's 5000-sample passes: 2e5 UKF steps, 2e4 per embedded MHE,
+    1e4 Ipopt MHE steps (the script's defaults: 1e6 / 1e5 / 1e4)."""
+    root = tmp_path_factory.mktemp("soak")
+    return bench_soak.main(["--ukf-steps", "200000", "--mhe-steps", "20000",
+                            "--ipopt-steps", "10000", "--build-dir", str(root / "build"),
+                            "--out", str(root / "soak.json")])
+
+
+SOAK_DRIFT_ATOL = 1e-6  # the wrap transient decays to ~1e-9 by mid-run (measured); a leak of
+SOAK_RSS_KIB = 2048     # state or memory grows without bound instead
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_rti", "mhe"])
+def test_soak_no_drift_no_leak(soak_result, estimator):
+    r = soak_result["estimators"][estimator]
+    assert r["failed_steps"] == 0
+    assert r["drift_max"] <= SOAK_DRIFT_ATOL
+    assert r["rss_growth_kib_after_first_pass"] <= SOAK_RSS_KIB
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="converged mhe_gn does not recover from the jump at the wrap: from the 7th "
+                          "sample after it every step returns MAX_ITERATIONS (-7) and, a failed step "
+                          "changing nothing, the window never moves again (docs/reliability.md)",
+                   strict=False)
+def test_soak_mhe_gn_recovers_from_the_wrap(soak_result):
+    assert soak_result["estimators"]["mhe_gn"]["failed_steps"] == 0
+
+
+@pytest.mark.slow
+def test_soak_mhe_gn_reset_each_pass_is_exact_and_flat(tmp_path):
+    """mhe_gn reset before each pass: every pass equals the first bit for bit, RSS flat."""
+    result = bench_soak.main(["--ukf-steps", "0", "--mhe-steps", "20000",
+                              "--ipopt-steps", "0", "--reset-each-pass", "mhe_gn",
+                              "--build-dir", str(tmp_path / "build"), "--out", str(tmp_path / "s.json")])
+    r = result["estimators"]["mhe_gn"]
+    assert (r["failed_steps"], r["drift_max"]) == (0, 0.0)
+    assert r["rss_growth_kib_after_first_pass"] <= SOAK_RSS_KIB
