@@ -563,13 +563,17 @@ def _merge(total: dict[str, Any], part: dict[str, Any]) -> None:
     total["events"].extend(part["events"][:room])
 
 
-def fuzz(targets: list[Target], calls: int | dict[str, int], seed: int = 0, **kwargs) -> dict[str, Any]:
-    """Fuzz every target; ``calls`` may be a number per estimator name."""
+def fuzz(targets: list[Target], calls: int | dict[str, int], seed: int = 0, report=None,
+         **kwargs) -> dict[str, Any]:
+    """Fuzz every target; ``calls`` may be a number per estimator name; ``report(result)`` is
+    called after each target."""
     results = []
     for target in targets:
         check_table(target)
         n = calls[target.estimator] if isinstance(calls, dict) else calls
         results.append(fuzz_target(target, n, seed, **kwargs))
+        if report:
+            report(results[-1])
     keys = ("calls", "crashes", "hangs", "nonfinite_ok", "changed_on_error")
     return {"seed": seed, "targets": results,
             "totals": {k: sum(r[k] for r in results) for k in keys}}
@@ -593,13 +597,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     targets = build_targets(args.build_dir, args.systems, args.estimators, args.precisions)
     calls = {e: args.calls for e in ESTIMATORS}
     calls["mhe"] = args.ipopt_calls if args.ipopt_calls is not None else max(1, args.calls // 10)
-    result = fuzz(targets, calls, args.seed, chunk_calls=args.chunk, call_timeout_s=args.call_timeout)
+    result = fuzz(targets, calls, args.seed, report=_print, chunk_calls=args.chunk,
+                  call_timeout_s=args.call_timeout)
     args.out.write_text(json.dumps(result, indent=1))
-    for r in result["targets"]:
-        print(f"{r['target']:32s} calls {r['calls']:8d} crashes {r['crashes']} hangs {r['hangs']} "
-              f"nonfinite_ok {r['nonfinite_ok']} changed_on_error {r['changed_on_error']} "
-              f"cov_not_psd_ok {r['covariance_not_psd_ok']} ({r['seconds']} s)")
     return result
+
+
+def _print(r: dict[str, Any]) -> None:
+    print(f"{r['target']:32s} calls {r['calls']:8d} crashes {r['crashes']} hangs {r['hangs']} "
+          f"nonfinite_ok {r['nonfinite_ok']} changed_on_error {r['changed_on_error']} "
+          f"cov_not_psd_ok {r['covariance_not_psd_ok']} ({r['seconds']} s)", flush=True)
 
 
 if __name__ == "__main__":
