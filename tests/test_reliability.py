@@ -132,6 +132,19 @@ def test_fuzz_detects_crash_and_hang(cartpole_targets, monkeypatch):
     assert (result["crashes"], result["hangs"], result["calls"]) == (0, 1, 4)
 
 
+def test_fuzz_detects_silent_nonfinite_and_changed_estimate(cartpole_targets, monkeypatch):
+    """The harness itself: getters that report NaN after a success code, or a different estimate
+    after every call, are counted."""
+    target = by_estimator(cartpole_targets)["ukf"]
+    monkeypatch.setattr(fuzz_c_api.Executor, "_read", lambda self, g: np.full(self.t.size(g), np.nan))
+    result = fuzz_c_api.fuzz_target(target, 300, seed=0, chunk_calls=300)
+    assert result["nonfinite_ok"] > 0 and result["changed_on_error"] == 0
+    rng = np.random.default_rng(0)
+    monkeypatch.setattr(fuzz_c_api.Executor, "_read", lambda self, g: rng.normal(size=self.t.size(g)))
+    result = fuzz_c_api.fuzz_target(target, 300, seed=0, chunk_calls=300)
+    assert result["changed_on_error"] > 0 and result["nonfinite_ok"] == 0
+
+
 # ---- valgrind memcheck of a plain C main per estimator ---------------------------------------
 
 MAIN_C = r"""
