@@ -13,5 +13,10 @@ if ! { command -v arm-none-eabi-gcc && command -v qemu-system-arm; } >/dev/null 
         || echo "WARNING: installing the Cortex-M toolchain failed; tests/test_cortex_m.py will skip" >&2
 fi
 bash scripts/setup.sh
+# valgrind for the memcheck tests of tests/test_reliability.py (they skip without it)
+if ! command -v valgrind >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+    { apt-get update -qq && apt-get install -y -qq valgrind; } \
+        || echo "valgrind could not be installed: the memcheck tests will be skipped" >&2
+fi
 . .venv/bin/activate
 python -m pytest -q "$@"

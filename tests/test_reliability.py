@@ -1,0 +1,363 @@
+"""Reliability of the generated C: fuzzed C API calls and valgrind memcheck of a plain C main.
+
+The fuzz harness is ``scripts/fuzz_c_api.py`` (child processes; counts crashes, hangs and
+success codes returned with NaN/Inf outputs). A short seeded fuzz of every cartpole estimator
+runs by default; the long one (both systems, both precisions) and the soak benchmark
+(``scripts/bench_soak.py``) are ``slow``. The memcheck builds a firmware-style ``main.c`` per
+estimator from the folder's own sources, steps a simulated run, checks the printed estimates
+against the ctypes binding, and reads valgrind's error and leak summaries.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.toolchain import casadi_dirs
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+fuzz_c_api = load_script("fuzz_c_api")
+
+SHORT_CALLS = {"ukf": 2000, "mhe_gn": 2000, "mhe_rti": 2000, "mhe": 300}
+BAD_COUNTS = ("crashes", "hangs", "nonfinite_ok", "changed_on_error", "handle_not_null_on_error",
+              "accepted_bad_memory")
+
+
+@pytest.fixture(scope="module")
+def cartpole_targets(tmp_path_factory):
+    return fuzz_c_api.build_targets(tmp_path_factory.mktemp("fuzz"), systems=("cartpole",))
+
+
+def by_estimator(targets):
+    return {t.estimator: t for t in targets}
+
+
+@pytest.fixture(scope="module")
+def short_fuzz(cartpole_targets):
+    """estimator -> the short fuzz's result (run once, on first use)."""
+    results = {}
+
+    def get(estimator):
+        if estimator not in results:
+            target = by_estimator(cartpole_targets)[estimator]
+            results[estimator] = fuzz_c_api.fuzz_target(target, SHORT_CALLS[estimator], seed=0,
+                                                        chunk_calls=1000)
+        return results[estimator]
+    return get
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti", "mhe"])
+def test_short_fuzz_no_crash_hang_or_silent_nonfinite(short_fuzz, estimator):
+    """A few thousand seeded calls per estimator (a few hundred for the Ipopt MHE): no crash,
+    no hang, no success code with a non-finite output, and a failed step/reset changes nothing."""
+    result = short_fuzz(estimator)
+    assert result["calls"] == SHORT_CALLS[estimator]
+    assert {k: result[k] for k in BAD_COUNTS} == dict.fromkeys(BAD_COUNTS, 0), result["events"][:3]
+    codes = result["codes"]
+    # the plan reached the solver's success and its failure paths, and the argument checks
+    assert codes["step"].get("0", 0) > SHORT_CALLS[estimator] / 20
+    assert any(int(c) != 0 for c in codes["step"] if c != "void")
+    assert set(codes) >= {"init", "step", "run", "get_state"}
+
+
+@pytest.mark.xfail(reason="issue 17 finding 7: the UKF's init/reset accept a non-symmetric or "
+                   "indefinite P0 and then report it (and covariances stepped from it) with OK",
+                   strict=False)
+def test_short_fuzz_ukf_covariance_stays_symmetric_psd(short_fuzz):
+    result = short_fuzz("ukf")
+    assert result["covariance_not_psd_ok"] == 0, result["events"][:2]
+
+
+def test_fuzz_plan_is_reproducible_and_replays(cartpole_targets):
+    """Same seed, same calls and counts; an event's index replays the very call it names."""
+    target = by_estimator(cartpole_targets)["ukf"]
+    a = fuzz_c_api.fuzz_target(target, 600, seed=7, chunk_calls=300)
+    b = fuzz_c_api.fuzz_target(target, 600, seed=7, chunk_calls=300)
+    assert a["codes"] == b["codes"] and a["events"] == b["events"]
+    c = fuzz_c_api.fuzz_target(target, 600, seed=8, chunk_calls=300)
+    assert c["codes"] != a["codes"]
+    assert a["events"], "the UKF fuzz reports covariance events (finding 7) to replay"
+    for event in a["events"]:
+        calls = list(fuzz_c_api.plan(target, 7, event["chunk"], 300))
+        replayed = calls[event["index"]].describe()
+        assert json.dumps({k: event[k] for k in replayed}) == json.dumps(replayed)  # NaN-safe
+
+
+def test_fuzz_detects_crash_and_hang(cartpole_targets, monkeypatch):
+    """The harness itself: a child killed by a signal counts as a crash, a stuck call as a hang,
+    each with the planned call that caused it."""
+    import os
+    import signal
+    import time
+
+    target = by_estimator(cartpole_targets)["mhe_gn"]
+    real_execute = fuzz_c_api.Executor.execute
+
+    def crash_at_5(self, call, index):
+        if index == 5:
+            os.kill(os.getpid(), signal.SIGKILL)  # SIGKILL: no faulthandler dump in the log
+        real_execute(self, call, index)
+
+    monkeypatch.setattr(fuzz_c_api.Executor, "execute", crash_at_5)
+    result = fuzz_c_api.fuzz_target(target, 20, seed=0, chunk_calls=20)
+    assert (result["crashes"], result["hangs"], result["calls"]) == (1, 0, 6)
+    assert result["events"][0]["index"] == 5 and result["events"][0]["exitcode"] == -signal.SIGKILL
+
+    def hang_at_3(self, call, index):
+        if index == 3:
+            time.sleep(60)
+        real_execute(self, call, index)
+
+    monkeypatch.setattr(fuzz_c_api.Executor, "execute", hang_at_3)
+    result = fuzz_c_api.fuzz_target(target, 20, seed=0, chunk_calls=20, call_timeout_s=1.0)
+    assert (result["crashes"], result["hangs"], result["calls"]) == (0, 1, 4)
+
+
+def test_fuzz_detects_silent_nonfinite_and_changed_estimate(cartpole_targets, monkeypatch):
+    """The harness itself: getters that report NaN after a success code, or a different estimate
+    after every call, are counted."""
+    target = by_estimator(cartpole_targets)["ukf"]
+    monkeypatch.setattr(fuzz_c_api.Executor, "_read", lambda self, g: np.full(self.t.size(g), np.nan))
+    result = fuzz_c_api.fuzz_target(target, 300, seed=0, chunk_calls=300)
+    assert result["nonfinite_ok"] > 0 and result["changed_on_error"] == 0
+    rng = np.random.default_rng(0)
+    monkeypatch.setattr(fuzz_c_api.Executor, "_read", lambda self, g: rng.normal(size=self.t.size(g)))
+    result = fuzz_c_api.fuzz_target(target, 300, seed=0, chunk_calls=300)
+    assert result["changed_on_error"] > 0 and result["nonfinite_ok"] == 0
+
+
+# ---- valgrind memcheck of a plain C main per estimator ---------------------------------------
+
+MAIN_C = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include "@HEADER@"
+#define T_RUN @TSTEPS@
+typedef @REAL@ real;
+static const real U[T_RUN][@NU@] = @UDATA@, Y[T_RUN][@NY@] = @YDATA@;
+static const real x0[@NX@] = @X0DATA@, M1[] = @M1DATA@, M2[] = @M2DATA@, M3[] = @M3DATA@;
+int main(void) {
+  static const real zero[@NU@] = {0};
+  real x[@NX@];
+  int k, i;
+  @INIT@
+  for (k = 0; k < T_RUN; ++k) {
+    const real* u = k ? U[k - 1] : @FIRST_U@;
+    if (@STEP@ != 0) { fprintf(stderr, "step %d failed\n", k); return 2; }
+    @GET_STATE@;
+    for (i = 0; i < @NX@; ++i) printf("%.17g%c", (double)x[i], i + 1 < @NX@ ? ' ' : '\n');
+  }
+  (void)zero;
+  @FINISH@
+  return 0;
+}
+"""
+# per API: init, step, get_state and teardown. The handle APIs run on malloc'd workspace that is
+# freed at the end (valgrind then sees every byte the program owns); the UKF's first sample is
+# update-only with U[0], the MHEs' with a zero input (the run() conventions of the headers).
+MAIN_PARTS = {
+    "handle": {
+        "INIT": "size_t n = @PREFIX@_workspace_size(); void* mem = malloc(n); @PREFIX@_t* h;\n"
+                "  if (!mem || @PREFIX@_init(mem, n, x0, M1, M2, M3, &h) != 0) return 1;",
+        "STEP": "@PREFIX@_step(h, u, Y[k])", "GET_STATE": "@PREFIX@_get_state(h, x)",
+        "FINISH": "free(mem);",
+    },
+    "static": {
+        "INIT": "if (@PREFIX@_init(x0, M1, M2, M3) != 0) return 1;",
+        "STEP": "@PREFIX@_step(u, Y[k])", "GET_STATE": "@PREFIX@_get_state(x)", "FINISH": "",
+    },
+}
+LEAK_KINDS = ("definitely", "indirectly", "possibly", "still reachable")
+
+
+def c_array(values) -> str:
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    if values.ndim == 1:
+        return "{" + ",".join(repr(float(v)) for v in values) + "}"
+    return "{" + ",".join(c_array(row) for row in values) + "}"
+
+
+def write_main(target, directory: Path, T: int) -> Path:
+    """``directory/main.c`` that inits ``target``, steps ``T`` samples of its run and prints x."""
+    api = target.api
+    header = f"{target.prefix}_api.h" if target.estimator in ("ukf", "mhe") else f"{target.prefix}.h"
+    parts = MAIN_PARTS["handle" if api.handle else "static"]
+    first_u = "U[0]" if target.estimator == "ukf" else "zero"
+    source = MAIN_C
+    for key, value in parts.items():
+        source = source.replace(f"@{key}@", value)
+    mats = [target.matrices[m] for m in api.matrices]
+    replace = {"HEADER": header, "TSTEPS": str(T), "FIRST_U": first_u,
+               "REAL": "float" if target.precision == "float32" else "double",
+               "UDATA": c_array(target.U[:T]), "YDATA": c_array(target.Y[:T]),
+               "X0DATA": c_array(target.x0), "M1DATA": c_array(mats[0].ravel()),
+               "M2DATA": c_array(mats[1].ravel()), "M3DATA": c_array(mats[2].ravel()),
+               "NX": str(target.nx), "NU": str(target.nu), "NY": str(target.ny),
+               "PREFIX": target.prefix}
+    for key, value in replace.items():
+        source = source.replace(f"@{key}@", value)
+    path = directory / "main.c"
+    path.write_text(source)
+    return path
+
+
+def build_main(target, directory: Path, T: int) -> Path:
+    """Compile main.c with every C source of the estimator's folder (-g, no shared library)."""
+    main_c = write_main(target, directory, T)
+    exe = directory / "main"
+    command = ["gcc", "-g", "-O1", "-std=c99", str(main_c),
+               *map(str, sorted(target.directory.glob("*.c"))), f"-I{target.directory}", "-o", str(exe)]
+    if target.estimator == "mhe":
+        include, lib = casadi_dirs()
+        command[4:4] = [f"-I{include}"]
+        command += [f"-L{lib}", f"-Wl,-rpath,{lib}", "-lipopt"]
+    proc = subprocess.run(command + ["-lm"], capture_output=True, text=True)
+    assert proc.returncode == 0, f"{' '.join(command)}\n{proc.stderr}"
+    return exe
+
+
+def memcheck(exe: Path, suppressions: Path | None = None) -> dict:
+    """Run ``exe`` under valgrind memcheck; errors, leak bytes per kind, and its stdout."""
+    command = ["valgrind", "--tool=memcheck", "--leak-check=full", "--show-leak-kinds=all",
+               "--track-origins=yes", "--num-callers=30", "--error-exitcode=99"]
+    if suppressions:
+        command.append(f"--suppressions={suppressions}")
+    proc = subprocess.run(command + [str(exe)], capture_output=True, text=True)
+    log = proc.stderr
+    errors = int(re.search(r"ERROR SUMMARY: ([\d,]+) errors", log).group(1).replace(",", ""))
+    leaks = {}
+    for kind in LEAK_KINDS:
+        match = re.search(rf"{kind}(?: lost)?: ([\d,]+) bytes", log)
+        leaks[kind] = int(match.group(1).replace(",", "")) if match else 0
+    suppressed = re.search(r"suppressed: ([\d,]+) bytes", log)
+    heap = re.search(r"total heap usage: ([\d,]+) allocs, ([\d,]+) frees", log)
+    allocs, frees = (int(g.replace(",", "")) for g in heap.groups())
+    return {"returncode": proc.returncode, "errors": errors, "leaks": leaks, "log": log,
+            "allocations": allocs, "frees": frees,
+            "suppressed_bytes": int(suppressed.group(1).replace(",", "")) if suppressed else 0,
+            "stdout": proc.stdout}
+
+
+def reference_run(target, T: int) -> np.ndarray:
+    """The same samples through the ctypes binding of the folder's library."""
+    kind = estimator_kind(target.estimator)
+    estimator = kind.compiled(target.directory)
+    return estimator.run(target.U[:T], target.Y[:T], target.x0)
+
+
+needs_valgrind = pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not installed")
+
+
+def check_memcheck(target, directory: Path, T: int) -> dict:
+    result = memcheck(build_main(target, directory, T))
+    assert result["returncode"] == 0, result["log"][-3000:]
+    assert result["errors"] == 0, result["log"][-3000:]
+    assert result["leaks"] == dict.fromkeys(LEAK_KINDS, 0), result["log"][-3000:]
+    X_c = np.loadtxt(result["stdout"].splitlines())
+    np.testing.assert_allclose(X_c, reference_run(target, T), rtol=0, atol=1e-12)
+    assert result["allocations"] == result["frees"]
+    return result
+
+
+@needs_valgrind
+@pytest.mark.parametrize("estimator, samples", [("ukf", 300), ("mhe_gn", 300), ("mhe_rti", 300),
+                                                ("mhe", 20)])
+def test_valgrind_plain_c_main_clean(cartpole_targets, estimator, samples, tmp_path):
+    """A plain C main (init, ``samples`` steps, exit) under memcheck: 0 errors, 0 bytes lost or
+    still in use, and the printed estimates equal the ctypes binding's run to 1e-12. The Ipopt
+    MHE needs no suppression: libipopt and MUMPS free everything they allocate on each step."""
+    result = check_memcheck(by_estimator(cartpole_targets)[estimator], tmp_path, samples)
+    if estimator != "mhe":  # caller memory only: our workspace malloc (and stdio's buffer)
+        assert result["allocations"] <= 2
+
+
+@needs_valgrind
+@pytest.mark.slow
+@pytest.mark.parametrize("system", ["cartpole", "ground_robot"])
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti", "mhe"])
+def test_valgrind_long_plain_c_main_clean(system, estimator, tmp_path):
+    """As the default memcheck, 300 samples of every estimator of both systems."""
+    (target,) = fuzz_c_api.build_targets(tmp_path / "build", systems=(system,), estimators=(estimator,))
+    check_memcheck(target, tmp_path, 300)
+
+
+# ---- long fuzz and soak (slow) ---------------------------------------------------------------
+
+@pytest.mark.slow
+def test_long_fuzz_every_estimator_both_systems_both_precisions(tmp_path):
+    """10,000 planned calls per UKF / embedded MHE target (1,000 for the Ipopt MHE), cartpole and
+    ground robot, float64 and float32: no crash, hang, silent non-finite output or changed
+    estimate."""
+    out = tmp_path / "fuzz.json"
+    result = fuzz_c_api.main(["--calls", "10000", "--ipopt-calls", "1000", "--seed", "1",
+                              "--build-dir", str(tmp_path / "build"), "--out", str(out)])
+    assert json.loads(out.read_text())["totals"] == result["totals"]
+    assert len(result["targets"]) == 14
+    for target in result["targets"]:
+        bad = {k: target[k] for k in BAD_COUNTS}
+        assert bad == dict.fromkeys(BAD_COUNTS, 0), (target["target"], target["events"][:3])
+
+
+bench_soak = load_script("bench_soak")
+
+
+@pytest.fixture(scope="module")
+def soak_result(tmp_path_factory):
+    """A shortened soak on the script's 5000-sample passes: 2e5 UKF steps, 2e4 per embedded MHE,
+    1e4 Ipopt MHE steps (the script's defaults: 1e6 / 1e5 / 1e4)."""
+    root = tmp_path_factory.mktemp("soak")
+    return bench_soak.main(["--ukf-steps", "200000", "--mhe-steps", "20000",
+                            "--ipopt-steps", "10000", "--build-dir", str(root / "build"),
+                            "--out", str(root / "soak.json")])
+
+
+SOAK_DRIFT_ATOL = 1e-6  # the wrap transient decays to ~1e-9 by mid-run (measured); a leak of
+SOAK_RSS_KIB = 2048     # state or memory grows without bound instead
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_rti", "mhe"])
+def test_soak_no_drift_no_leak(soak_result, estimator):
+    r = soak_result["estimators"][estimator]
+    assert r["failed_steps"] == 0
+    assert r["drift_max"] <= SOAK_DRIFT_ATOL
+    assert r["rss_growth_kib_after_first_pass"] <= SOAK_RSS_KIB
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="converged mhe_gn does not recover from the jump at the wrap: from the 7th "
+                          "sample after it every step returns MAX_ITERATIONS (-7) and, a failed step "
+                          "changing nothing, the window never moves again (docs/reliability.md)",
+                   strict=False)
+def test_soak_mhe_gn_recovers_from_the_wrap(soak_result):
+    assert soak_result["estimators"]["mhe_gn"]["failed_steps"] == 0
+
+
+@pytest.mark.slow
+def test_soak_mhe_gn_reset_each_pass_is_exact_and_flat(tmp_path):
+    """mhe_gn reset before each pass: every pass equals the first bit for bit, RSS flat."""
+    result = bench_soak.main(["--ukf-steps", "0", "--mhe-steps", "20000",
+                              "--ipopt-steps", "0", "--reset-each-pass", "mhe_gn",
+                              "--build-dir", str(tmp_path / "build"), "--out", str(tmp_path / "s.json")])
+    r = result["estimators"]["mhe_gn"]
+    assert (r["failed_steps"], r["drift_max"]) == (0, 0.0)
+    assert r["rss_growth_kib_after_first_pass"] <= SOAK_RSS_KIB
