@@ -71,8 +71,8 @@ APIS = {
     "ukf": Api(True, ("P0", "Q", "R"), ("get_state", "get_covariance")),
     "mhe_gn": _EMBEDDED,
     "mhe_rti": _EMBEDDED,
-    # the Ipopt MHE's older API: static state, void getters, positive codes are Ipopt failures
-    "mhe": Api(False, ("Q", "R", "P"), ("get_state", "get_window"), ok_positive=False),
+    # the Ipopt MHE: the same contract, Ipopt's own memory behind the handle, no options
+    "mhe": Api(True, ("Q", "R", "P"), ("get_state", "get_window", "get_arrival_weight")),
 }
 
 
