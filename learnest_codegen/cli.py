@@ -394,12 +394,12 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     settings = dg.DiagnosisSettings(source=source, observer=observer, backend=backend, kinds=kinds_t,
                                     estimators=tuple(e.strip() for e in estimators.split(",") if e.strip()))
     if list_effects:
-        from .effects import describe_library, library
+        from .diagnosis import describe_library, library
 
         click.echo(describe_library(library(_system(system_name or "cartpole"), kinds=kinds_t)))
         return
     if selftest:
-        from . import diagnosis_selftest as st
+        from .diagnosis import selftest as st
 
         systems = [system_name] if system_name else None
         rows = st.run_selftest(st.select_cases(list(cases) or None, systems),
@@ -417,7 +417,7 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     if data is None or out is None or (system_name is None and data_format == "run"):
         raise click.UsageError("give --system (unless --format names it), --data and --out "
                                "(or --list-effects / --selftest)")
-    from .diagnosis_report import write_report
+    from .diagnosis.report import write_report
 
     system, runs = dg.load(system_name, data, data_format)
     trained = None

@@ -12,9 +12,11 @@ from click.testing import CliRunner
 from learnest_codegen import get_system
 from learnest_codegen.cli import cli
 from learnest_codegen.data import write_run
-from learnest_codegen.diagnosis import DiagnosisSettings, diagnose, load, regimes, white_floor
-from learnest_codegen.diagnosis_selftest import CASES, QUICK, case_key, run_case, select_cases, table
-from learnest_codegen.effect_fit import Pairs
+from learnest_codegen.diagnosis import DiagnosisSettings, diagnose, load
+from learnest_codegen.diagnosis.fit import Pairs
+from learnest_codegen.diagnosis.floor import white_floor
+from learnest_codegen.diagnosis.selftest import CASES, QUICK, case_key, run_case, select_cases, table
+from learnest_codegen.diagnosis.where import regimes
 from learnest_codegen.errors import DataError, UnknownNameError
 from learnest_codegen.recordings import data_root
 from learnest_codegen.simulation import simulate
@@ -145,7 +147,7 @@ def test_selftest_table_lists_every_case():
 
 @pytest.mark.slow
 def test_full_selftest_passes():
-    from learnest_codegen.diagnosis_selftest import run_selftest
+    from learnest_codegen.diagnosis.selftest import run_selftest
 
     rows = run_selftest(progress=False)
     assert all(r["pass"] for r in rows), table(rows)

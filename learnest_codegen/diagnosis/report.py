@@ -22,7 +22,7 @@ matplotlib.use("Agg")  # files only
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .diagnosis import Diagnosis  # noqa: E402
+from .core import Diagnosis  # noqa: E402
 
 MODEL_COLOURS = {"prior": "0.55", "corrected": "tab:orange", "knode": "tab:blue", "true": "black"}
 

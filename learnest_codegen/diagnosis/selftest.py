@@ -32,12 +32,13 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .diagnosis import DiagnosisSettings, diagnose
+from ..errors import UnknownNameError
+from ..evaluation import format_table
+from ..simulation import simulate
+from ..systems import System, get_system
+from .core import diagnose
 from .effects import corrected_dynamics, library
-from .errors import UnknownNameError
-from .evaluation import format_table
-from .simulation import simulate
-from .systems import System, get_system
+from .settings import DiagnosisSettings
 
 
 @dataclass(frozen=True)
@@ -88,7 +89,7 @@ def _cogging(amplitude: float) -> Callable:
     ``pdot'`` (verdict "no gap"); 3 N is clearly above it.
     """
     def dynamics(ops, x, u, p):
-        from .systems.cartpole import dynamics as prior
+        from ..systems.cartpole import dynamics as prior
 
         return prior(ops, x, [u[0] + amplitude * ops.sin(2 * ops.pi * x[0] / 0.25)], p)
 
@@ -179,7 +180,7 @@ def _speed_loop(system: System, truth: System, base: Callable) -> Callable:
     (``v_ref' = a - k v_ref^2``, RK4) and ``a`` is corrected by the effect at ``v_ref``: the truth
     then flies the same tour as the built-in system, as the real robot's loop would make it.
     """
-    from .systems.ground_robot import X0
+    from ..systems.ground_robot import X0
 
     iv = system.state_names.index("v")
     k = 0.5 * system.params["rho"] * system.params["S"] * system.params["C_D"] / system.params["m"]
