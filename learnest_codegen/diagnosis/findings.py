@@ -41,6 +41,10 @@ def effects_json(system: System, effects: Sequence[Effect], fit: EffectFit) -> l
                  "aliases": sorted({effects[a].name for i in ks for a in fit.aliases[i]
                                     if effects[a].group != e.group or not e.group}),
                  "description": "; ".join(c.description for c in cols)}
+        if not e.group and fit.equivalents and fit.equivalents[k]:
+            entry["equivalent"] = {effects[d].name: {"value": v, "param": effects[d].param,
+                                                     "unit": effects[d].unit}
+                                   for d, v in fit.equivalents[k].items()}
         if e.group:
             done.add(e.group)
             rates = [p for p in params if p.startswith("1/")] if e.group not in DERIVED else []

@@ -68,6 +68,9 @@ class EffectFit:
     aliases : per chosen effect, library indices indistinguishable from it on these data.
     duplicates : library index -> the index it duplicates exactly on these data.
     refit : status of the final joint refinement (``"failed: ..."`` is a verdict).
+    equivalents : per chosen effect, its exact duplicates (another channel with the same
+        signature, e.g. a friction on ``qdot'`` directly and as a torque through ``tau``) with the
+        parameter value each would have: the same finding in the other's units.
     """
 
     chosen: list[int]
@@ -85,6 +88,7 @@ class EffectFit:
     refit: str = "converged"
     dropped: list[dict] = field(default_factory=list)
     swapped: list[dict] = field(default_factory=list)
+    equivalents: list[dict[int, float]] = field(default_factory=list)
 
 
 class _Problem:
@@ -191,7 +195,19 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
                      np.array([first.single.get(j, 0.0) for j in chosen]), explained_total,
                      first.gap, first.total, steps, rejected,
                      [aliases(data0, j, pool, settings) + [k for k, v in first.duplicates.items() if v == j]
-                      for j in chosen], first.duplicates, status, dropped, swapped)
+                      for j in chosen], first.duplicates, status, dropped, swapped,
+                     [_equivalents(data, j, theta[j], first.duplicates) for j in chosen])
+
+
+def _equivalents(data: FitData, j: int, value: float, duplicates: dict[int, int]) -> dict[int, float]:
+    """Each exact duplicate ``k`` of ``j`` with the parameter giving the same term:
+    ``Phi_k theta_k = Phi_j theta_j`` in the least-squares sense, at the final parameters."""
+    P = data.Phi.reshape(-1, data.Phi.shape[2])
+    out = {}
+    for k, v in duplicates.items():
+        if v == j and P[:, k] @ P[:, k] > 0:
+            out[k] = float(value * (P[:, k] @ P[:, j]) / (P[:, k] @ P[:, k]))
+    return out
 
 
 def _groups(effects: Sequence[Effect]) -> list[list[int]]:
@@ -276,7 +292,7 @@ def _test(data: FitData, chosen: list[int], j: int, base: np.ndarray, trial: np.
     need = max(settings.min_size, settings.spurious_factor * float(max(data.spurious[k] for k in cols)))
     gain = float(gains.sum())
     need_gain = max(settings.min_gain * remaining, _noise(data, settings))
-    step = {"index": j, "t": t_stat, "gain": gain / max(remaining, 1e-300), "gain_abs": gain,
+    step = {"index": j, "t": t_stat, "gain": gain / remaining if remaining > 0 else None, "gain_abs": gain,
             "gain_needed": need_gain, "remaining_gap": remaining, "size": size, "size_needed": need}
     reasons = [why for ok, why in ((t_stat > settings.t_min, "not consistent across folds"),
                                    (gain > need_gain, "explains too little of the remaining gap"),
