@@ -179,8 +179,10 @@ CASES: tuple[Case, ...] = (
          expect_names=(("mass(pdot via m_c)", 0.5),), source="observer", runs=4, duration=4.0),
 )
 
-# The default test suite runs these (one effect per system, the exact prior, the outside effect).
-QUICK = ("cartpole: cart mass +0.5 kg (built-in)", "cartpole: exact prior",
+# The default test suite runs these (the pendulum with two wrong parameters and friction, one effect
+# per built-in system, the exact prior, the outside effect).
+QUICK = ("pendulum: J x2, mgl x1.6, Coulomb 0.2 N m (observer)",
+         "cartpole: cart mass +0.5 kg (built-in)", "cartpole: exact prior",
          "cartpole: cogging 3 N sin(2 pi p/0.25 m) (outside)", "ground_robot: drag C_D 1.05 (built-in)",
          "quadrotor: motor lag + battery thrust + rotor drag (built-in)")
 
