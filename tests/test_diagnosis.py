@@ -310,6 +310,10 @@ def test_refine_never_raises_and_matches_scipy():
 
     failed = refine(broken, np.array([0.0]), np.array([-1.0]), np.array([1.0]), lambda th: th)
     assert not failed.ok and failed.status.startswith("failed")
+    # a wrong-signed Jacobian: no step lowers the residual, so it stops where it started
+    wrong = refine(lambda th: (evaluate(th)[0], -evaluate(th)[1]), np.array([0.0]), np.array([-0.297]),
+                   np.array([30.0]), lambda th: 0.3 + th)
+    assert wrong.theta[0] == 0.0 and np.isfinite(wrong.sse)
 
 
 def test_verdicts_follow_the_held_out_evidence():

@@ -14,8 +14,9 @@ with two safeguards, and it never raises:
 * **damping**: a step is kept only if it lowers the weighted sum of squares, else the damping
   grows tenfold; non-finite residuals count as "not lower".
 
-A failure (no finite residual at the start, a singular system at every damping) is returned as
-``status`` with the last good parameters; the diagnosis turns it into a verdict.
+A failure (a residual that cannot be computed, or is not finite, at the start) is returned as
+``status`` with the starting parameters; the diagnosis turns it into a verdict. When no damped
+step lowers the sum of squares any more, the parameters are a (local) minimum: "converged".
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], thet
     if not (np.isfinite(R).all() and np.isfinite(P).all()):
         return Refined(theta, float("inf"), 0, "failed: residual not finite at the start")
     sse, lam, status, it = float(R @ R), 1e-3, "iteration limit", 0
-    for it in range(1, iterations + 1):
+    for it in range(1, iterations + 1):  # noqa: B007 - the count is returned
         G, g = P.T @ P, P.T @ R
         diag = np.maximum(np.diag(G), 1e-300)
         scale = np.sqrt(max(sse, 1e-300) / diag)  # the change making a term as large as R
@@ -96,10 +97,8 @@ def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], thet
                 accepted = True
                 break
             lam *= 10
-        if not accepted:
-            status = "converged" if it > 1 else "failed: no step lowers the residual"
-            if it == 1 and np.max(np.abs(g) / np.sqrt(diag * max(sse, 1e-300))) < 1e-6:
-                status = "converged"  # already at the optimum
+        if not accepted:  # no damped step lowers the sum of squares: a (local) minimum
+            status = "converged"
             break
         small = np.all(np.abs(step) <= tol * (np.abs(theta) + scale))
         theta, R, P, sse = trial, R2, P2, float(R2 @ R2)
