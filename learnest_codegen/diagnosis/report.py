@@ -178,8 +178,9 @@ def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
     stop = r["selection"]["stopped_at"]
     if stop and stop.get("effect"):
         lines += ["", f"Selection stopped at `{stop['effect']}`: {stop['reason']} "
-                      f"(t = {stop['t']:.2g}, gain {stop['gain']:.2%}, size {stop['size']:.3g} "
-                      f"vs needed {stop['size_needed']:.3g})."]
+                      f"(t = {stop['t']:.2g}, held-out gain {stop['gain_abs']:.3g} against "
+                      f"{stop['gain_needed']:.3g} needed of a remaining gap of {stop['remaining_gap']:.3g} "
+                      f"noise units^2, size {stop['size']:.3g} vs needed {stop['size_needed']:.3g})."]
     lines += ["", f"![effects]({figures['effects']})", "", "## 3. How far it shrinks (held-out data)", "",
               "| quantity | prior | corrected | KNODE | true | closed | closed by KNODE | verdict |",
               "|---|---|---|---|---|---|---|---|"]
