@@ -59,12 +59,16 @@ def bounds(system: System, effects: Sequence[Effect], bound: float) -> tuple[np.
 
 def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], theta: np.ndarray,
            lo: np.ndarray, hi: np.ndarray, current: Callable[[np.ndarray], np.ndarray], *,
-           iterations: int = 20, max_step: float = 0.5, tol: float = 1e-9) -> Refined:
+           iterations: int = 20, max_step: float = 0.5, tol: float = 1e-7,
+           max_damping: float = 1e4) -> Refined:
     """Levenberg-Marquardt on ``evaluate(theta) -> (R (n,), Phi (n, m))`` with step limits.
 
     ``R(theta + d) ~ R(theta) - Phi d`` (the residual's convention in
     :mod:`~learnest_codegen.diagnosis.fit`). ``current(theta)`` gives each parameter's size
     for the relative step limit (``|p + theta|`` for a prior parameter, ``|theta|`` otherwise).
+    Stops when a step is below ``tol`` of the parameter's size, when the sum of squares no longer
+    falls, or when no step is accepted with damping up to ``max_damping`` (each trial costs one
+    residual evaluation).
     """
     theta = np.clip(np.asarray(theta, float).copy(), lo, hi)
     try:
@@ -80,7 +84,7 @@ def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], thet
         scale = np.sqrt(max(sse, 1e-300) / diag)  # the change making a term as large as R
         limit = max_step * np.maximum(np.abs(current(theta)), scale)
         accepted = False
-        while lam < 1e12:
+        while lam <= max_damping:  # each trial costs a residual evaluation: a few only
             try:
                 step = np.linalg.solve(G + lam * np.diag(diag), g)
             except np.linalg.LinAlgError:
@@ -100,7 +104,7 @@ def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], thet
         if not accepted:  # no damped step lowers the sum of squares: a (local) minimum
             status = "converged"
             break
-        small = np.all(np.abs(step) <= tol * (np.abs(theta) + scale))
+        small = np.all(np.abs(step) <= tol * (np.abs(theta) + scale)) or float(R2 @ R2) >= sse * (1 - 1e-12)
         theta, R, P, sse = trial, R2, P2, float(R2 @ R2)
         lam = max(lam / 10, 1e-9)
         if small:
