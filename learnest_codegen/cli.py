@@ -437,17 +437,25 @@ def quadrotor(data, simulated, train_names, all_train, features, matrix, estimat
               help="nominal estimators run with the corrected prior ('' for none)")
 @click.option("--backend", type=click.Choice(["c", "python"]), default="c", show_default=True)
 @click.option("--kinds", default=None, help="comma-separated effect kinds to consider (default: all)")
+@click.option("--pool/--no-pool", default=None,
+              help="fit every run of a folder together, folds by run, each run held out in turn "
+                   "[default: pool from 3 runs]")
+@click.option("--estimator-runs", default=2, show_default=True, type=click.IntRange(min=1),
+              help="with --pool: held-out runs the estimators are scored on")
 @click.option("--list-effects", is_flag=True, help="list the effect library of --system and exit")
 @click.option("--selftest", is_flag=True, help="diagnose simulated runs with withheld effects; print a table")
 @click.option("--case", "cases", multiple=True, help="self-test case key (repeatable; default: all)")
 @click.option("--no-progress", is_flag=True)
+@RESAMPLE
+@FORCE
 @_friendly
 def diagnose(system_name, data, data_format, model, out, source, observer, estimators, backend, kinds,
-             list_effects, selftest, cases, no_progress) -> None:
+             pool, estimator_runs, list_effects, selftest, cases, no_progress, resample, force) -> None:
     """Diagnose the sim-to-real gap of a prior: where it lies, which effect, how far it shrinks.
 
     Writes OUT/diagnosis.json and OUT/report.md with PNG figures. --list-effects prints the
-    library; --selftest runs the withheld-effect self-test.
+    library; --selftest runs the withheld-effect self-test (estimators only when --estimators
+    is given explicitly, as they compile per case).
     """
     import dataclasses
 
@@ -455,18 +463,21 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
 
     kinds_t = tuple(k.strip() for k in kinds.split(",") if k.strip()) if kinds else None
     settings = dg.DiagnosisSettings(source=source, observer=observer, backend=backend, kinds=kinds_t,
-                                    estimators=tuple(e.strip() for e in estimators.split(",") if e.strip()))
+                                    estimators=tuple(e.strip() for e in estimators.split(",") if e.strip()),
+                                    pool=pool, estimator_runs=estimator_runs)
     if list_effects:
-        from .effects import describe_library, library
+        from .diagnosis import describe_library, library
 
         click.echo(describe_library(library(_system(system_name or "cartpole"), kinds=kinds_t)))
         return
     if selftest:
-        from . import diagnosis_selftest as st
+        from .diagnosis import selftest as st
 
         systems = [system_name] if system_name else None
-        rows = st.run_selftest(st.select_cases(list(cases) or None, systems),
-                               settings=dataclasses.replace(settings, estimators=()),
+        explicit = click.get_current_context().get_parameter_source("estimators").name != "DEFAULT"
+        if not explicit:
+            settings = dataclasses.replace(settings, estimators=())
+        rows = st.run_selftest(st.select_cases(list(cases) or None, systems), settings=settings,
                                progress=not no_progress)
         click.echo(st.table(rows))
         if out:
@@ -480,9 +491,17 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     if data is None or out is None or (system_name is None and data_format == "run"):
         raise click.UsageError("give --system (unless --format names it), --data and --out "
                                "(or --list-effects / --selftest)")
-    from .diagnosis_report import write_report
+    from .data import check_sampling
+    from .data import resample as to_grid
+    from .diagnosis.report import write_report
+    from .outputs import claim_output
 
+    claim_output(out, inputs=(data, model), force=force, kind="dir")
     system, runs = dg.load(system_name, data, data_format)
+    if resample:
+        runs = [to_grid(r, system.dt) for r in runs]
+    for i, r in enumerate(runs):
+        check_sampling(r, system.dt, f"{data} (run {i})")
     trained = None
     if model is not None:
         from .training import load_model

@@ -12,9 +12,11 @@ from click.testing import CliRunner
 from learnest_codegen import get_system
 from learnest_codegen.cli import cli
 from learnest_codegen.data import write_run
-from learnest_codegen.diagnosis import DiagnosisSettings, diagnose, load, regimes, white_floor
-from learnest_codegen.diagnosis_selftest import CASES, QUICK, case_key, run_case, select_cases, table
-from learnest_codegen.effect_fit import Pairs
+from learnest_codegen.diagnosis import DiagnosisSettings, diagnose, load
+from learnest_codegen.diagnosis.fit import Pairs
+from learnest_codegen.diagnosis.floor import white_floor
+from learnest_codegen.diagnosis.selftest import CASES, QUICK, case_key, run_case, select_cases, table
+from learnest_codegen.diagnosis.where import regimes
 from learnest_codegen.errors import DataError, UnknownNameError
 from learnest_codegen.recordings import data_root
 from learnest_codegen.simulation import simulate
@@ -24,11 +26,16 @@ QUICK_SETTINGS = DiagnosisSettings(estimators=())
 
 @pytest.mark.parametrize("key", QUICK)
 def test_selftest_quick_cases(key):
-    """One effect per system, the exact prior ("no gap") and an outside effect ("unexplained")."""
+    """The pendulum with two wrong parameters and friction (through the observer), one effect per
+    built-in system, the exact prior ("no gap") and an outside effect ("unexplained")."""
     (case,) = select_cases([key])
     row = run_case(case, QUICK_SETTINGS)
     assert row["pass"], row
-    if case.expect == "effects":
+    if case.expect == "effects" and case.source == "observer":
+        # the truth's friction is tanh(qdot / 0.01 rad/s), the library's smoother: a few percent
+        assert row["param_error"] < 0.05 and row["verdict"] == "explained"
+        assert row["gap_closed"] > 0.98
+    elif case.expect == "effects":
         assert row["param_error"] < 0.01  # truth, exact forms: only the integrator differs
         assert row["gap_closed"] > 0.99
     else:
@@ -145,7 +152,7 @@ def test_selftest_table_lists_every_case():
 
 @pytest.mark.slow
 def test_full_selftest_passes():
-    from learnest_codegen.diagnosis_selftest import run_selftest
+    from learnest_codegen.diagnosis.selftest import run_selftest
 
     rows = run_selftest(progress=False)
     assert all(r["pass"] for r in rows), table(rows)
@@ -158,25 +165,45 @@ def _real(name: str):
     return root / name
 
 
+def _honest(report: dict) -> None:
+    """What a verdict on real data must be backed by (see diagnosis/shrink.py)."""
+    one = report["shrink"]["one_step"]
+    est = report["estimator_verdicts"]
+    if report["verdict"] == "explained":
+        assert one["after"] <= DiagnosisSettings().explained_gap and "rejected" not in est.values()
+    if report["verdict"] == "rejected":
+        assert report["effects"] == [] and report["rejected_effects"]
+    else:
+        assert one["after"] <= one["before"]
+    assert len(report["consistency"]) == sum(len(e["params"]) - (e["channel"].startswith("param:"))
+                                            for e in report["effects"] + report["rejected_effects"])
+
+
 @pytest.mark.slow
 def test_real_rc_car_recordings(tmp_path):
+    """The four DART recordings pooled (folds by run, each held out in turn)."""
     folder = _real("dart")
     system, runs = load(None, folder, "dart")
-    d = diagnose(system, runs[:2], settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
-    assert d.report["verdict"] != "no gap"  # the prior has no friction, drag or motor curve
-    assert d.report["shrink"]["one_step"]["after"] <= d.report["shrink"]["one_step"]["before"]
+    d = diagnose(system, runs, settings=dataclasses.replace(QUICK_SETTINGS, source="observer",
+                                                            estimators=("ukf",), estimator_runs=1))
+    r = d.report
+    assert r["pooled"] and r["folds"] == "by run (4 runs)"
+    assert r["verdict"] != "no gap"  # the prior has no friction, drag or motor curve
+    _honest(r)
 
 
 @pytest.mark.slow
 def test_real_crazyflie_flights(tmp_path):
+    """Three NanoBench flights pooled: the jerk residual is near the floor; whatever is selected
+    must not make a held-out flight worse."""
     folder = _real("nanobench")
     system, runs = load(None, folder, "nanobench")
-    d = diagnose(system, runs[:3], settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    d = diagnose(system, runs[:3], settings=dataclasses.replace(QUICK_SETTINGS, source="observer",
+                                                                estimators=("ukf",), estimator_runs=1))
     assert d.report["noise_floor"]["method"].startswith("calibration")
     names = {e.name for e in d.effects}
     assert all(e["name"] in names for e in d.report["effects"])
-    one = d.report["shrink"]["one_step"]["rms_over_floor"]
-    assert one["corrected"] <= one["prior"] * 1.05  # held-out flight: never much worse
+    _honest(d.report)
 
 
 def test_knode_model_is_compared(cartpole):
@@ -228,3 +255,120 @@ def test_quadrotor_thrust_response_physical_parameters():
     got = effect["derived"]
     np.testing.assert_allclose([got["tau"], got["k_T"], got["k_D"]], [TAU_MOTOR, K_T, K_DRAG], rtol=1e-3)
     assert d.report["verdict"] == "explained" and d.report["shrink"]["one_step"]["closed"] > 0.99
+
+
+def test_pendulum_parameters_not_an_actuator_gain():
+    """A prior with inertia and gravity torque wrong by large factors: an actuator gain plus the
+    gravity torque fits as well, but the system's own parameters are named, and the friction the
+    truth adds is found too (truth source: the form of the smoothing differs slightly, so the
+    residual stays above the strict floor and the verdict is honest about it)."""
+    from learnest_codegen.diagnosis.selftest_systems import PENDULUM_PRIOR, PENDULUM_TRUE, pendulum
+
+    p = pendulum()
+    d = diagnose(p, [simulate(p, 1, duration=10.0)], settings=dataclasses.replace(QUICK_SETTINGS,
+                                                                                     estimators=("ukf",)))
+    found = {e["name"]: e for e in d.report["effects"]}
+    assert set(found) == {"mass(qdot via J)", "parameter(qdot via mgl)", "coulomb_friction(qdot)"}
+    assert found["mass(qdot via J)"]["params"]["J"] == pytest.approx(PENDULUM_TRUE["J"], rel=0.01)
+    assert found["parameter(qdot via mgl)"]["params"]["mgl"] == pytest.approx(PENDULUM_TRUE["mgl"], rel=0.01)
+    torque = found["coulomb_friction(qdot)"]["equivalent"]["coulomb_friction(qdot via tau)"]["value"]
+    assert torque == pytest.approx(0.2, rel=0.03)  # [N m]
+    assert PENDULUM_PRIOR["J"] != PENDULUM_TRUE["J"]
+    assert [s["removed"] for s in d.report["selection"]["swapped"]] == ["actuator_gain(qdot via tau)"]
+    one = d.report["shrink"]["one_step"]
+    assert one["after"] > DiagnosisSettings().explained_gap  # not at the floor ...
+    assert d.report["verdict"] == "partly explained"  # ... so not "explained"
+    assert d.report["estimator_verdicts"] == {"ukf": "improved"}
+    assert d.report["shrink"]["ukf"]["after"] < 0.05 * d.report["shrink"]["ukf"]["before"]
+
+
+def test_refine_never_raises_and_matches_scipy():
+    """The damped, bounded LM: on a smooth problem it reaches scipy's least-squares optimum; where
+    the model is undefined beyond a point (1 / (J + dJ) at dJ = -J) it stays inside its bounds;
+    a residual that cannot be computed is a failed status, not an exception."""
+    from scipy.optimize import least_squares
+
+    from learnest_codegen.diagnosis.refine import refine
+
+    x = np.linspace(0.1, 3, 200)
+    y = 2.0 / (0.3 + 0.2) * np.sin(x) + 0.05 * np.cos(7 * x)  # J = 0.3 + 0.2, a small misfit
+
+    def evaluate(th):
+        J = 0.3 + th[0]
+        R = y - 2.0 / J * np.sin(x)
+        return R, (-2.0 / J**2 * np.sin(x))[:, None]  # R(th + d) ~ R - Phi d
+
+    out = refine(evaluate, np.array([0.0]), np.array([-0.297]), np.array([30.0]), lambda th: 0.3 + th)
+    ref = least_squares(lambda th: evaluate(th)[0], [0.0]).x
+    assert out.ok and out.theta[0] == pytest.approx(ref[0], abs=1e-7)
+    # start far on the wrong side: the step limit keeps J positive all the way
+    far = refine(evaluate, np.array([5.0]), np.array([-0.297]), np.array([30.0]), lambda th: 0.3 + th)
+    assert far.ok and far.theta[0] == pytest.approx(ref[0], abs=1e-6)
+
+    def broken(th):
+        raise np.linalg.LinAlgError("singular")
+
+    failed = refine(broken, np.array([0.0]), np.array([-1.0]), np.array([1.0]), lambda th: th)
+    assert not failed.ok and failed.status.startswith("failed")
+    # a wrong-signed Jacobian: no step lowers the residual, so it stops where it started
+    wrong = refine(lambda th: (evaluate(th)[0], -evaluate(th)[1]), np.array([0.0]), np.array([-0.297]),
+                   np.array([30.0]), lambda th: 0.3 + th)
+    assert wrong.theta[0] == 0.0 and np.isfinite(wrong.sse)
+
+
+def test_verdicts_follow_the_held_out_evidence():
+    """Each estimator is judged on its own; a correction one estimator rejects is never
+    "explained", and one that worsens the held-out residual is "rejected"."""
+    from learnest_codegen.diagnosis.shrink import estimator_verdict, verdict
+
+    s = DiagnosisSettings()
+    assert estimator_verdict(1.0, 0.5, 0.01) == "improved"
+    assert estimator_verdict(1.0, 1.005, 0.01) == "unchanged"
+    assert estimator_verdict(1.0, 2.4, 0.01) == "rejected"
+    assert estimator_verdict(1.0, float("nan"), 0.01) == "rejected"
+    at_floor = {"one_step": {"before": 10.0, "after": 0.1, "closed": 0.99}}
+    mixed = {**at_floor, "mhe": {"verdict": "improved"}, "ukf": {"verdict": "rejected"}}
+    assert verdict(True, True, "converged", at_floor, s) == "explained"
+    assert verdict(True, True, "converged", mixed, s) == "partly explained"
+    both = {**at_floor, "mhe": {"verdict": "rejected"}, "ukf": {"verdict": "rejected"}}
+    assert verdict(True, True, "converged", both, s) == "rejected"
+    worse = {"one_step": {"before": 1.0, "after": 2.0, "closed": -1.0}}
+    assert verdict(True, True, "converged", worse, s) == "rejected"
+    above = {"one_step": {"before": 10.0, "after": 3.0, "closed": 0.7}}
+    assert verdict(True, True, "converged", above, s) == "partly explained"
+    assert verdict(True, True, "failed: residual not finite", at_floor, s) == "refit failed"
+    assert verdict(False, False, "converged", at_floor, s) == "no gap"
+
+
+def test_pooled_runs_fold_by_run_and_agree():
+    """Three short cartpole runs pooled: folds are the runs, every run is held out in turn with a
+    correction that did not see it, and the mass is the same on each run."""
+    cartpole = get_system("cartpole")
+    runs = [simulate(cartpole, seed, duration=3.0) for seed in (1, 2, 3)]
+    d = diagnose(cartpole, runs, settings=QUICK_SETTINGS)
+    r = d.report
+    assert r["pooled"] and r["folds"] == "by run (3 runs)"
+    assert r["heldout_pairs"] == r["fit_pairs"] == sum(len(run) - 1 for run in runs)
+    (effect,) = r["effects"]
+    assert effect["name"] == "mass(pdot via m_c)" and effect["params"]["dm_c"] == pytest.approx(0.5, rel=0.01)
+    (c,) = r["consistency"]
+    assert c["consistent"] and c["sign_agreement"] == 1.0
+    np.testing.assert_allclose(c["per_run"], 0.5, rtol=0.02)
+    assert len(r["shrink"]["one_step"]["per_segment"]) == 3
+    assert all(s["corrected"] < 0.01 * s["prior"] for s in r["shrink"]["one_step"]["per_segment"])
+    assert r["verdict"] == "explained"
+
+
+def test_inertia_alone_stays_bounded():
+    """With only the inertia and friction on offer, the inertia cannot explain the wrong gravity
+    torque; the refit must stay within its bounds (Gauss-Newton once went to 4e52 and raised) and
+    the verdict must not claim the gap is explained."""
+    from learnest_codegen.diagnosis.selftest_systems import PENDULUM_PRIOR, pendulum
+
+    p = pendulum()
+    settings = dataclasses.replace(QUICK_SETTINGS, kinds=("mass", "coulomb_friction"))
+    d = diagnose(p, [simulate(p, 1, duration=10.0)], settings=settings)
+    J = next((e["params"]["J"] for e in d.report["effects"] if e["name"] == "mass(qdot via J)"), None)
+    assert J is None or PENDULUM_PRIOR["J"] / 100 <= J <= PENDULUM_PRIOR["J"] * 100
+    assert d.report["verdict"] in ("partly explained", "unexplained", "refit failed")
+    assert d.report["shrink"]["one_step"]["after"] > DiagnosisSettings().explained_gap

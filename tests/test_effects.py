@@ -8,14 +8,14 @@ import pytest
 import torch
 
 from learnest_codegen import get_system
-from learnest_codegen.effect_fit import FitData, FitSettings, Pairs, block_bootstrap, one_step
-from learnest_codegen.effects import (
+from learnest_codegen.diagnosis.effects import (
     corrected_dynamics,
     corrected_system,
     describe_library,
     library,
     velocity_states,
 )
+from learnest_codegen.diagnosis.fit import FitData, FitSettings, Pairs, block_bootstrap, one_step
 from learnest_codegen.errors import ShapeError, UnknownNameError
 
 REQUIRED = {"mass", "viscous_friction", "coulomb_friction", "quadratic_drag", "actuator_gain",
@@ -139,7 +139,7 @@ def test_quadrotor_thrust_response_is_the_true_dynamics():
     """thrust_response (k_T/tau, 1/tau + k_D, k_D/tau) plus bias(az) = k_D g is, algebraically,
     the quadrotor's true motor-lag / battery-thrust / rotor-drag dynamics; and the physical
     parameters are recovered from the fitted ones."""
-    from learnest_codegen.effects import DERIVED
+    from learnest_codegen.diagnosis.effects import DERIVED
     from learnest_codegen.systems.quadrotor import GRAVITY, K_DRAG, K_T, TAU_MOTOR
 
     quad = get_system("quadrotor")

@@ -22,7 +22,7 @@ matplotlib.use("Agg")  # files only
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .diagnosis import Diagnosis  # noqa: E402
+from .core import Diagnosis  # noqa: E402
 
 MODEL_COLOURS = {"prior": "0.55", "corrected": "tab:orange", "knode": "tab:blue", "true": "black"}
 
@@ -125,9 +125,11 @@ def _f(v, fmt=".3g") -> str:
 def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
     r = d.report
     lines = [f"# Diagnosis of the `{r['system']}` prior", "",
-             f"**Verdict: {r['verdict']}** - unexplained share of the gap {r['unexplained']:.0%}. "
+             f"**Verdict: {r['verdict']}** - unexplained share of the gap {r['unexplained']:.0%}"
+             + "".join(f"; {n.upper()}: {v}" for n, v in r.get("estimator_verdicts", {}).items()) + ". "
              f"Source: {r['source']}" + (f" (observer `{r['observer']}`)" if r.get("observer") else "")
-             + f"; {r['runs']} run(s), {r['fit_pairs']} pairs fitted, {r['heldout_pairs']} held out. "
+             + f"; {r['runs']} run(s){' pooled, each held out in turn' if r.get('pooled') else ''}, "
+             f"{r['fit_pairs']} pairs fitted, {r['heldout_pairs']} held out. "
              f"Noise floor: {r['noise_floor']['method']}.", "", "## 1. Where the gap lies", "",
              "| state | share | snr | RMS residual | floor | unit |", "|---|---|---|---|---|---|"]
     for s in r["where"]:
@@ -147,25 +149,48 @@ def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
               "## 2. Which effect causes it", "",
               "| effect | parameters | +- (block bootstrap) | explained (held out) | score alone | aliases |",
               "|---|---|---|---|---|---|"]
-    for e in r["effects"]:
+    for e in r["effects"] + r.get("rejected_effects", []):
         params = ", ".join(f"{k} = {v:.4g}" for k, v in {**e["params"], **e.get("derived", {})}.items())
+        params += "".join(f"; as {n}: {q['param']} = {q['value']:.4g} {q['unit']}"
+                          for n, q in e.get("equivalent", {}).items())
         unc = ", ".join(f"{k}: {v:.2g} {e['units'][k]}" for k, v in e["uncertainty"].items())
-        lines.append(f"| {e['name']} | {params} | {unc} | {e['explained']:.0%} | {e['score']:.0%} | "
+        name = e["name"] + (" (REJECTED: worse held out)" if e in r.get("rejected_effects", []) else "")
+        lines.append(f"| {name} | {params} | {unc} | {e['explained']:.0%} | {e['score']:.0%} | "
                      f"{', '.join(e['aliases']) or '-'} |")
-    if not r["effects"]:
+    if not r["effects"] and not r.get("rejected_effects"):
         lines.append("| (none selected) | | | | | |")
+    sel = r["selection"]
+    for d in sel.get("dropped", []):
+        lines.append(f"\nDropped after others entered: `{d['effect']}` (t = {d['t']:.2g}).")
+    for w in sel.get("swapped", []):
+        lines.append(f"\nEquivalent on these data, the prior's own parameter kept: `{w['added']}` "
+                     f"instead of `{w['removed']}`.")
+    if sel.get("refit", "converged").startswith("failed"):
+        lines.append(f"\n**Refit failed**: {sel['refit']}.")
+    if r.get("consistency"):
+        lines += ["", f"Consistency across runs ({r['folds']}):", "",
+                  "| effect | pooled | median per run | spread | sign agrees | consistent |",
+                  "|---|---|---|---|---|---|"]
+        for c in r["consistency"]:
+            lines.append(f"| {c['effect']} ({c['param']}) | {c['pooled']:.4g} | {c['median']:.4g} | "
+                         f"{c['spread']:.2g} | {c['sign_agreement']:.0%} | "
+                         f"{'yes' if c['consistent'] else 'NO'} |")
     stop = r["selection"]["stopped_at"]
     if stop and stop.get("effect"):
         lines += ["", f"Selection stopped at `{stop['effect']}`: {stop['reason']} "
-                      f"(t = {stop['t']:.2g}, gain {stop['gain']:.2%}, size {stop['size']:.3g} "
-                      f"vs needed {stop['size_needed']:.3g})."]
+                      f"(t = {stop['t']:.2g}, held-out gain {stop['gain_abs']:.3g} against "
+                      f"{stop['gain_needed']:.3g} needed of a remaining gap of {stop['remaining_gap']:.3g} "
+                      f"noise units^2, size {stop['size']:.3g} vs needed {stop['size_needed']:.3g})."]
     lines += ["", f"![effects]({figures['effects']})", "", "## 3. How far it shrinks (held-out data)", "",
-              "| quantity | prior | corrected | KNODE | true | closed | closed by KNODE |",
-              "|---|---|---|---|---|---|---|"]
+              "| quantity | prior | corrected | KNODE | true | closed | closed by KNODE | verdict |",
+              "|---|---|---|---|---|---|---|---|"]
     for key, entry in r["shrink"].items():
+        if not isinstance(entry, dict):
+            continue
         lines.append(f"| {key} ({entry['metric']}) | {_f(entry.get('prior'))} | "
                      f"{_f(entry.get('corrected'))} | {_f(entry.get('knode'))} | {_f(entry.get('true'))} | "
-                     f"{_f(entry.get('closed'), '.1%')} | {_f(entry.get('closed_knode'), '.1%')} |")
+                     f"{_f(entry.get('closed'), '.1%')} | {_f(entry.get('closed_knode'), '.1%')} | "
+                     f"{entry.get('verdict', '-')} |")
     lines += ["", f"![shrink]({figures['shrink']})", ""]
     return "\n".join(lines)
 

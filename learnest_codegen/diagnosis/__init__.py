@@ -1,0 +1,30 @@
+"""``learnest diagnose``: where a prior's sim-to-real gap lies, which effect causes it, how far it shrinks.
+
+The public API; the modules follow the data: ``loading`` (runs and recordings) -> ``segments``
+(state observations, held-out split) -> ``floor`` (the noise floor) -> ``where`` -> ``effects``
+and ``system_effects`` (the candidate library) -> ``fit`` (one-step residual, features) ->
+``selection`` and ``refine`` (sparse cross-validated selection, damped bounded refit) ->
+``pooling`` (runs held out in turn, consistency) -> ``shrink`` (held-out evidence, verdicts) ->
+``findings`` / ``report`` (JSON, Markdown, figures); ``selftest`` checks all of it on withheld
+effects.
+"""
+
+from . import system_effects as system_effects  # registers the built-in systems' own effects
+from .core import Diagnosis as Diagnosis
+from .core import diagnose as diagnose
+from .effects import Effect as Effect
+from .effects import corrected_dynamics as corrected_dynamics
+from .effects import corrected_system as corrected_system
+from .effects import describe_library as describe_library
+from .effects import library as library
+from .findings import summary as summary
+from .fit import FitSettings as FitSettings
+from .fit import Pairs as Pairs
+from .loading import FORMATS as FORMATS
+from .loading import load as load
+from .loading import load_runs as load_runs
+from .settings import DiagnosisSettings as DiagnosisSettings
+
+__all__ = ["Diagnosis", "DiagnosisSettings", "Effect", "FORMATS", "FitSettings", "Pairs",
+           "corrected_dynamics", "corrected_system", "describe_library", "diagnose", "library", "load",
+           "load_runs", "summary"]
