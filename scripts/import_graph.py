@@ -31,8 +31,7 @@ STAGES = [
     ("estimators", 6), ("runtime.manifest", 6), ("runtime.status", 6), ("codegen", 7),
     ("runtime", 8), ("compilation", 8),  # the registry of estimators: generate, reference, load
     ("evaluation", 9), ("plotting", 9), ("pipeline", 9),
-    ("diagnosis", 10), ("diagnosis_report", 10), ("diagnosis_selftest", 10), ("effects", 10),
-    ("effect_fit", 10),
+    ("diagnosis", 10),
     ("experiments", 11),
     ("cli", 12),
     ("__init__", 13),  # the package's public API re-exports from every stage
