@@ -6,6 +6,10 @@ pipeline's calls (:mod:`learnest_codegen.pipeline`) import torch only when a tra
 involved, so ``import learnest_codegen`` stays light.
 """
 
+from .config import QUICK_TRAINING as QUICK_TRAINING
+from .config import RECOMMENDED_TRAINING as RECOMMENDED_TRAINING
+from .config import NetworkSettings as NetworkSettings
+from .config import TrainingSettings as TrainingSettings
 from .data import Run as Run
 from .data import read_run as read_run
 from .data import resample as resample
@@ -26,11 +30,3 @@ from .systems import get_system as get_system
 
 __version__ = "0.1.0"
 
-
-def __getattr__(name: str):
-    """The training recipes live with the training code (torch): loaded on first use."""
-    if name in ("QUICK_TRAINING", "RECOMMENDED_TRAINING", "TrainingSettings"):
-        from . import training
-
-        return getattr(training, name)
-    raise AttributeError(f"module 'learnest_codegen' has no attribute {name!r}")

@@ -21,6 +21,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from .config import ACTIVATIONS, QUICK_TRAINING, RECOMMENDED_TRAINING
+from .config import TRAIN_COMMAND_TRAINING as _TRAIN
 from .errors import LearnestError
 
 SYSTEM_HELP = "built-in system name (cartpole) or path to a .py file defining SYSTEM"
@@ -101,33 +103,39 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
 @click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="training run CSV")
 @click.option("--out", type=click.Path(file_okay=False), required=True, help="model directory to write")
-@click.option("--epochs", default=250, show_default=True)
-@click.option("--lr", "learning_rate", default=1e-2, show_default=True, help="Adam learning rate")
-@click.option("--batch-size", default=256, show_default=True)
-@click.option("--hidden", default=8, show_default=True, help="hidden neurons per layer")
-@click.option("--layers", default=2, show_default=True, help="linear layers (2 = one hidden layer)")
-@click.option("--activation", default="Tanh", show_default=True,
-              type=click.Choice(["Tanh", "Sigmoid", "ReLU", "LeakyReLU"]))
+@click.option("--epochs", default=_TRAIN.epochs, show_default=True)
+@click.option("--lr", "learning_rate", default=_TRAIN.learning_rate, show_default=True,
+              help="Adam learning rate")
+@click.option("--batch-size", default=_TRAIN.batch_size, show_default=True,
+              help="pairs per step (at least the training pairs: full batch)")
+@click.option("--hidden", default=_TRAIN.network.hidden, show_default=True, help="hidden neurons per layer")
+@click.option("--layers", default=_TRAIN.network.layers, show_default=True,
+              help="linear layers (2 = one hidden layer)")
+@click.option("--activation", default=_TRAIN.network.activation, show_default=True,
+              type=click.Choice(ACTIVATIONS))
 @click.option("--observer", default=None,
               help="pre-training observer turning (y, u) into state observations "
                    "(default: the system's own; see `learnest_codegen.observers.OBSERVERS`)")
 @click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
-@click.option("--refine", default=2, show_default=True,
+@click.option("--refine", default=_TRAIN.refine, show_default=True,
               help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
-@click.option("--validation-fraction", default=0.2, show_default=True,
+@click.option("--validation-fraction", default=_TRAIN.validation_fraction, show_default=True,
               help="final share of the run held out for early stopping; 0 disables")
-@click.option("--restarts", type=click.IntRange(min=1), default=1, show_default=True,
+@click.option("--restarts", type=click.IntRange(min=1), default=_TRAIN.restarts, show_default=True,
               help="initialisations trained per round; through an observer the one whose model "
                    "best explains the measurements (EKF likelihood) is kept, on full states the "
                    "lowest validation loss")
-@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=_TRAIN.weight_decay,
+              show_default=True,
               help="decoupled weight decay (AdamW); 0.1 helps the cartpole's nets generalise")
 @click.option("--final-lr", "final_learning_rate", type=click.FloatRange(min=0.0, min_open=True),
-              default=None, help="anneal the learning rate to this value (cosine); default: constant")
-@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True), default=0.0,
-              show_default=True, help="validate and keep the moving average of the weights with this "
-                                      "decay per step (e.g. 0.99); 0 = the weights themselves")
-@click.option("--seed", default=0, show_default=True)
+              default=_TRAIN.final_learning_rate,
+              help="anneal the learning rate to this value (cosine); default: constant")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
+              default=_TRAIN.weight_average, show_default=True,
+              help="validate and keep the moving average of the weights with this decay per step "
+                   "(e.g. 0.99); 0 = the weights themselves")
+@click.option("--seed", default=_TRAIN.seed, show_default=True)
 @RESAMPLE
 @FORCE
 @_friendly
@@ -135,9 +143,9 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
           observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
           weight_average, seed, resample, force) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
-    from .network import NetworkSettings
+    from .config import NetworkSettings, TrainingSettings
     from .outputs import atomic_dir, claim_output
-    from .training import TrainingSettings, train_on_run
+    from .training import train_on_run
 
     claim_output(out, inputs=(data,), force=force, kind="dir")
     system = _system(system_name)
@@ -271,18 +279,18 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
 @cli.command()
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
 @click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
-@click.option("--epochs", default=250, show_default=True)
+@click.option("--epochs", default=QUICK_TRAINING.epochs, show_default=True)
 @click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
-@click.option("--refine", default=2, show_default=True,
-              help="model-based smoothing rounds (0 = paper; Table I uses 5)")
-@click.option("--restarts", type=click.IntRange(min=1), default=3, show_default=True,
+@click.option("--refine", default=QUICK_TRAINING.refine, show_default=True,
+              help=f"model-based smoothing rounds (0 = paper; Table I uses {RECOMMENDED_TRAINING.refine})")
+@click.option("--restarts", type=click.IntRange(min=1), default=QUICK_TRAINING.restarts, show_default=True,
               help="initialisations per training round (the one whose model best explains the "
                    "measurements is kept; 1 = paper)")
-@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=0.1,
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=QUICK_TRAINING.weight_decay,
               show_default=True, help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
 @click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
-              default=0.99, show_default=True,
+              default=QUICK_TRAINING.weight_average, show_default=True,
               help="keep the moving average of the weights (decay per step; 0 = the weights "
                    "themselves, as the paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
@@ -291,10 +299,8 @@ def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_
          no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run.
 
-    The training defaults are ``QUICK_TRAINING`` (learnest_codegen.training; a test keeps
-    them equal: this module imports no torch)."""
+    The training defaults are ``QUICK_TRAINING`` (learnest_codegen.config)."""
     from .experiments.demo import run_demo
-    from .training import QUICK_TRAINING
 
     training = replace(QUICK_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
                        weight_decay=weight_decay, weight_average=weight_average)

@@ -9,40 +9,15 @@ constants are buffers saved with the weights and appear in the exported graph.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
 
 import casadi as cs
 import numpy as np
 import torch
 from l4casadi.naive import MultiLayerPerceptron
 
-from .errors import UnknownNameError
+from .config import ACTIVATIONS, NetworkSettings
 
-ACTIVATIONS = ("Tanh", "Sigmoid", "ReLU", "LeakyReLU")
-
-
-@dataclass(frozen=True)
-class NetworkSettings:
-    """Architecture of the residual MLP.
-
-    ``layers`` counts linear layers (the paper's "2 layers, 8 hidden" is ``layers=2,
-    hidden=8``: input->8->output).
-    """
-
-    layers: int = 2
-    hidden: int = 8
-    activation: str = "Tanh"
-
-    def __post_init__(self) -> None:
-        if self.layers < 2:
-            raise ValueError(f"layers must be >= 2 (input and output layer), got {self.layers}")
-        if self.hidden < 1:
-            raise ValueError(f"hidden must be >= 1, got {self.hidden}")
-        if self.activation not in ACTIVATIONS:
-            raise UnknownNameError(f"unknown activation {self.activation!r}; choose from {ACTIVATIONS}")
-
-    def to_json(self) -> dict:
-        return asdict(self)
+__all__ = ["ACTIVATIONS", "NetworkSettings", "ResidualNet", "StackedMLP"]
 
 
 class ResidualNet(torch.nn.Module):
@@ -129,20 +104,35 @@ class ResidualNet(torch.nn.Module):
         self.in_mean.copy_(torch.as_tensor(mean))
         self.in_scale.copy_(torch.as_tensor(np.where(std > 1e-12, std, 1.0)))
 
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None) -> torch.Tensor:
+        """``Delta(x, u)`` for ``x (..., nx)``, ``u (..., nu)``; ``mlp`` replaces ``self.mlp``
+        (training runs several initialisations at once through a :class:`StackedMLP`)."""
+        return self._evaluate(x, u, mlp, plus_prior=False)
+
+    def hybrid(self, f: Callable, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None):
+        """``f(x, u) + Delta(x, u)``, the hybrid model's derivative. When ``f`` is the net's own
+        prior, its evaluation is shared with the features and ``via`` (one or two prior
+        evaluations instead of two or three; equal up to rounding)."""
+        if self.prior is None or f != self.prior:  # bound methods compare by ==, not is
+            return f(x, u) + self._evaluate(x, u, mlp, plus_prior=False)
+        return self._evaluate(x, u, mlp, plus_prior=True)
+
+    def _evaluate(self, x, u, mlp, plus_prior: bool):
         xu = torch.cat([x, u], dim=-1)
         fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
         prior_xdot = [fp[..., i] for i in range(self.nx)] if self.prior_features else None
         feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos, prior_xdot)
-        out = self.mlp((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        out = (mlp or self.mlp)((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
         out = self._channels([out[..., j] for j in range(out.shape[-1])], prior_xdot)
         zero = torch.zeros_like(out[0])
         if self.via:
             du = torch.stack([out[self.via.index(i)] if i in self.via else zero
                               for i in range(self.nu)], dim=-1)
-            return self.prior(x, u + du) - fp
+            shifted = self.prior(x, u + du)
+            return shifted if plus_prior else shifted - fp
         rows = [out[self.outputs.index(i)] if i in self.outputs else zero for i in range(self.nx)]
-        return torch.stack(rows, dim=-1)
+        delta = torch.stack(rows, dim=-1)
+        return fp + delta if plus_prior else delta
 
     def _channels(self, out: list, prior_xdot: list | None) -> list:
         """The residual's channels from the MLP's outputs (any backend): the outputs themselves,
@@ -169,3 +159,44 @@ class ResidualNet(torch.nn.Module):
             return self.prior(x, u + du) - fp
         return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)
                             for i in range(self.nx)])
+
+
+class StackedMLP(torch.nn.Module):
+    """``R`` MLPs of the same architecture with stacked weights, evaluated together.
+
+    Layer ``l`` holds ``weights[l] (R, out, in)`` and ``biases[l] (R, 1, out)``; an input
+    ``(B, in)`` shared by all members or ``(R, B, in)`` gives ``(R, B, out)``, one batched
+    matrix product per layer. Training ``R`` initialisations this way costs about what one
+    costs (the step is dominated by per-operation overhead). Every optimiser in use (Adam,
+    AdamW, the weight average) acts element by element, so the members train independently,
+    exactly as they would one after another.
+    """
+
+    def __init__(self, mlps: list):
+        super().__init__()
+        layers = [[m.input_layer, *m.hidden_layers, m.output_layer] for m in mlps]
+        self.weights = torch.nn.ParameterList(
+            torch.nn.Parameter(torch.stack([ls[i].weight.detach() for ls in layers]).clone())
+            for i in range(len(layers[0])))
+        self.biases = torch.nn.ParameterList(
+            torch.nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])[:, None, :].clone())
+            for i in range(len(layers[0])))
+        self.act = mlps[0].act
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            z = torch.matmul(z, w.transpose(1, 2)) + b
+            if i < last:
+                z = self.act(z)
+        return z
+
+    def member_state(self, r: int) -> dict[str, torch.Tensor]:
+        """Member ``r``'s weights under the names of a :class:`ResidualNet`'s ``mlp``."""
+        names = (["input_layer"] + [f"hidden_layers.{i}" for i in range(len(self.weights) - 2)]
+                 + ["output_layer"])
+        out = {}
+        for name, w, b in zip(names, self.weights, self.biases):
+            out[f"mlp.{name}.weight"] = w[r].detach().clone()
+            out[f"mlp.{name}.bias"] = b[r, 0].detach().clone()
+        return out

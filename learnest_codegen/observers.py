@@ -225,7 +225,9 @@ def _ekf_passes(run: Run, system: System, residual, q_scales):
     R = np.diag(np.square(system.noise.measurement_std))
     q0 = np.square(system.noise.process_std)
     x0 = run.x[0] if run.x is not None else np.asarray(system.x0, float)
-    return {float(s): _ekf_forward(run, system, F, A, np.diag(q0 * s), R, x0) for s in q_scales}, A
+    update, step = _ekf_functions(system, F, A, len(run))
+    return {float(s): _ekf_forward(run, system, update, step, np.diag(q0 * s), R, x0)
+            for s in q_scales}, A
 
 
 def _discrete_with_jacobian(system: System, residual, dt: float):
@@ -239,39 +241,77 @@ def _discrete_with_jacobian(system: System, residual, dt: float):
     return F, A
 
 
-def _ekf_forward(run: Run, system: System, F, A, Q, R, x0):
-    """Forward EKF; the measurement is linearised by CasADi too. Returns the log-likelihood."""
+def _ekf_functions(system: System, F, A, T: int):
+    """The EKF's measurement update and its whole forward recursion as CasADi functions.
+
+    ``update(x, P, u, y, R) -> (x, P, loglik)`` linearises the measurement with CasADi.
+    ``step`` is the predict-then-update step accumulated over the run's ``T - 1`` steps
+    (``mapaccum``): the recursion runs in CasADi's virtual machine, not step by step in
+    Python (about two orders of magnitude faster on the cartpole's 5000 steps).
+    """
     import casadi as cs
 
-    xs_sym, us_sym = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
-    H = cs.Function("H", [xs_sym, us_sym], [cs.jacobian(system.h(xs_sym, us_sym), xs_sym)])
+    n, nu, ny = system.nx, system.nu, len(system.noise.measurement_std)
+    x, u, u_prev = cs.SX.sym("x", n), cs.SX.sym("u", nu), cs.SX.sym("u_prev", nu)
+    y, P = cs.SX.sym("y", ny), cs.SX.sym("P", n, n)
+    R, q = cs.SX.sym("R", ny, ny), cs.SX.sym("q", n)  # q: the diagonal of Q
+    H = cs.jacobian(system.h(x, u), x)
+    innov = y - system.h(x, u)
+    S = H @ P @ H.T + R
+    K = cs.solve(S, H @ P).T
+    loglik = -0.5 * (innov.T @ cs.solve(S, innov) + cs.log(cs.det(2 * np.pi * S)))
+    update = cs.Function("update", [x, P, u, y, R], [x + K @ innov, (cs.SX.eye(n) - K @ H) @ P, loglik])
+    Ak = A(x, u_prev)
+    xp, Pp = F(x, u_prev), Ak @ P @ Ak.T + cs.diag(q)
+    xu, Pu, ll = update(xp, Pp, u, y, R)
+    acc = cs.SX.sym("loglik")
+    # accumulated: x, vec(P), loglik; per step also the predictions (x, vec(P))
+    step = cs.Function("ekf_step", [x, cs.vec(P), acc, u_prev, u, y, R, q],
+                       [xu, cs.vec(Pu), acc + ll, xp, cs.vec(Pp)])
+    return update, step.mapaccum("ekf", max(T - 1, 1), 3) if T > 1 else None
+
+
+def _ekf_forward(run: Run, system: System, update, step, Q, R, x0):
+    """Forward EKF; the measurement is linearised by CasADi too. Returns the log-likelihood."""
     T, n = len(run), system.nx
+    P0 = np.diag(np.square(system.noise.initial_std))
+    x, P, ll = (v.full() for v in update(np.asarray(x0, float), P0, run.u[0], run.y[0], R))
     xs, Ps, xps, Pps = (np.empty((T, n)), np.empty((T, n, n)), np.empty((T, n)), np.empty((T, n, n)))
-    x, P = np.asarray(x0, float), np.diag(np.square(system.noise.initial_std))
-    loglik = 0.0
-    for k in range(T):
-        if k:
-            Ak = A(x, run.u[k - 1]).full()
-            x, P = F(x, run.u[k - 1]).full().ravel(), Ak @ P @ Ak.T + Q
-        xps[k], Pps[k] = x, P
-        Hk = H(x, run.u[k]).full()
-        innov = run.y[k] - system.h(x, run.u[k])
-        S = Hk @ P @ Hk.T + R
-        K = np.linalg.solve(S, Hk @ P).T
-        x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
-        loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
-        xs[k], Ps[k] = x, P
-    return xs, Ps, xps, Pps, loglik
+    xs[0], Ps[0], xps[0], Pps[0] = x.ravel(), P, x0, P0
+    if T > 1:
+        out = step(x, P.reshape(-1, order="F"), ll, run.u[:-1].T, run.u[1:].T, run.y[1:].T, R,
+                   np.diag(Q))
+        xs_, Ps_, ll, xps_, Pps_ = (v.full() for v in out)
+        xs[1:], xps[1:] = xs_.T, xps_.T
+        Ps[1:] = Ps_.T.reshape(T - 1, n, n).transpose(0, 2, 1)  # column-major vec per step
+        Pps[1:] = Pps_.T.reshape(T - 1, n, n).transpose(0, 2, 1)
+        ll = ll[:, -1]  # the accumulated value after the last step
+    return xs, Ps, xps, Pps, float(np.ravel(ll)[-1])
 
 
 def _rts_backward(xs, Ps, xps, Pps, A, U):
-    """Rauch-Tung-Striebel pass over an extended Kalman filter's estimates."""
+    """Rauch-Tung-Striebel pass over an extended Kalman filter's estimates (one CasADi
+    ``mapaccum`` over the run, backwards)."""
+    import casadi as cs
+
+    T, n = xs.shape
     zeta, covs = xs.copy(), Ps.copy()
-    for k in range(len(xs) - 2, -1, -1):
-        Ak = A(xs[k], U[k]).full()
-        G = np.linalg.solve(Pps[k + 1], Ak @ Ps[k]).T
-        zeta[k] = xs[k] + G @ (zeta[k + 1] - xps[k + 1])
-        covs[k] = Ps[k] + G @ (covs[k + 1] - Pps[k + 1]) @ G.T
+    if T < 2:
+        return zeta, covs
+    nu = U.shape[1]
+    z_next, C_next = cs.SX.sym("z_next", n), cs.SX.sym("C_next", n, n)
+    x, P, xp, Pp, u = (cs.SX.sym("x", n), cs.SX.sym("P", n, n), cs.SX.sym("xp", n),
+                       cs.SX.sym("Pp", n, n), cs.SX.sym("u", nu))
+    G = cs.solve(Pp, A(x, u) @ P).T
+    z, C = x + G @ (z_next - xp), P + G @ (C_next - Pp) @ G.T
+    back = cs.Function("rts_step", [z_next, cs.vec(C_next), x, cs.vec(P), xp, cs.vec(Pp), u],
+                       [z, cs.vec(C)]).mapaccum("rts", T - 1, 2)
+    vec = lambda M: M.transpose(0, 2, 1).reshape(len(M), -1).T  # noqa: E731  column-major vecs
+    rev = slice(None, None, -1)  # steps k = T-2 ... 0
+    zs, Cs = back(xs[-1], Ps[-1].reshape(-1, order="F"), xs[:-1][rev].T, vec(Ps[:-1][rev]),
+                  xps[1:][rev].T, vec(Pps[1:][rev]), U[:T - 1][rev].T)
+    zeta[:-1] = zs.full().T[rev]
+    covs[:-1] = Cs.full().T.reshape(T - 1, n, n).transpose(0, 2, 1)[rev]
     return zeta, covs
 
 

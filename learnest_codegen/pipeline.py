@@ -76,9 +76,10 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
           observer: str | None = None, full_state: bool = False, progress: bool = True) -> TrainedModel:
     """Train the KNODE residual on ``run`` (Alg. 1 phase 1); see :func:`training.train_on_run`.
 
-    ``settings`` defaults to :data:`~learnest_codegen.training.QUICK_TRAINING`.
+    ``settings`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`.
     """
-    from .training import QUICK_TRAINING, train_on_run
+    from .config import QUICK_TRAINING
+    from .training import train_on_run
 
     return train_on_run(run, get_system(system), settings or QUICK_TRAINING, observer=observer,
                         full_state=full_state, progress=progress)

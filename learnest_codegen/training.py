@@ -31,6 +31,14 @@ net trained on noisy full states from 99.3-99.9 % of the UKF gap closed to 99.9-
 unseen runs. Ten seconds of data leave many nets that fit the training run equally well; the
 decay picks the smallest, which is also the smoothest and extrapolates least.
 
+How it runs (speed, not results): the ``restarts`` initialisations of a round train together as
+one stacked model (:class:`~learnest_codegen.network.StackedMLP`, one batched matrix product per
+layer), each on its own mini-batch order, so each follows exactly the path it would follow
+alone; the hybrid model shares the prior's evaluation between the derivative, the net's
+features and its input correction (:meth:`~learnest_codegen.network.ResidualNet.hybrid`); the
+recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
+come free with the steps, and only the validation loss costs a pass per epoch.
+
 Two optional ways to quiet the last iterates of Adam at a constant rate 1e-2: on the 15
 cartpole Table I jobs the last epoch's validation loss sat 0-140 % (median 34 %) above the best
 epoch's.
@@ -51,7 +59,7 @@ import json
 import math
 import pickle
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -59,62 +67,16 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
 from .data import Run, check_sampling
 from .errors import ModelMismatchError
 from .integrators import rk4_step
-from .network import NetworkSettings, ResidualNet
+from .network import NetworkSettings, ResidualNet, StackedMLP
 from .systems import System
 
 WEIGHTS, META = "weights.pt", "model.json"
-
-
-@dataclass(frozen=True)
-class TrainingSettings:
-    """Optimisation settings; the defaults are the paper's cartpole settings (250 epochs)."""
-
-    epochs: int = 250
-    learning_rate: float = 1e-2
-    batch_size: int = 256
-    seed: int = 0
-    network: NetworkSettings = field(default_factory=NetworkSettings)
-    validation_fraction: float = 0.2  # final segment held out for early stopping; 0 disables
-    refine: int = 0  # rounds of model-based smoothing and retraining (see module docstring)
-    restarts: int = 1  # initialisations trained per round; see train() and train_on_run()
-    weight_decay: float = 0.0  # decoupled (AdamW) decay of every weight per step, times the rate
-    final_learning_rate: float | None = None  # cosine annealing to this rate; None: constant rate
-    weight_average: float = 0.0  # EMA decay per step of the weights validated and kept; 0: none
-
-    def __post_init__(self) -> None:
-        if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
-            raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
-        if not 0 <= self.validation_fraction < 0.9 or self.refine < 0 or self.restarts < 1:
-            raise ValueError(f"need 0 <= validation_fraction < 0.9, refine >= 0 and restarts >= 1; "
-                             f"got {self}")
-        if not (0.0 <= self.weight_decay < 1.0 / self.learning_rate):
-            raise ValueError(f"need 0 <= weight_decay < 1 / learning_rate; got {self}")
-        if not 0.0 <= self.weight_average < 1.0:
-            raise ValueError(f"need 0 <= weight_average < 1; got {self}")
-        if self.final_learning_rate is not None and not 0 < self.final_learning_rate <= self.learning_rate:
-            raise ValueError(f"need 0 < final_learning_rate <= learning_rate; got {self}")
-
-    def to_json(self) -> dict:
-        """The settings as a dict. ``weight_decay``, ``final_learning_rate`` and
-        ``weight_average`` are left out when off, so the identities of models and sweep jobs
-        trained before they existed are unchanged."""
-        out = asdict(self)
-        for key in ("weight_decay", "final_learning_rate", "weight_average"):
-            if not out[key]:
-                del out[key]
-        return out
-
-
-#: The training the cartpole Table I task uses: the paper's Adam at 1e-2 for 250 epochs with this
-#: module's additions (each one's measured effect is in the module docstring).
-RECOMMENDED_TRAINING = TrainingSettings(epochs=250, refine=5, restarts=3, weight_decay=0.1,
-                                        weight_average=0.99)
-#: ``learnest demo``'s default: the same with two refinement rounds instead of five (half
-#: the training time; on jobs 13 and 14 it closes 0.2-0.3 point less of the gap).
-QUICK_TRAINING = replace(RECOMMENDED_TRAINING, refine=2)
+__all__ = ["QUICK_TRAINING", "RECOMMENDED_TRAINING", "TrainingSettings", "TrainedModel", "load_model",
+           "make_net", "one_step_loss", "train", "train_on_run"]
 
 
 @dataclass
@@ -195,7 +157,9 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     ``seed, seed + 1, ...``) and the one with the lowest validation loss is kept; ``model.json``
     lists every restart's validation loss. A bad local optimum shows there: on the cartpole one
     of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
-    six times the others'.
+    six times the others'. The initialisations train together, as one stacked model
+    (:class:`~learnest_codegen.network.StackedMLP`); each follows exactly the path it would
+    follow alone (its own initialisation and mini-batch order).
 
     A system that declares a mirror symmetry (:meth:`~learnest_codegen.systems.System.reflection_signs`)
     is trained on every pair and its mirror image, the validation segment split off first.
@@ -211,10 +175,8 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                          f"got {zeta.shape}, {u.shape}")
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
         raise ValueError("train: zeta and u must be finite")
-    start, models = time.perf_counter(), []
-    for r in range(settings.restarts):
-        member = replace(settings, seed=settings.seed + r, restarts=1)
-        models.append(_train_once(system, zeta, u, dt, member, observer, progress))
+    start = time.perf_counter()
+    models = _train_stacked(system, zeta, u, dt, settings, observer, progress)
     valid = [min(m.meta["validation_history"]) for m in models]
     scores = [float(score(m)) for m in models] if score is not None and len(models) > 1 else None
     best = models[int(np.argmax(scores)) if scores else int(np.argmin(valid))]
@@ -225,73 +187,120 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     return best
 
 
-def _train_once(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
-                settings: TrainingSettings, observer: str, progress: bool) -> TrainedModel:
-    torch.manual_seed(settings.seed)
-    net = make_net(system, settings.network)
+def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: TrainingSettings):
+    """All pairs, and the training and validation pairs (each with its mirror image when the
+    system declares a symmetry; the validation segment is split off first: no leak)."""
+    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
+    train_set = [a[:n_train] for a in pairs]
+    valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
+    signs = system.reflection_signs()
+    if signs is not None:
+        sx, su = (torch.as_tensor(s) for s in signs)
+        train_set, valid_set = ([torch.cat([z, z * sx]), torch.cat([v, v * su]), torch.cat([zn, zn * sx])]
+                                for z, v, zn in (train_set, valid_set))
+    return pairs, train_set, valid_set
+
+
+def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch.Tensor,
+                  u: torch.Tensor, zeta_next: torch.Tensor, dt: float) -> torch.Tensor:
+    """Eq. (11) of every stacked member ``(R,)``; the pairs are ``(B, .)`` shared by all
+    members or ``(R, B, .)`` one batch per member."""
+    members = len(mlp.weights[0])
+    zeta, u = zeta.expand(members, *zeta.shape[-2:]), u.expand(members, *u.shape[-2:])
+    pred = rk4_step(lambda x, v: net.hybrid(system.f, x, v, mlp), zeta, u, dt)
+    return ((pred - zeta_next) ** 2).sum(dim=-1).mean(dim=-1)
+
+
+def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
+                   settings: TrainingSettings, observer: str, progress: bool) -> list[TrainedModel]:
+    """Train the ``settings.restarts`` initialisations together; one model per restart."""
+    members = [replace(settings, seed=settings.seed + r, restarts=1) for r in range(settings.restarts)]
+    nets = []
+    for member in members:
+        torch.manual_seed(member.seed)
+        nets.append(make_net(system, settings.network))
+    net = nets[0]  # the structure (features, scaling, channels); the weights live in `mlp`
     signs = system.reflection_signs()
     if signs is None:
         net.set_input_scaling(zeta, u)
     else:
         net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
-    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
-    n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
-    train_set = [a[:n_train] for a in pairs]
-    valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
-    if signs is not None:  # every pair and its mirror image (validation split first: no leak)
-        sx, su = (torch.as_tensor(s) for s in signs)
-        train_set, valid_set = ([torch.cat([z, z * sx]), torch.cat([v, v * su]), torch.cat([zn, zn * sx])]
-                                for z, v, zn in (train_set, valid_set))
-        n_train = len(train_set[0])
+    pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings)
+    n_train = len(train_set[0])
+    mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
-        optimiser = torch.optim.AdamW(net.parameters(), lr=settings.learning_rate,
+        optimiser = torch.optim.AdamW(mlp.parameters(), lr=settings.learning_rate,
                                       weight_decay=settings.weight_decay)
     else:
-        optimiser = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
+        optimiser = torch.optim.Adam(mlp.parameters(), lr=settings.learning_rate)
     schedule = None
     if settings.final_learning_rate is not None:
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
             optimiser, T_max=max(settings.epochs - 1, 1), eta_min=settings.final_learning_rate)
-    kept = net  # the net validated and kept; with weight_average a copy holding the average
+    kept = mlp  # the weights validated and kept; with weight_average a copy holding the average
     if settings.weight_average:
-        kept = make_net(system, settings.network)
-        kept.load_state_dict(net.state_dict())
-    averaging = list(zip(kept.parameters(), net.parameters())) if kept is not net else []
-    generator = torch.Generator().manual_seed(settings.seed)
+        kept = copy.deepcopy(mlp).requires_grad_(False)
+    averaging = list(zip(kept.parameters(), mlp.parameters())) if kept is not mlp else []
+    generators = [torch.Generator().manual_seed(m.seed) for m in members]
+    full_batch = settings.batch_size >= n_train
     start, history, valid_history = time.perf_counter(), [], []
-    best = (math.inf, copy.deepcopy(net.state_dict()), 0)
+    best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
+    best_state = [p.detach().clone() for p in kept.parameters()]
+    best_epoch = torch.zeros(len(members), dtype=torch.long)
     bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=not progress, unit="epoch")
     for epoch in bar:
-        for idx in torch.randperm(n_train, generator=generator).split(settings.batch_size):
+        if full_batch:
+            batches = [None]
+        else:  # every member its own order, as when trained alone
+            orders = torch.stack([torch.randperm(n_train, generator=g) for g in generators])
+            batches = orders.split(settings.batch_size, dim=1)
+        epoch_loss = torch.zeros(len(members), dtype=torch.float64)
+        for idx in batches:
             optimiser.zero_grad()
-            loss = one_step_loss(system, net, *(a[idx] for a in train_set), dt)
-            loss.backward()
+            batch = train_set if idx is None else [a[idx] for a in train_set]
+            loss = _stacked_loss(system, net, mlp, *batch, dt)
+            loss.sum().backward()
             optimiser.step()
             with torch.no_grad():
+                epoch_loss += loss.detach() * (n_train if idx is None else idx.shape[1])
                 for mean, weight in averaging:
                     mean.lerp_(weight, 1.0 - settings.weight_average)
-        with torch.no_grad():
-            history.append(float(one_step_loss(system, kept, *train_set, dt)))
-            valid_history.append(float(one_step_loss(system, kept, *valid_set, dt)))
-        if valid_history[-1] < best[0]:
-            best = (valid_history[-1], copy.deepcopy(kept.state_dict()), epoch)
-        bar.set_postfix(loss=f"{history[-1]:.3e}", valid=f"{valid_history[-1]:.3e}")
+        with torch.no_grad():  # the training loss comes free with the steps; validation costs one pass
+            history.append(epoch_loss / n_train)
+            valid_history.append(_stacked_loss(system, net, kept, *valid_set, dt))
+            better = valid_history[-1] < best_loss
+            if better.any():
+                best_loss = torch.where(better, valid_history[-1], best_loss)
+                best_epoch[better] = epoch
+                for saved, p in zip(best_state, kept.parameters()):
+                    saved[better] = p[better]
+        bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=f"{float(valid_history[-1].min()):.3e}")
         if schedule is not None:
             schedule.step()
-    net.load_state_dict(best[1])
     with torch.no_grad():
-        final_loss = float(one_step_loss(system, net, *pairs, dt))
-        prior_loss = float(one_step_loss(system, _ZeroNet(system), *pairs, dt))
-    meta = {
-        "system": system.name, "nx": system.nx, "nu": system.nu, "dt": dt,
-        "network": settings.network.to_json(), "training": settings.to_json(),
-        "residual": residual_structure(system),
-        "observer": observer, "data_hash": data_hash(zeta, u), "samples": int(zeta.shape[0]),
-        "final_loss": final_loss, "prior_loss": prior_loss, "best_epoch": best[2],
-        "loss_history": history, "validation_history": valid_history,
-        "train_seconds": time.perf_counter() - start, "torch_version": torch.__version__,
-    }
-    return TrainedModel(system, net, meta)
+        for saved, p in zip(best_state, kept.parameters()):
+            p.copy_(saved)
+    seconds = time.perf_counter() - start
+    history, valid_history = torch.stack(history).T.tolist(), torch.stack(valid_history).T.tolist()
+    models = []
+    for r, member in enumerate(members):
+        trained = make_net(system, settings.network)
+        trained.load_state_dict({**net.state_dict(), **kept.member_state(r)})
+        with torch.no_grad():
+            final_loss = float(one_step_loss(system, trained, *pairs, dt))
+            prior_loss = float(one_step_loss(system, _ZeroNet(system), *pairs, dt))
+        meta = {
+            "system": system.name, "nx": system.nx, "nu": system.nu, "dt": dt,
+            "network": settings.network.to_json(), "training": member.to_json(),
+            "residual": residual_structure(system),
+            "observer": observer, "data_hash": data_hash(zeta, u), "samples": int(zeta.shape[0]),
+            "final_loss": final_loss, "prior_loss": prior_loss, "best_epoch": int(best_epoch[r]),
+            "loss_history": history[r], "validation_history": valid_history[r],
+            "train_seconds": seconds, "torch_version": torch.__version__,
+        }
+        models.append(TrainedModel(system, trained, meta))
+    return models
 
 
 class _ZeroNet(torch.nn.Module):

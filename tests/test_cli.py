@@ -100,8 +100,8 @@ def test_demo_end_to_end(tmp_path):
 def test_demo_defaults_are_the_quick_training_recipe():
     """The demo's option defaults are QUICK_TRAINING (written out so that `learnest --help`
     imports no torch), and Table I's cartpole task trains with RECOMMENDED_TRAINING."""
+    from learnest_codegen.config import QUICK_TRAINING, RECOMMENDED_TRAINING
     from learnest_codegen.experiments import DEFAULT_TASKS
-    from learnest_codegen.training import QUICK_TRAINING, RECOMMENDED_TRAINING
 
     defaults = {p.name: p.default for p in cli.commands["demo"].params}
     for name in ("epochs", "refine", "restarts", "weight_decay", "weight_average"):

@@ -17,13 +17,14 @@ import click
 import numpy as np
 
 from ..compilation import compile_estimators, estimator_dir, estimator_kind
+from ..config import QUICK_TRAINING, TrainingSettings
 from ..data import write_run
 from ..evaluation import EstimateResult, format_table, mse_per_state, run_estimator
 from ..export import hybrid_model, prior_model, true_model
 from ..plotting import plot_errors, plot_estimates, plot_loss
 from ..simulation import simulate
 from ..systems import System
-from ..training import QUICK_TRAINING, TrainingSettings, train_on_run
+from ..training import train_on_run
 
 LABELS = {"nominal": "", "knode": "KNODE-", "true": ""}
 
@@ -49,7 +50,7 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QU
              duration: float | None = None) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``.
 
-    ``training`` defaults to :data:`~learnest_codegen.training.QUICK_TRAINING`; its ``seed`` is
+    ``training`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`; its ``seed`` is
     replaced by ``train_seed``.
     """
     out = Path(out)

@@ -49,8 +49,8 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
+from ..config import RECOMMENDED_TRAINING, TrainingSettings
 from ..errors import UnknownNameError
-from ..training import RECOMMENDED_TRAINING, TrainingSettings
 from .store import code_hash, content_hash, write_json
 
 RESULT_FORMAT = 1
@@ -132,7 +132,7 @@ class TaskConfig:
 
 # THE place for the defaults of the sweep (the paper's settings; tune here).
 DEFAULT_TASKS: dict[str, TaskConfig] = {
-    # RECOMMENDED_TRAINING (learnest_codegen.training): per round three initialisations, the one
+    # RECOMMENDED_TRAINING (learnest_codegen.config): per round three initialisations, the one
     # whose model best explains the measurements kept (a bad local optimum otherwise costs a
     # seed 15-20 points of gap closure); weight decay 0.1 (the full-state nets go from 99.3-99.9
     # to 99.9-100 % of the UKF gap closed); the moving average of the weights (+0.08 point on

@@ -1,0 +1,129 @@
+"""Benchmark the KNODE training: 250 epochs on the demo data, one Table I job, the whole sweep.
+
+Usage::
+
+    python scripts/bench_training.py --out bench_training.json            # epochs only
+    python scripts/bench_training.py --job --out bench_training.json      # + cartpole job 0
+    python scripts/bench_training.py --job --sweep --out ...              # + the whole Table I
+
+Every figure is recorded with the wall time, the process's CPU time (its children's for the
+job and the sweep, which run in subprocesses) and the load average when it ran: the machine is
+shared, and the CPU time is the figure that load disturbs least. Beside the times stand the
+final losses (epochs) and the gap closures (job, sweep).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from learnest_codegen import get_system
+from learnest_codegen.config import RECOMMENDED_TRAINING, TrainingSettings
+from learnest_codegen.observers import observe
+from learnest_codegen.simulation import simulate
+from learnest_codegen.training import train
+
+#: the settings timed: the default, the recommended recipe's single round (3 restarts), and
+#: full batch (what the default would cost with one step per epoch; not a recipe yet)
+EPOCH_CASES = {
+    "default": TrainingSettings(),
+    "recommended_round": replace(RECOMMENDED_TRAINING, refine=0),
+    "full_batch": TrainingSettings(batch_size=1 << 20),
+}
+
+
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250) -> dict:
+    """``epochs`` epochs of each case on the demo's training run through its observer; the
+    times are also given scaled to 250 epochs (``*_per_250_epochs``)."""
+    system = get_system("cartpole")
+    run = simulate(system, seed=0)
+    zeta = observe(run, system).zeta
+    train(system, zeta[:200], run.u[:200], run.dt, TrainingSettings(epochs=1), progress=False)  # warm-up
+    out = {}
+    for name, settings in cases.items():
+        settings = replace(settings, epochs=epochs)
+        load = os.getloadavg()[0]
+        wall, cpu = time.perf_counter(), time.process_time()
+        model = train(system, zeta, run.u, run.dt, settings, progress=False)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        out[name] = {"settings": settings.to_json(), "epochs": epochs, "wall_seconds": wall,
+                     "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
+                     "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
+                     "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
+                     "best_epoch": model.meta["best_epoch"]}
+        print(name, json.dumps(out[name]), flush=True)
+    return out
+
+
+def _closures(result: dict) -> dict:
+    mse = {label: row["mse"] for label, row in result["methods"].items()}
+    out = {}
+    for est in ("MHE", "UKF"):
+        prior, true = mse[est], mse[f"{est} (true dynamics)"]
+        for row in (f"KNODE-{est}", f"KNODE-{est} (full state)"):
+            out[row] = 100 * (prior - mse[row]) / (prior - true)
+    return out
+
+
+def bench_sweep(tasks: str, seeds: int, jobs: int, out_dir: Path) -> dict:
+    """``learnest reproduce table1`` in a subprocess; per job its wall time, training times,
+    final losses and gap closures."""
+    cmd = [sys.executable, "-m", "learnest_codegen.cli", "reproduce", "table1", "--tasks", tasks,
+           "--seeds", str(seeds), "--jobs", str(jobs), "--out", str(out_dir), "--force"]
+    load, cpu0, wall = os.getloadavg()[0], _children_cpu(), time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    result = {"command": " ".join(cmd[2:]), "wall_seconds": time.perf_counter() - wall,
+              "cpu_seconds": _children_cpu() - cpu0, "load_average_at_start": load,
+              "load_average_at_end": os.getloadavg()[0], "jobs": {}}
+    for path in sorted((out_dir / "runs").glob("*/seed_*.json")):
+        job = json.loads(path.read_text())
+        result["jobs"][f"{job['task']}/{job['seed']}"] = {
+            "wall_seconds": job["wall_seconds"], "timings": job["timings"],
+            "training": {k: {s: v[s] for s in ("train_seconds", "final_loss", "best_epoch")}
+                         for k, v in job["training"].items()},
+            "gap_closure_percent": _closures(job)}
+    return result
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("bench_training.json"))
+    parser.add_argument("--job", action="store_true", help="also time cartpole Table I job 0")
+    parser.add_argument("--sweep", action="store_true", help="also time the whole Table I sweep")
+    parser.add_argument("--jobs", type=int, default=2, help="parallel jobs of the sweep")
+    parser.add_argument("--epochs", type=int, default=250,
+                        help="epochs timed per case (the figures are also scaled to 250)")
+    parser.add_argument("--label", default="", help="what code this is (e.g. a commit)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    report = {"label": args.label, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                                                 "torch": torch.__version__},
+              "epochs": bench_epochs(EPOCH_CASES, args.epochs)}
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.job:
+            report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")
+        if args.sweep:
+            report["table1_sweep"] = bench_sweep("cartpole,ground_robot", 15, args.jobs, Path(tmp) / "sweep")
+    args.out.write_text(json.dumps(report, indent=2))
+    print(f"wrote {args.out}")
+    return report
+
+
+if __name__ == "__main__":
+    main()

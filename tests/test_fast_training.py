@@ -1,0 +1,168 @@
+"""The fast training path: stacked restarts, the CasADi EKF-RTS, one source of defaults, and
+models saved by earlier code."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import casadi as cs
+import numpy as np
+import pytest
+import torch
+
+from learnest_codegen import config
+from learnest_codegen.errors import UnknownNameError
+from learnest_codegen.observers import _discrete_with_jacobian, _ekf_passes, _rts_backward
+from learnest_codegen.simulation import simulate
+from learnest_codegen.training import load_model, make_net, one_step_loss
+
+OLD_MODEL = Path(__file__).parent / "data" / "model_b12bfa1"
+
+
+def _sequential_reference(system, zeta, u, dt, settings):
+    """The training loop as it ran before restarts were stacked: one net at a time, plain
+    ResidualNet, AdamW, its own mini-batch order, the per-step weight average."""
+    nets = []
+    for r in range(settings.restarts):
+        seed = settings.seed + r
+        torch.manual_seed(seed)
+        net = make_net(system, settings.network)
+        net.set_input_scaling(zeta, u)
+        pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+        optimiser = torch.optim.AdamW(net.parameters(), lr=settings.learning_rate,
+                                      weight_decay=settings.weight_decay)
+        mean = [p.detach().clone() for p in net.parameters()]
+        generator = torch.Generator().manual_seed(seed)
+        for _ in range(settings.epochs):
+            for idx in torch.randperm(len(pairs[0]), generator=generator).split(settings.batch_size):
+                optimiser.zero_grad()
+                one_step_loss(system, net, *(a[idx] for a in pairs), dt).backward()
+                optimiser.step()
+                for m, p in zip(mean, net.parameters()):
+                    m.lerp_(p.detach(), 1.0 - settings.weight_average)
+        with torch.no_grad():
+            for m, p in zip(mean, net.parameters()):
+                p.copy_(m)
+        nets.append(net)
+    return nets
+
+
+def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
+    """Three initialisations trained together as one stacked model end where each ends when
+    trained alone, weight decay, mini-batches and weight average included (to 1e-12)."""
+    system = dataclasses.replace(cartpole, reflection=None)
+    run = cartpole_run
+    zeta, u = run.x[:300], run.u[:300]
+    settings = config.TrainingSettings(epochs=3, batch_size=64, seed=3, restarts=3, weight_decay=0.1,
+                                       weight_average=0.9, validation_fraction=0.0)
+    from learnest_codegen.training import _train_stacked
+
+    models = _train_stacked(system, zeta, u, run.dt, settings, "", progress=False)
+    # validation on the training pairs keeps the best epoch; the last one is compared
+    assert [m.meta["best_epoch"] for m in models] == [2, 2, 2]
+    for model, ref in zip(models, _sequential_reference(system, zeta, u, run.dt, settings)):
+        for name, value in ref.state_dict().items():
+            np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-12)
+
+
+def _numpy_ekf_rts(run, system, residual, q_scale):
+    """The EKF and RTS passes step by step in numpy (the implementation before the CasADi one)."""
+    F, A = _discrete_with_jacobian(system, residual, run.dt)
+    xs_, us_ = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    H = cs.Function("H", [xs_, us_], [cs.jacobian(system.h(xs_, us_), xs_)])
+    R = np.diag(np.square(system.noise.measurement_std))
+    Q = np.diag(np.square(system.noise.process_std) * q_scale)
+    T, n = len(run), system.nx
+    xs, Ps, xps, Pps = np.empty((T, n)), np.empty((T, n, n)), np.empty((T, n)), np.empty((T, n, n))
+    x, P, loglik = run.x[0].copy(), np.diag(np.square(system.noise.initial_std)), 0.0
+    for k in range(T):
+        if k:
+            Ak = A(x, run.u[k - 1]).full()
+            x, P = F(x, run.u[k - 1]).full().ravel(), Ak @ P @ Ak.T + Q
+        xps[k], Pps[k] = x, P
+        Hk = H(x, run.u[k]).full()
+        innov = run.y[k] - system.h(x, run.u[k])
+        S = Hk @ P @ Hk.T + R
+        K = np.linalg.solve(S, Hk @ P).T
+        x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
+        loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
+        xs[k], Ps[k] = x, P
+    zeta, covs = xs.copy(), Ps.copy()
+    for k in range(T - 2, -1, -1):
+        G = np.linalg.solve(Pps[k + 1], A(xs[k], run.u[k]).full() @ Ps[k]).T
+        zeta[k] = xs[k] + G @ (zeta[k + 1] - xps[k + 1])
+        covs[k] = Ps[k] + G @ (covs[k + 1] - Pps[k + 1]) @ G.T
+    return xs, Ps, loglik, zeta, covs
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot"])
+def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name):
+    """The EKF's forward recursion and the RTS pass, run as CasADi ``mapaccum``s, equal the
+    step-by-step numpy passes (states to 1e-9, log-likelihood to 1e-9 relative)."""
+    from learnest_codegen.systems import get_system
+
+    system = get_system(name)
+    run = simulate(system, 0, duration=1.0)
+    residual = None
+    if name == "cartpole":
+        residual = load_model(OLD_MODEL, system).net.casadi
+    passes, A = _ekf_passes(run, system, residual, (3.0,))
+    xs, Ps, xps, Pps, loglik = passes[3.0]
+    zeta, covs = _rts_backward(xs, Ps, xps, Pps, A, run.u)
+    ref_xs, ref_Ps, ref_loglik, ref_zeta, ref_covs = _numpy_ekf_rts(run, system, residual, 3.0)
+    np.testing.assert_allclose(xs, ref_xs, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(Ps, ref_Ps, rtol=0, atol=1e-9 * np.abs(ref_Ps).max())
+    np.testing.assert_allclose(zeta, ref_zeta, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(covs, ref_covs, rtol=0, atol=1e-9 * np.abs(ref_covs).max())
+    assert loglik == pytest.approx(ref_loglik, rel=1e-9)
+
+
+def test_a_model_saved_by_earlier_code_loads_and_predicts_the_same(cartpole):
+    """A model directory written by the code of commit b12bfa1 (before the stacked training)
+    loads, keeps its hash and gives the residual it gave then."""
+    model = load_model(OLD_MODEL, cartpole)
+    expect = json.loads((OLD_MODEL.parent / "model_b12bfa1_expect.json").read_text())
+    with torch.no_grad():
+        x, u = (torch.tensor(expect[k], dtype=torch.float64) for k in ("x", "u"))
+        delta = model.net(x, u).numpy()
+    np.testing.assert_allclose(delta, expect["delta"], rtol=0, atol=1e-14)
+    assert model.hash == expect["hash"]
+
+
+def test_training_settings_live_in_config_and_keep_their_old_homes():
+    from learnest_codegen import network, training
+
+    assert training.TrainingSettings is config.TrainingSettings
+    assert network.NetworkSettings is config.NetworkSettings
+    assert training.RECOMMENDED_TRAINING is config.RECOMMENDED_TRAINING
+    assert training.QUICK_TRAINING is config.QUICK_TRAINING
+    assert config.recipe("quick") is config.QUICK_TRAINING
+    with pytest.raises(UnknownNameError, match="recommended"):
+        config.recipe("fastest")
+
+
+def test_cli_defaults_come_from_config():
+    """``learnest train``'s option defaults are TRAIN_COMMAND_TRAINING's fields."""
+    from learnest_codegen.cli import cli
+
+    defaults = {p.name: p.default for p in cli.commands["train"].params}
+    settings = config.TRAIN_COMMAND_TRAINING
+    for name in ("epochs", "learning_rate", "batch_size", "seed", "validation_fraction", "refine",
+                 "restarts", "weight_decay", "final_learning_rate", "weight_average"):
+        assert defaults[name] == getattr(settings, name), name
+    for name in ("layers", "hidden", "activation"):
+        assert defaults[name] == getattr(settings.network, name), name
+
+
+def test_help_imports_no_torch():
+    """``learnest --help`` and ``learnest train --help`` do not import torch."""
+    code = ("import sys\nfrom click.testing import CliRunner\nfrom learnest_codegen.cli import cli\n"
+            "for args in (['--help'], ['train', '--help'], ['demo', '--help']):\n"
+            "    assert CliRunner().invoke(cli, args).exit_code == 0\n"
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
