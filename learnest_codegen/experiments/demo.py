@@ -16,11 +16,10 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ..compilation import compile_estimators, estimator_dir, estimator_kind
 from ..config import QUICK_TRAINING, TrainingSettings
 from ..data import write_run
 from ..evaluation import EstimateResult, format_table, mse_per_state, run_estimator
-from ..export import hybrid_model, prior_model, true_model
+from ..pipeline import make_estimator, resolve
 from ..plotting import plot_errors, plot_estimates, plot_loss
 from ..simulation import simulate
 from ..systems import System
@@ -74,27 +73,27 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QU
                                         out / "training_loss.png")))
     report.meta["train_seconds"] = trained.meta["train_seconds"]
 
-    models = [(prior_model(system), "nominal"), (hybrid_model(system, trained.net), trained.hash)]
-    if include_true:
-        models.append((true_model(system), "true"))
+    models = [resolve("nominal", system), resolve(trained)]
+    models += [resolve("true", system)] if include_true else []
     x0 = np.asarray(system.x0, dtype=float)
     results: dict[tuple[str, str, str], EstimateResult] = {}
-    for model, model_hash in models:
-        say(f"compiling MHE and UKF for the {model.kind} model")
+    for model in models:
+        kind = model.model.kind
+        say(f"compiling MHE and UKF for the {kind} model")
         start = time.perf_counter()
-        built = compile_estimators(model, out / "compiled", model_hash=model_hash)
-        report.meta[f"compile_seconds_{model.kind}"] = time.perf_counter() - start
-        report.meta[f"build_{model.kind}"] = {k: _build_info(v) for k, v in built.items()}
-        for name in ("mhe", "ukf"):
-            kind = estimator_kind(name)
-            suffix = " (true dynamics)" if model.kind == "true" else ""
-            label = f"{LABELS[model.kind]}{name.upper()}{suffix}"
-            compiled = kind.compiled(estimator_dir(out / "compiled", model, name))
-            results[(model.kind, name, "C")] = run_estimator(compiled, test_run, x0, label)
+        compiled = {name: make_estimator(model, name, out=out / "compiled") for name in ("mhe", "ukf")}
+        report.meta[f"compile_seconds_{kind}"] = time.perf_counter() - start
+        report.meta[f"build_{kind}"] = {
+            name: {k: est.manifest.get(k) for k in ("build_seconds", "code_bytes")}
+            for name, est in compiled.items()}
+        for name, estimator in compiled.items():
+            suffix = " (true dynamics)" if kind == "true" else ""
+            label = f"{LABELS[kind]}{name.upper()}{suffix}"
+            results[(kind, name, "C")] = run_estimator(estimator, test_run, x0, label)
             if name == "ukf" or python_mhe:
                 say(f"running the Python reference {label}")
-                python = kind.python(model, kind.default_settings(model))
-                results[(model.kind, name, "python")] = run_estimator(python, test_run, x0, label)
+                python = make_estimator(model, name, backend="python")
+                results[(kind, name, "python")] = run_estimator(python, test_run, x0, label)
 
     for (_, name, backend), res in results.items():
         nominal = results.get(("nominal", name, backend))
@@ -111,7 +110,3 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QU
                                                   "figures": report.figures}, indent=2))
     return report
 
-
-def _build_info(generated) -> dict:
-    """Build seconds and code size of a generated estimator, whatever its result type."""
-    return {k: getattr(generated, k) for k in ("build_seconds", "code_bytes") if hasattr(generated, k)}
