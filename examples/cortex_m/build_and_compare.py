@@ -222,10 +222,12 @@ def _check_machine(machine: str) -> str:
 
 
 def build(gen_dir: Path, build_dir: Path, *, machine: str = "mps2-an386",
-          estimator: str = "ukf", jobs: int = 2) -> dict[str, Path]:
+          estimator: str = "ukf", float_libm: bool = False, jobs: int = 2) -> dict[str, Path]:
     """``make`` the firmware ELF for ``machine`` and the host binary; returns their paths.
 
-    ``estimator`` must be the one generated into ``gen_dir`` (it picks the adapter). Use one
+    ``estimator`` must be the one generated into ``gen_dir`` (it picks the adapter).
+    ``float_libm`` compiles CasADi's code with ``src/float_libm.h`` (sinf, tanhf, ... in a
+    float32 build instead of the double routines; see README.md). Use one
     ``build_dir`` per machine and generation: make does not rebuild objects when only flags
     change.
     """
@@ -233,7 +235,8 @@ def build(gen_dir: Path, build_dir: Path, *, machine: str = "mps2-an386",
         raise ValueError(f"build: estimator must be one of {ESTIMATORS}, got {estimator!r}")
     _run(["make", "-C", str(EXAMPLE_DIR), f"-j{jobs}", f"GEN={Path(gen_dir).resolve()}",
           f"BUILD={Path(build_dir).resolve()}", f"MACHINE={_check_machine(machine)}",
-          f"ESTIMATOR={estimator}", "all"], what="make")
+          f"ESTIMATOR={estimator}", *(["CASADI_CFLAGS=-include src/float_libm.h"] if float_libm else []),
+          "all"], what="make")
     return {"elf": Path(build_dir) / "arm" / "fw.elf", "host": Path(build_dir) / "host" / "loop"}
 
 
@@ -395,6 +398,9 @@ def main(argv: list[str] | None = None) -> int:
                              "(converged Gauss-Newton) (default: ukf)")
     parser.add_argument("--precision", choices=PRECISIONS, default="float64",
                         help="the C real type of the generated estimator (default: float64)")
+    parser.add_argument("--float-libm", action="store_true",
+                        help="float32 only: CasADi's sin/cos/tanh/exp/sqrt as the float routines "
+                             "(src/float_libm.h) instead of double ones")
     parser.add_argument("--out", type=Path, default=Path("build/cortex_m"))
     args = parser.parse_args(argv)
     missing = missing_tools()
@@ -405,17 +411,21 @@ def main(argv: list[str] | None = None) -> int:
 
     system = get_system("cartpole")
     model = untrained_knode(system) if args.model == "untrained" else resolve_model(system, args.model)[0]
-    tag = f"{args.estimator}_{args.precision}"
-    gen = generate(model, args.out / f"gen_{tag}", steps=args.steps, seed=args.seed,
-                   estimator=args.estimator, precision=args.precision)
+    if args.float_libm and args.precision != "float32":
+        parser.error("--float-libm needs --precision float32")
+    tag = f"{args.estimator}_{args.precision}" + ("_float_libm" if args.float_libm else "")
+    gen = generate(model, args.out / f"gen_{args.estimator}_{args.precision}", steps=args.steps,
+                   seed=args.seed, estimator=args.estimator, precision=args.precision)
     build_dir = args.out / f"build_{tag}_{args.machine}"
-    paths = build(gen.directory, build_dir, machine=args.machine, estimator=args.estimator)
+    paths = build(gen.directory, build_dir, machine=args.machine, estimator=args.estimator,
+                  float_libm=args.float_libm)
     fw = run_qemu(paths["elf"], model.nx, machine=args.machine)
     host = run_host(paths["host"], model.nx)
     rel = relative_difference(fw.X, host.X)
     report = {
         "model": args.model, "machine": args.machine, "estimator": args.estimator,
-        "precision": args.precision, "prefix": gen.prefix, "steps": args.steps,
+        "precision": args.precision, "float_libm": args.float_libm, "prefix": gen.prefix,
+        "steps": args.steps,
         "workspace_bytes": gen.workspace_bytes,
         "max_relative_difference": float(rel.max()),
         "bit_identical_steps": int(np.all(fw.X == host.X, axis=1).sum()),
