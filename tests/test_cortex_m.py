@@ -145,10 +145,10 @@ def test_errors_stop_the_firmware_with_their_status(tmp_path):
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 @pytest.mark.parametrize("estimator", ["ukf", "mhe_rti", "mhe_gn"])
 def test_qemu_knode_long_run(estimator, precision, machine, tmp_path):
-    """The KNODE model (default net, untrained: the same C as a trained one) over 2000 steps,
+    """The KNODE model (default net, untrained: the same C as a trained one) over 1000 steps,
     every estimator and precision, on the Cortex-M4F and the Cortex-M7."""
     model = bc.untrained_knode(get_system("cartpole"))
-    steps = 2000
+    steps = 1000
     gen, paths, fw, host = build_and_run(model, tmp_path, steps, estimator=estimator,
                                          precision=precision, machine=machine)
     check_parity(gen, fw, host, steps)
