@@ -1,17 +1,19 @@
 /* estimator.h: the estimator as the loop sees it.
  *
- * estimator_ukf.c implements this with a generated UKF; an estimator with another C API needs
- * only another implementation of these three functions. */
+ * estimator_ukf.c implements this over a generated UKF, estimator_mhe.c over a generated
+ * embedded MHE (mhe_rti or mhe_gn); the Makefile picks one (ESTIMATOR=ukf|mhe_rti|mhe_gn).
+ * The loop speaks double; the adapter rounds to the API's real type (float in a float32
+ * build) on the way in and widens (exactly) on the way out. */
 #ifndef ESTIMATOR_H
 #define ESTIMATOR_H
 
-#include "estimator_config.h" /* generated: EST_NX, EST_NU, EST_NY, the API and its tuning */
+#include "estimator_config.h" /* generated: EST_PREFIX, EST_NX/NU/NY, EST_WORKSPACE_BYTES, tuning */
 
-/* Set the estimator to its initial state; 0 on success, else the API's error code. */
+/* Place the estimator in its static workspace and start it; learnest_status.h's code. */
 int estimator_init(void);
 
 /* One sample: input u (EST_NU) held since the previous sample, measurement y (EST_NY);
- * 0 on success, else the API's error code. */
+ * learnest_status.h's code (negative: an error, the estimator unchanged). */
 int estimator_step(const double* u, const double* y);
 
 /* The current state estimate x (EST_NX). */

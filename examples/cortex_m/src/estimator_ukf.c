@@ -1,13 +1,13 @@
-/* estimator_ukf.c: estimator.h over a generated UKF's C API (<prefix>_init/_step/_get_state,
- * one filter in static memory). estimator_config.h names the prefix and holds x0, P0, Q, R. */
-#include "estimator.h"
+/* estimator_ukf.c: estimator.h over a generated UKF (<prefix>_api.h: workspace_size, init on
+ * caller memory, step, get_state). estimator_config.h names the prefix and holds x0, P0, Q, R. */
+#include "estimator_common.h"
 
-#define EST_CONCAT_(a, b) a##b
-#define EST_CONCAT(a, b) EST_CONCAT_(a, b)
-#define EST_API(name) EST_CONCAT(EST_PREFIX, name)
-
-int estimator_init(void) { return EST_API(_init)(est_x0, est_P0, est_Q, est_R); }
-
-int estimator_step(const double* u, const double* y) { return EST_API(_step)(u, y); }
-
-void estimator_get_state(double* x) { EST_API(_get_state)(x); }
+int estimator_init(void) {
+    est_real x0[EST_NX], P0[EST_NX * EST_NX], Q[EST_NX * EST_NX], R[EST_NY * EST_NY];
+    if (EST_API(_workspace_size)() > sizeof est_workspace) return LEARNEST_NO_MEMORY;
+    est_round(x0, est_x0, EST_NX);
+    est_round(P0, est_P0, EST_NX * EST_NX);
+    est_round(Q, est_Q, EST_NX * EST_NX);
+    est_round(R, est_R, EST_NY * EST_NY);
+    return EST_API(_init)(est_workspace, sizeof est_workspace, x0, P0, Q, R, &est_h);
+}
