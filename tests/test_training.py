@@ -460,6 +460,7 @@ def test_weight_average_keeps_the_moving_average(cartpole, cartpole_run):
     assert close(means[best]) and not close(raws[best])
 
 
+@pytest.mark.slow  # two full 250-epoch trainings: 155 s on the idle machine
 def test_weight_decay_helps_the_full_state_net_generalise(cartpole, cartpole_run, cartpole_test_run):
     """Trained on noisy full states of one run (job 0 of Table I), the net with weight decay 0.1
     matches ``f_true - f_prior`` on the unseen run better than the one without (measured: UKF gap
