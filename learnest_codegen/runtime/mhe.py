@@ -80,15 +80,15 @@ class CompiledMHE(CompiledEstimator):
 
     @property
     def x(self) -> np.ndarray:
-        x = np.empty(self.nx)
+        x = np.empty(self.nx, dtype=self.dtype)
         self.check_status("x", self._c["get_state"](self._started("x"), x))
-        return x
+        return x.astype(float)
 
     @property
     def window(self) -> np.ndarray:
-        X = np.empty((self.horizon + 1, self.nx))
+        X = np.empty((self.horizon + 1, self.nx), dtype=self.dtype)
         self.check_status("window", self._c["get_window"](self._started("window"), X))
-        return X
+        return X.astype(float)
 
     @property
     def arrival_weight(self) -> np.ndarray:
@@ -98,25 +98,30 @@ class CompiledMHE(CompiledEstimator):
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from ``x0 (nx,)``; ``P0 (nx, nx)`` as in :meth:`MHE.reset`."""
-        x0 = validation.vector("CompiledMHE.reset: x0", x0, self.nx)
+        x0 = validation.vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.nx)
-        args = [np.ascontiguousarray(a, dtype=float) for a in (x0, Q, R, P)]
+        args = [self.real_array(a) for a in (x0, Q, R, P)]
         if self._handle is None:
             handle = _HANDLE()
-            self.check_status("init", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
-                                                      *args, ctypes.byref(handle)))
+            self.check_status("reset", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
+                                                       *args, ctypes.byref(handle)))
             self._handle = handle.value
+            self._configure(self._handle)
         else:
-            self.check_status("init", self._c["reset"](self._handle, *args))
+            self.check_status("reset", self._c["reset"](self._handle, *args))
         self._P = P
+
+    def _configure(self, handle: int) -> None:
+        """Run-time options after the first init (the Ipopt MHE has none)."""
 
     def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
         handle = self._started("step")
-        u = validation.vector("CompiledMHE.step: u", u, self.nu)
-        y = validation.vector("CompiledMHE.step: y", y, self.ny)
+        name = type(self).__name__
+        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
+        y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
         self.check_status("step", self._c["step"](handle, u, y), self._sample())
         return self.x
 
@@ -126,25 +131,26 @@ class CompiledMHE(CompiledEstimator):
 
         Same convention as :meth:`MHE.run` (sample 0 uses ``Y[0]`` only).
         """
-        U, Y = validation.run_arrays("CompiledMHE.run", U, Y, self.nu, self.ny)
+        U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
         self.reset(x0, P0)
-        X_hat = np.empty((len(Y), self.nx))
-        self.check_status("run", self._c["run"](self._handle, len(Y), np.ascontiguousarray(U),
-                                                np.ascontiguousarray(Y), X_hat), self._sample())
-        return X_hat
+        X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
+        self.check_status("run", self._c["run"](self._handle, len(Y), self.real_array(U),
+                                                self.real_array(Y), X_hat), self._sample())
+        return X_hat.astype(float)
 
     def _sample(self) -> str:
         return f", sample {self._c['samples'](self._handle)}"
 
     def _started(self, what: str) -> int:
         if self._handle is None:
-            raise RuntimeError(f"CompiledMHE.{what}: call reset(x0) first")
+            raise RuntimeError(f"{type(self).__name__}.{what}: call reset(x0) first")
         return self._handle
 
     def _check_sizes(self) -> None:
         sizes = [_INT() for _ in range(4)]
         self._c["sizes"](*(ctypes.byref(s) for s in sizes))
         got = tuple(s.value for s in sizes)
-        if got != (self.nx, self.nu, self.ny, self.horizon):
+        real_size = self._c["real_size"]() if "real_size" in self._c else np.dtype(self.dtype).itemsize
+        if got != (self.nx, self.nu, self.ny, self.horizon) or real_size != np.dtype(self.dtype).itemsize:
             raise ModelMismatchError(f"{self.where}: library sizes (nx, nu, ny, N) = {got}, manifest "
                                      f"says {(self.nx, self.nu, self.ny, self.horizon)}")

@@ -9,24 +9,18 @@ of one library run independently.
 
 from __future__ import annotations
 
-import ctypes
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-
 from ..errors import ModelMismatchError
-from ..estimators import validation
-from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
-from .base import CompiledEstimator
+from .mhe import _HANDLE, _INT, CompiledMHE
 
-_INT, _HANDLE = ctypes.c_int, ctypes.c_void_p
 MODES = {"converged": 0, "rti": 1}
 
 
-class CompiledEmbeddedMHE(CompiledEstimator):
+class CompiledEmbeddedMHE(CompiledMHE):
     """A compiled embedded MHE (``mhe_gn`` or ``mhe_rti``) loaded from its directory.
 
     Parameters
@@ -48,118 +42,23 @@ class CompiledEmbeddedMHE(CompiledEstimator):
 
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,
                  settings: MHESettings | None = None, solver: GaussNewtonSettings | None = None):
-        super().__init__(directory, expect)
+        super().__init__(directory, expect=expect, settings=settings)
         m = self.manifest
-        self.horizon = int(m["horizon"])
-        self.settings = settings or MHESettings.from_json(m["settings"])
-        if self.settings.horizon != self.horizon:
-            raise ModelMismatchError(f"{self.where}: settings.horizon is {self.settings.horizon}, "
-                                     f"the library was generated for {self.horizon}")
-        self.settings.check(self.nx, self.ny, self.where)
         self.solver = solver or GaussNewtonSettings.from_json(m["solver"])
         if self.solver.precision != m["precision"]:
             raise ModelMismatchError(f"{self.where}: solver precision {self.solver.precision!r}, "
                                      f"the library was generated in {m['precision']!r}")
-        self._check_sizes()
-        self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
-        self._handle: int | None = None
-        self._P: np.ndarray | None = None
 
     def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
-        R, h = self.real_pointer, _HANDLE
-        return {
-            "workspace_size": (ctypes.c_size_t, []),
-            "init": (_INT, [ctypes.c_void_p, ctypes.c_size_t, R, R, R, R, ctypes.POINTER(_HANDLE)]),
-            "reset": (_INT, [h, R, R, R, R]),
-            "set_options": (_INT, [h, _INT, _INT, self.c_real]),
-            "step": (_INT, [h, R, R]),
-            "run": (_INT, [h, _INT, R, R, R]),
-            "get_state": (_INT, [h, R]),
-            "get_window": (_INT, [h, R]),
-            "samples": (_INT, [h]),
-            "iterations": (_INT, [h]),
-            "sizes": (None, [ctypes.POINTER(_INT)] * 4),
-            "real_size": (_INT, []),
-        }
-
-    @property
-    def P(self):
-        """Not available: an MHE has no state covariance (raises AttributeError)."""
-        raise AttributeError(NO_COVARIANCE)
-
-    @property
-    def x(self) -> np.ndarray:
-        x = np.empty(self.nx, dtype=self.dtype)
-        self.check_status("x", self._c["get_state"](self._started("x"), x))
-        return x.astype(float)
-
-    @property
-    def window(self) -> np.ndarray:
-        X = np.empty((self.horizon + 1, self.nx), dtype=self.dtype)
-        self.check_status("window", self._c["get_window"](self._started("window"), X))
-        return X.astype(float)
-
-    @property
-    def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight ``P`` of the arrival cost in use."""
-        self._started("arrival_weight")
-        return self._P.copy()
+        return {**super().signatures(), "set_options": (_INT, [_HANDLE, _INT, _INT, self.c_real]),
+                "iterations": (_INT, [_HANDLE]), "real_size": (_INT, [])}
 
     @property
     def iterations(self) -> int:
+        """Gauss-Newton iterations of the last step."""
         return int(self._c["iterations"](self._started("iterations")))
 
-    def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
-        """Start over from ``x0 (nx,)``; ``P0 (nx, nx)`` as in :meth:`MHE.reset`."""
-        x0 = validation.vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
-        Q, R, P = self.settings.weights()
-        if P0 is not None:
-            P = arrival_weight_from_covariance(P0, self.nx)
-        args = [self.real_array(a) for a in (x0, Q, R, P)]
-        if self._handle is None:
-            handle = _HANDLE()
-            self.check_status("reset", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
-                                                       *args, ctypes.byref(handle)))
-            self._handle = handle.value
-            s = self.solver
-            self.check_status("reset", self._c["set_options"](
-                self._handle, MODES[s.mode], s.max_iterations, s.tolerance))
-        else:
-            self.check_status("reset", self._c["reset"](self._handle, *args))
-        self._P = P
-
-    def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
-        handle = self._started("step")
-        name = type(self).__name__
-        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
-        y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
-        self.check_status("step", self._c["step"](handle, u, y), self._sample())
-        return self.x
-
-    def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
-            P0: np.ndarray | None = None) -> np.ndarray:
-        """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` -> ``X_hat (T, nx)``."""
-        U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
-        self.reset(x0, P0)
-        X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
-        self.check_status("run", self._c["run"](self._handle, len(Y), self.real_array(U),
-                                                self.real_array(Y), X_hat), self._sample())
-        return X_hat.astype(float)
-
-    def _sample(self) -> str:
-        return f", sample {self._c['samples'](self._handle)}"
-
-    def _started(self, what: str) -> int:
-        if self._handle is None:
-            raise RuntimeError(f"{type(self).__name__}.{what}: call reset(x0) first")
-        return self._handle
-
-    def _check_sizes(self) -> None:
-        sizes = [_INT() for _ in range(4)]
-        self._c["sizes"](*(ctypes.byref(s) for s in sizes))
-        got = tuple(s.value for s in sizes)
-        if got != (self.nx, self.nu, self.ny, self.horizon) \
-                or self._c["real_size"]() != np.dtype(self.dtype).itemsize:
-            raise ModelMismatchError(f"{self.where}: library sizes (nx, nu, ny, N) = {got}, manifest "
-                                     f"says {(self.nx, self.nu, self.ny, self.horizon)}")
+    def _configure(self, handle: int) -> None:
+        s = self.solver
+        self.check_status("reset", self._c["set_options"](handle, MODES[s.mode], s.max_iterations,
+                                                          s.tolerance))
