@@ -10,7 +10,6 @@ was built. An unchanged build is reused (toolchain stamp).
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as cs
@@ -23,28 +22,14 @@ from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, read_manifest, write_manifest
 from ..runtime.status import STATUS_NAMES
 from . import templates
+from .mhe import GeneratedMHE
 
 CFLAGS = (*toolchain.DEFAULT_CFLAGS, "-Wall", "-Wextra")
 
 
-@dataclass(frozen=True)
-class GeneratedEmbeddedMHE:
-    """What :func:`generate_embedded_mhe` produced (fields as :class:`~.mhe.GeneratedMHE`)."""
-
-    directory: Path
-    prefix: str
-    library: Path
-    sources: tuple[Path, ...]
-    header: Path
-    manifest: Path
-    build_seconds: float
-    code_bytes: int
-    reused: bool
-
-
 def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                           solver: GaussNewtonSettings | None = None, prefix: str | None = None,
-                          model_hash: str = "") -> GeneratedEmbeddedMHE:
+                          model_hash: str = "") -> GeneratedMHE:
     """Generate, compile and describe the embedded (Gauss-Newton) MHE of ``model``.
 
     Parameters
@@ -90,7 +75,7 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
         "code_bytes": code_bytes, "status_codes": {str(k): v for k, v in STATUS_NAMES.items()},
         "model_instructions": model_instructions(model),
     })
-    return GeneratedEmbeddedMHE(out, prefix, build.library, (model_c, source), header, manifest,
+    return GeneratedMHE(out, prefix, build.library, (model_c, source), header, manifest,
                                 build.seconds, code_bytes, build.reused)
 
 
