@@ -144,8 +144,8 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
           weight_average, seed, resample, force) -> None:
     """Train the KNODE residual network on a run and write a model directory."""
     from .config import NetworkSettings, TrainingSettings
+    from .learning.training import train_on_run
     from .outputs import atomic_dir, claim_output
-    from .training import train_on_run
 
     claim_output(out, inputs=(data,), force=force, kind="dir")
     system = _system(system_name)
@@ -510,7 +510,7 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
         check_sampling(r, system.dt, f"{data} (run {i})")
     trained = None
     if model is not None:
-        from .training import load_model
+        from .learning.training import load_model
 
         trained = load_model(model, system)
     result = dg.diagnose(system, runs, model=trained, settings=settings, work_dir=Path(out) / "work",

@@ -83,7 +83,7 @@ def resolve_model(system: System, model: str) -> tuple[DiscreteModel, str]:
         return prior_model(system), "nominal"
     if model == "true":
         return true_model(system), "true"
-    from .training import load_model  # torch is needed only for trained models
+    from .learning.training import load_model  # torch is needed only for trained models
 
     trained = load_model(model, system)
     return hybrid_model(system, trained.net), trained.hash

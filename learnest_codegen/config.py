@@ -2,8 +2,8 @@
 
 This module imports neither torch nor CasADi, so the command line reads its option defaults
 from here without slowing ``learnest --help``. :class:`TrainingSettings` and
-:class:`NetworkSettings` are also importable from :mod:`~learnest_codegen.training` and
-:mod:`~learnest_codegen.network`, where they used to live.
+:class:`NetworkSettings` are re-exported by :mod:`~learnest_codegen.learning.training` and
+:mod:`~learnest_codegen.learning.network`.
 
 Recipes (``TRAINING_RECIPES``):
 
@@ -12,8 +12,8 @@ Recipes (``TRAINING_RECIPES``):
 * ``quick`` - :data:`QUICK_TRAINING`, ``learnest demo``'s default.
 * ``train_command`` - :data:`TRAIN_COMMAND_TRAINING`, ``learnest train``'s option defaults.
 
-The measured effect of every setting is in :mod:`~learnest_codegen.training`'s docstring and
-the project's ``docs/training.md``.
+The measured effect of every setting is in :mod:`~learnest_codegen.learning.training`'s
+docstring and the project's ``docs/training.md``.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ class TrainingSettings:
 
 
 #: The training the cartpole Table I task uses: the paper's Adam at 1e-2 for 250 epochs with the
-#: additions of :mod:`~learnest_codegen.training` (each one's measured effect is described there).
+#: additions of :mod:`~learnest_codegen.learning.training` (each one's measured effect is described there).
 RECOMMENDED_TRAINING = TrainingSettings(epochs=250, refine=5, restarts=3, weight_decay=0.1,
                                         weight_average=0.99)
 #: ``learnest demo``'s default: the same with two refinement rounds instead of five (half

@@ -19,7 +19,7 @@ from .integrators import rk4_step
 from .systems import System
 
 if TYPE_CHECKING:  # torch is not needed for nominal or true models
-    from .network import ResidualNet
+    from .learning.network import ResidualNet
 
 MODEL_KINDS = ("nominal", "true", "knode")
 

@@ -31,7 +31,7 @@ from .runtime.manifest import read_manifest
 from .systems import System, get_system
 
 if TYPE_CHECKING:
-    from .training import TrainedModel, TrainingSettings
+    from .learning.training import TrainedModel, TrainingSettings
 
 ModelLike = Union[str, Path, "TrainedModel", DiscreteModel, "ResolvedModel"]
 
@@ -79,7 +79,7 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
     ``settings`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`.
     """
     from .config import QUICK_TRAINING
-    from .training import train_on_run
+    from .learning.training import train_on_run
 
     return train_on_run(run, get_system(system), settings or QUICK_TRAINING, observer=observer,
                         full_state=full_state, progress=progress)

@@ -20,7 +20,7 @@ import torch
 
 from learnest_codegen import get_system
 from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.network import ResidualNet
+from learnest_codegen.learning.network import ResidualNet
 from learnest_codegen.simulation import simulate
 
 

@@ -35,11 +35,11 @@ from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
 from learnest_codegen.estimators.mhe_problem import MHESettings, steady_state_arrival
 from learnest_codegen.estimators.ukf import UKFSettings
 from learnest_codegen.export import hybrid_model
+from learnest_codegen.learning.training import TrainingSettings, train
 from learnest_codegen.runtime.mhe import CompiledMHE
 from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
 from learnest_codegen.runtime.ukf import CompiledUKF
 from learnest_codegen.simulation import simulate
-from learnest_codegen.training import TrainingSettings, train
 
 ACADOS_SQP_RTI_US = 52.0  # acados SQP-RTI on this NLP (cartpole KNODE, N=20), as measured for the project
 

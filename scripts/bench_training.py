@@ -30,9 +30,9 @@ import torch
 
 from learnest_codegen import get_system
 from learnest_codegen.config import RECOMMENDED_TRAINING, TrainingSettings
+from learnest_codegen.learning.training import train
 from learnest_codegen.observers import observe
 from learnest_codegen.simulation import simulate
-from learnest_codegen.training import train
 
 #: the settings timed: the default, the recommended recipe's single round (3 restarts), and
 #: full batch (what the default would cost with one step per epoch; not a recipe yet)

@@ -26,7 +26,7 @@ STAGES = [
     ("systems", 1),
     ("data", 2), ("simulation", 2), ("recordings", 2),
     ("observers", 3),
-    ("network", 4), ("training", 4), ("learning", 4),
+    ("learning", 4),
     ("export", 5), ("toolchain", 5),  # the compiler driver: codegen builds what it generates
     ("estimators", 6), ("runtime.manifest", 6), ("runtime.status", 6), ("codegen", 7),
     ("runtime", 8), ("compilation", 8),  # the registry of estimators: generate, reference, load

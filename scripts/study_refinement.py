@@ -29,9 +29,9 @@ from learnest_codegen import get_system
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.evaluation import mse
 from learnest_codegen.export import hybrid_model, prior_model, true_model
+from learnest_codegen.learning.training import TrainingSettings, train
 from learnest_codegen.observers import ekf_rts
 from learnest_codegen.simulation import simulate
-from learnest_codegen.training import TrainingSettings, train
 
 
 def study_seed(system, seed: int, rounds: int, epochs: int) -> dict:

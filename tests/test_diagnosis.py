@@ -208,7 +208,7 @@ def test_real_crazyflie_flights(tmp_path):
 
 def test_knode_model_is_compared(cartpole):
     """The learned residual of a (briefly) trained model is set against the measured one."""
-    from learnest_codegen.training import TrainingSettings, train_on_run
+    from learnest_codegen.learning.training import TrainingSettings, train_on_run
 
     run = simulate(cartpole, seed=3, duration=3.0)
     model = train_on_run(run, cartpole, TrainingSettings(epochs=2, refine=0), progress=False)

@@ -23,10 +23,10 @@ from learnest_codegen.data import write_run
 from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, SolverError
 from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
 from learnest_codegen.export import hybrid_model, prior_model
+from learnest_codegen.learning.training import TrainingSettings, train
 from learnest_codegen.runtime.mhe import CompiledMHE
 from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
 from learnest_codegen.runtime.status import STATUSES
-from learnest_codegen.training import TrainingSettings, train
 
 PARITY_ATOL = 1e-6
 RTI_MSE_RTOL = 0.02

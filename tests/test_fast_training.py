@@ -16,9 +16,9 @@ import torch
 
 from learnest_codegen import config
 from learnest_codegen.errors import UnknownNameError
+from learnest_codegen.learning.training import load_model, make_net, one_step_loss
 from learnest_codegen.observers import _discrete_with_jacobian, _ekf_passes, _rts_backward
 from learnest_codegen.simulation import simulate
-from learnest_codegen.training import load_model, make_net, one_step_loss
 
 OLD_MODEL = Path(__file__).parent / "data" / "model_b12bfa1"
 
@@ -59,7 +59,7 @@ def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
     zeta, u = run.x[:300], run.u[:300]
     settings = config.TrainingSettings(epochs=3, batch_size=64, seed=3, restarts=3, weight_decay=0.1,
                                        weight_average=0.9, validation_fraction=0.0)
-    from learnest_codegen.training import _train_stacked
+    from learnest_codegen.learning.training import _train_stacked
 
     models = _train_stacked(system, zeta, u, run.dt, settings, "", progress=False)
     # validation on the training pairs keeps the best epoch; the last one is compared
@@ -134,7 +134,7 @@ def test_a_model_saved_by_earlier_code_loads_and_predicts_the_same(cartpole):
 
 
 def test_training_settings_live_in_config_and_keep_their_old_homes():
-    from learnest_codegen import network, training
+    from learnest_codegen.learning import network, training
 
     assert training.TrainingSettings is config.TrainingSettings
     assert network.NetworkSettings is config.NetworkSettings

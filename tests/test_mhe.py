@@ -29,7 +29,7 @@ from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, S
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_problem import MHESettings, build_problem
 from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.network import ResidualNet
+from learnest_codegen.learning.network import ResidualNet
 from learnest_codegen.runtime.mhe import CompiledMHE
 from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
 

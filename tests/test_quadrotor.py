@@ -46,7 +46,7 @@ def test_residual_inputs_leave_out_position():
     """Translation invariance: no residual sees p; the state variant sees (v, a) only, and a
     model directory loads only with the system it was trained for."""
     from learnest_codegen.errors import ModelMismatchError
-    from learnest_codegen.training import TrainedModel, load_model, make_net
+    from learnest_codegen.learning.training import TrainedModel, load_model, make_net
 
     assert SYSTEMS["quadrotor_state"] is QUADROTOR_STATE
     va = ["vx", "vy", "vz", "ax", "ay", "az"]

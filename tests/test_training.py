@@ -13,10 +13,8 @@ import torch
 from learnest_codegen.errors import ModelMismatchError, ShapeError, UnknownNameError
 from learnest_codegen.export import hybrid_model, prior_model, true_model
 from learnest_codegen.integrators import rk4_step
-from learnest_codegen.network import NetworkSettings, ResidualNet
-from learnest_codegen.simulation import simulate
-from learnest_codegen.systems import get_system
-from learnest_codegen.training import (
+from learnest_codegen.learning.network import NetworkSettings, ResidualNet
+from learnest_codegen.learning.training import (
     TrainingSettings,
     load_model,
     make_net,
@@ -24,6 +22,8 @@ from learnest_codegen.training import (
     train,
     train_on_run,
 )
+from learnest_codegen.simulation import simulate
+from learnest_codegen.systems import get_system
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from learnest_codegen.codegen.ukf import generate_ukf, merwe_weights, ukf_step_f
 from learnest_codegen.errors import BuildError, DataError, ModelMismatchError, ShapeError
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.network import ResidualNet
+from learnest_codegen.learning.network import ResidualNet
 from learnest_codegen.runtime.ukf import CompiledUKF
 
 REPO = Path(__file__).resolve().parents[1]

@@ -335,7 +335,7 @@ def untrained_knode(system, seed: int = 0) -> DiscreteModel:
     import torch
 
     from learnest_codegen.export import hybrid_model
-    from learnest_codegen.training import make_net
+    from learnest_codegen.learning.training import make_net
 
     torch.manual_seed(seed)
     return hybrid_model(system, make_net(system))

@@ -77,7 +77,7 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
     ----------
     system : the system (its prior is diagnosed).
     runs : recorded or simulated runs of it.
-    model : an optional :class:`~learnest_codegen.training.TrainedModel` to compare with.
+    model : an optional :class:`~learnest_codegen.learning.training.TrainedModel` to compare with.
     settings : :class:`~learnest_codegen.diagnosis.settings.DiagnosisSettings`.
     work_dir : where compiled estimators go (C backend); a temporary folder by default.
     progress : show a progress bar.

@@ -19,11 +19,11 @@ import numpy as np
 from ..config import QUICK_TRAINING, TrainingSettings
 from ..data import write_run
 from ..evaluation import EstimateResult, format_table, mse_per_state, run_estimator
+from ..learning.training import train_on_run
 from ..pipeline import make_estimator, resolve
 from ..plotting import plot_errors, plot_estimates, plot_loss
 from ..simulation import simulate
 from ..systems import System
-from ..training import train_on_run
 
 LABELS = {"nominal": "", "knode": "KNODE-", "true": ""}
 

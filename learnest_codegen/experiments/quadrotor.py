@@ -57,10 +57,10 @@ from tqdm.auto import tqdm
 
 from ..data import Run
 from ..errors import DataError, LearnestError, UnknownNameError
-from ..network import NetworkSettings
+from ..learning.network import NetworkSettings
+from ..learning.training import TrainingSettings
 from ..systems import System
 from ..systems.quadrotor import QUADROTOR, QUADROTOR_STATE
-from ..training import TrainingSettings
 from .store import content_hash as _hash
 from .store import write_json as _write_json
 
@@ -231,7 +231,7 @@ def train_and_test(train: Case, tests: Sequence[Case], features: str, out: Path,
     "hash", "training": {...}, "cases": {case: {label: scores}}}``; a file with the same
     configuration hash is reused unless ``force``.
     """
-    from ..training import train_on_run
+    from ..learning.training import train_on_run
 
     system = feature_system(features)
     path = out / "runs" / train.name / f"{features}.json"

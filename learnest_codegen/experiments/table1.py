@@ -288,10 +288,10 @@ def run_job(job: Job) -> dict:
     import torch
 
     from ..evaluation import mse_per_state, run_estimator
+    from ..learning.training import train_on_run
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
     from ..simulation import simulate
     from ..systems import get_system
-    from ..training import train_on_run
 
     start = time.perf_counter()
     timings: dict[str, float] = {}

@@ -10,7 +10,7 @@
 * ``ekf_rts`` - an extended Kalman filter on the RK4-discretised model plus an RTS backward pass.
   With the prior model its accelerations come from physics plus the data, not from a
   kinematic random walk; with a hybrid model (``residual``) it refines the training targets in
-  :func:`~learnest_codegen.training.train_on_run`'s alternating scheme.
+  :func:`~learnest_codegen.learning.training.train_on_run`'s alternating scheme.
 * ``linear_rts`` - for a prior that is linear (``f = A x``, ``h = C x``, no input): the exact
   Kalman filter and RTS smoother of that model, with white noise driving the derivatives of
   ``system.residual_state_names`` (for the quadrotor: white jerk) and every output used (the

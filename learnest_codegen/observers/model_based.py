@@ -54,7 +54,7 @@ def innovation_loglik(run: Run, system: System, residual: Callable | None = None
 
     The EKF's innovation log-likelihood, maximised over the process-noise scale as
     :func:`ekf_rts` chooses it. It scores a model by its measurements alone, so it compares
-    models whose training states differ; :func:`~learnest_codegen.training.train_on_run` uses
+    models whose training states differ; :func:`~learnest_codegen.learning.training.train_on_run` uses
     it to choose between restarts.
     """
     with np.errstate(all="ignore"):

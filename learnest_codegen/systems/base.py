@@ -229,7 +229,7 @@ class System:
         or drag. A slope along the rail or an actuator offset would break it; a system with such
         effects declares no reflection. Training adds the mirror image of every training pair,
         so the net sees both directions of every motion the run made (see
-        :func:`learnest_codegen.training.train`).
+        :func:`learnest_codegen.learning.training.train`).
         """
         if self.reflection is None:
             return None

@@ -32,10 +32,10 @@ unseen runs. Ten seconds of data leave many nets that fit the training run equal
 decay picks the smallest, which is also the smoothest and extrapolates least.
 
 How it runs (speed, not results): the ``restarts`` initialisations of a round train together as
-one stacked model (:class:`~learnest_codegen.network.StackedMLP`, one batched matrix product per
+one stacked model (:class:`~learnest_codegen.learning.network.StackedMLP`, one batched matrix product per
 layer), each on its own mini-batch order, so each follows exactly the path it would follow
 alone; the hybrid model shares the prior's evaluation between the derivative, the net's
-features and its input correction (:meth:`~learnest_codegen.network.ResidualNet.hybrid`); the
+features and its input correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
 recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
 come free with the steps, and only the validation loss costs a pass per epoch.
 
@@ -67,12 +67,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
-from .data import Run, check_sampling
-from .errors import ModelMismatchError
-from .integrators import rk4_step
+from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
+from ..data import Run, check_sampling
+from ..errors import ModelMismatchError
+from ..integrators import rk4_step
+from ..systems import System
 from .network import NetworkSettings, ResidualNet, StackedMLP
-from .systems import System
 
 WEIGHTS, META = "weights.pt", "model.json"
 __all__ = ["QUICK_TRAINING", "RECOMMENDED_TRAINING", "TrainingSettings", "TrainedModel", "load_model",
@@ -158,7 +158,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     lists every restart's validation loss. A bad local optimum shows there: on the cartpole one
     of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
     six times the others'. The initialisations train together, as one stacked model
-    (:class:`~learnest_codegen.network.StackedMLP`); each follows exactly the path it would
+    (:class:`~learnest_codegen.learning.network.StackedMLP`); each follows exactly the path it would
     follow alone (its own initialisation and mini-batch order).
 
     A system that declares a mirror symmetry (:meth:`~learnest_codegen.systems.System.reflection_signs`)
@@ -358,8 +358,8 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
     check_sampling(run, system.dt, f"train_on_run({system.name})")
     observer = observer or system.default_observer
     start = time.perf_counter()
-    from .observers import ekf_rts, innovation_loglik, observe, smooth_states
-    from .simulation import noisy_states
+    from ..observers import ekf_rts, innovation_loglik, observe, smooth_states
+    from ..simulation import noisy_states
 
     score = None
     if not full_state and settings.restarts > 1:

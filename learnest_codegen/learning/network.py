@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from l4casadi.naive import MultiLayerPerceptron
 
-from .config import ACTIVATIONS, NetworkSettings
+from ..config import ACTIVATIONS, NetworkSettings
 
 __all__ = ["ACTIVATIONS", "NetworkSettings", "ResidualNet", "StackedMLP"]
 
