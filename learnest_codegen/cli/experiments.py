@@ -1,0 +1,163 @@
+"""``learnest demo`` and ``learnest reproduce table1|quadrotor``: the end-to-end demo and the paper's
+experiments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import click
+
+from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING
+from .common import SYSTEM_HELP, friendly, system_named
+
+
+@click.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
+@click.option("--epochs", default=QUICK_TRAINING.epochs, show_default=True)
+@click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
+@click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
+@click.option("--refine", default=QUICK_TRAINING.refine, show_default=True,
+              help=f"model-based smoothing rounds (0 = paper; Table I uses {RECOMMENDED_TRAINING.refine})")
+@click.option("--restarts", type=click.IntRange(min=1), default=QUICK_TRAINING.restarts, show_default=True,
+              help="initialisations per training round (the one whose model best explains the "
+                   "measurements is kept; 1 = paper)")
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=QUICK_TRAINING.weight_decay,
+              show_default=True, help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
+              default=QUICK_TRAINING.weight_average, show_default=True,
+              help="keep the moving average of the weights (decay per step; 0 = the weights "
+                   "themselves, as the paper)")
+@click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
+@friendly
+def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, weight_average,
+         no_python_mhe) -> None:
+    """Simulate, train, compile and compare nominal and KNODE estimators on a test run.
+
+    The training defaults are ``QUICK_TRAINING`` (learnest_codegen.config)."""
+    from ..experiments.demo import run_demo
+
+    training = replace(QUICK_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
+                       weight_decay=weight_decay, weight_average=weight_average)
+    report = run_demo(system_named(system_name), out, training=training, observer=observer,
+                      python_mhe=not no_python_mhe, duration=duration)
+    click.echo("\n" + report.table())
+    click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
+
+
+@click.group()
+def reproduce() -> None:
+    """Reproduce the paper's experiments (resumable sweeps over seeds)."""
+
+
+@reproduce.command("table1")
+@click.option("--tasks", default="cartpole,ground_robot", show_default=True,
+              help="comma-separated tasks (see learnest_codegen.experiments.DEFAULT_TASKS)")
+@click.option("--seeds", default=15, show_default=True, type=click.IntRange(min=1),
+              help="jobs per task; job s trains on seed 2s and tests on seed 2s+1")
+@click.option("--epochs", type=click.IntRange(min=1), default=None,
+              help="training epochs of both KNODE models (default: per task)")
+@click.option("--refine", type=click.IntRange(min=0), default=None,
+              help="EKF-RTS refinement rounds of the partial-measurement model (default: per task)")
+@click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
+@click.option("--jobs", type=click.IntRange(min=1), default=None, help="parallel jobs (default: all cores)")
+@click.option("--executor", type=click.Choice(["local", "ray", "dask"]), default="local", show_default=True)
+@click.option("--backend", type=click.Choice(["c", "python"]), default="c", show_default=True,
+              help="compiled C estimators, or the Python references")
+@click.option("--out", default="results/table1", show_default=True, type=click.Path(file_okay=False))
+@click.option("--force", is_flag=True, help="redo jobs whose results already exist")
+@click.option("--combine-only", is_flag=True, help="only remake the table and figure from existing results")
+@click.option("--no-progress", is_flag=True, help="no progress bar (one line per finished job only)")
+@friendly
+def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out, force, combine_only,
+           no_progress) -> None:
+    """Table I of the paper: 8 estimators on every task and seed.
+
+    One job per (task, seed) writes OUT/runs/<task>/seed_<s>.json; finished jobs of the same
+    configuration are skipped (resume), --force redoes them. All results present are combined
+    into OUT/table1.md, table1.csv, table1.png and summary.json. A failed job is recorded in
+    seed_<s>.error.json and the command exits non-zero after the others have run.
+    """
+    import os
+    import time
+
+    from .. import experiments as rep
+
+    start = time.perf_counter()
+    if combine_only:
+        table = rep.combine(out)
+        failed = {}
+    else:
+        configs = rep.task_configs([t.strip() for t in tasks.split(",") if t.strip()], epochs=epochs,
+                                   duration=duration, refine=refine)
+        click.echo(rep.config_summary(configs))
+        report = rep.run_sweep(configs, seeds=seeds, out=out, jobs=jobs or os.cpu_count(), executor=executor,
+                               backend=backend, force=force, progress=not no_progress, echo=click.echo)
+        table, failed = report.table, report.failed
+    click.echo("\n" + table.markdown)
+    click.echo(f"wrote {', '.join(table.files)}")
+    click.echo(f"wall time {time.perf_counter() - start:.1f} s")
+    if failed:
+        listing = "; ".join(f"{t} seed {s}: {e.splitlines()[0]}" for (t, s), e in sorted(failed.items()))
+        raise click.ClickException(f"{len(failed)} job(s) failed (tracebacks in "
+                                   f"{Path(out) / 'runs'}/<task>/seed_<s>.error.json): {listing}")
+
+
+@reproduce.command("quadrotor")
+@click.option("--data", type=click.Path(file_okay=False), default=None,
+              help="data root or nanobench folder (default: ../shared/data or $LEARNEST_DATA)")
+@click.option("--simulated", type=click.IntRange(min=2), default=None,
+              help="use this many simulated quadrotor runs (seeds 0..N-1) instead of flights")
+@click.option("--train", "train_names", default=None,
+              help="comma-separated training flight(s) (default: B2_circle_medium_rep1, or sim_seed0)")
+@click.option("--all-train", is_flag=True, help="repeat with every flight as the training flight")
+@click.option("--features", default="state,thrust", show_default=True,
+              help="residual inputs: state (v, a: system quadrotor_state, the paper's) and/or "
+                   "thrust (v, a, thrust, vbat: system quadrotor)")
+@click.option("--matrix", default="", show_default=True,
+              help="more training flights, tested with the UKF only (comma-separated, or 'default' "
+                   "for a slow and a fast circle and figure-eight)")
+@click.option("--estimators", default="mhe,ukf", show_default=True, help="mhe and/or ukf")
+@click.option("--epochs", default=150, show_default=True, type=click.IntRange(min=1))
+@click.option("--observer", default="linear_rts", show_default=True,
+              help="pre-training observer (rts: position only, per axis)")
+@click.option("--savgol-window", default=151, show_default=True, type=click.IntRange(min=3),
+              help="Savitzky-Golay window of the reference [samples]")
+@click.option("--out", default="results/quadrotor", show_default=True, type=click.Path(file_okay=False))
+@click.option("--force", is_flag=True, help="redo studies whose results already exist")
+@friendly
+def quadrotor(data, simulated, train_names, all_train, features, matrix, estimators, epochs,
+              observer, savgol_window, out, force) -> None:
+    """The paper's quadrotor experiment (Fig. 3) on NanoBench Crazyflie flights.
+
+    Trains KNODE on one flight, compiles KNODE-MHE and KNODE-UKF, and compares them with the
+    nominal MHE and UKF (and the onboard EKF's velocity) on every other flight against
+    Savitzky-Golay reference states. Writes OUT/quadrotor.{md,json,png}.
+    """
+
+    from ..experiments import quadrotor as fs
+    from ..recordings import data_root
+
+    split = lambda text: [p.strip() for p in text.split(",") if p.strip()]  # noqa: E731
+    skipped = None
+    if simulated:
+        cases, default = fs.simulated_cases(range(simulated)), "sim_seed0"
+    else:
+        root = data_root(data)
+        if root is None:
+            raise click.ClickException("no data folder found: pass --data DIR or set $LEARNEST_DATA")
+        skipped: dict[str, str] = {}
+        cases, default = fs.flight_cases(root, skipped=skipped, savgol_window=savgol_window), fs.DEFAULT_TRAIN
+        for name, reason in skipped.items():
+            click.echo(f"skipped {name}: {reason}", err=True)
+    train = [c.name for c in cases] if all_train else split(train_names or default)
+    base = fs.StudySettings()
+    settings = fs.StudySettings(training=replace(base.training, epochs=epochs), observer=observer,
+                                estimators=tuple(split(estimators)))
+    matrix = list(fs.DEFAULT_MATRIX) if matrix.strip() == "default" else split(matrix)
+    summaries = fs.run_study(cases, out, train=train, features=split(features), settings=settings,
+                             matrix=matrix, force=force, skipped=skipped)
+    click.echo("\n" + fs.markdown(summaries).split("### medians")[-1])
+    click.echo(f"wrote {Path(out) / 'quadrotor.md'}, quadrotor.json, quadrotor.png")

@@ -1,0 +1,91 @@
+"""``learnest simulate`` and ``learnest train``: a run from the true system, a model from a run.
+"""
+
+from __future__ import annotations
+
+import click
+
+from ..config import ACTIVATIONS
+from ..config import TRAIN_COMMAND_TRAINING as _TRAIN
+from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, read_run, system_named
+
+
+@click.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--seed", default=0, show_default=True, help="seeds the excitation and the noise")
+@click.option("--duration", type=float, default=None, help="run length [s] (default: the system's)")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="run CSV to write")
+@FORCE
+@friendly
+def simulate(system_name: str, seed: int, duration: float | None, out: str, force: bool) -> None:
+    """Simulate the true system and write a run CSV (truth included)."""
+    from ..data import write_run
+    from ..outputs import claim_output
+    from ..simulation import simulate as sim
+
+    claim_output(out, force=force)
+    system = system_named(system_name)
+    run = sim(system, seed, duration=duration)
+    write_run(run, system, out)
+    click.echo(f"wrote {out}: {len(run)} samples of {system.name}, dt={run.dt:g} s")
+
+
+@click.command()
+@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="training run CSV")
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="model directory to write")
+@click.option("--epochs", default=_TRAIN.epochs, show_default=True)
+@click.option("--lr", "learning_rate", default=_TRAIN.learning_rate, show_default=True,
+              help="Adam learning rate")
+@click.option("--batch-size", default=_TRAIN.batch_size, show_default=True,
+              help="pairs per step (at least the training pairs: full batch)")
+@click.option("--hidden", default=_TRAIN.network.hidden, show_default=True, help="hidden neurons per layer")
+@click.option("--layers", default=_TRAIN.network.layers, show_default=True,
+              help="linear layers (2 = one hidden layer)")
+@click.option("--activation", default=_TRAIN.network.activation, show_default=True,
+              type=click.Choice(ACTIVATIONS))
+@click.option("--observer", default=None,
+              help="pre-training observer turning (y, u) into state observations "
+                   "(default: the system's own; see `learnest_codegen.observers.OBSERVERS`)")
+@click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
+@click.option("--refine", default=_TRAIN.refine, show_default=True,
+              help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
+@click.option("--validation-fraction", default=_TRAIN.validation_fraction, show_default=True,
+              help="final share of the run held out for early stopping; 0 disables")
+@click.option("--restarts", type=click.IntRange(min=1), default=_TRAIN.restarts, show_default=True,
+              help="initialisations trained per round; through an observer the one whose model "
+                   "best explains the measurements (EKF likelihood) is kept, on full states the "
+                   "lowest validation loss")
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=_TRAIN.weight_decay,
+              show_default=True,
+              help="decoupled weight decay (AdamW); 0.1 helps the cartpole's nets generalise")
+@click.option("--final-lr", "final_learning_rate", type=click.FloatRange(min=0.0, min_open=True),
+              default=_TRAIN.final_learning_rate,
+              help="anneal the learning rate to this value (cosine); default: constant")
+@click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
+              default=_TRAIN.weight_average, show_default=True,
+              help="validate and keep the moving average of the weights with this decay per step "
+                   "(e.g. 0.99); 0 = the weights themselves")
+@click.option("--seed", default=_TRAIN.seed, show_default=True)
+@RESAMPLE
+@FORCE
+@friendly
+def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
+          observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
+          weight_average, seed, resample, force) -> None:
+    """Train the KNODE residual network on a run and write a model directory."""
+    from ..config import NetworkSettings, TrainingSettings
+    from ..learning.training import train_on_run
+    from ..outputs import atomic_dir, claim_output
+
+    claim_output(out, inputs=(data,), force=force, kind="dir")
+    system = system_named(system_name)
+    run = read_run(data, system, resample)
+    settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
+                                NetworkSettings(layers, hidden, activation), validation_fraction, refine,
+                                restarts, weight_decay, final_learning_rate, weight_average)
+    model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
+    with atomic_dir(out) as tmp:
+        model.save(tmp)
+    click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
+               f"(prior alone {model.meta['prior_loss']:.4e}), {model.meta['train_seconds']:.1f} s")
