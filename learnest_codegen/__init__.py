@@ -15,10 +15,12 @@ from .data import read_run as read_run
 from .data import resample as resample
 from .data import write_run as write_run
 from .errors import LearnestError as LearnestError
+from .estimators.contract import Estimator as Estimator
 from .evaluation import mse as mse
 from .pipeline import compile_estimator as compile_estimator
 from .pipeline import evaluate as evaluate
 from .pipeline import load_estimator as load_estimator
+from .pipeline import make_estimator as make_estimator
 from .pipeline import reference_estimator as reference_estimator
 from .pipeline import resolve as resolve
 from .pipeline import simulate as simulate

@@ -3,7 +3,6 @@ models saved by earlier code."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -54,7 +53,7 @@ def _sequential_reference(system, zeta, u, dt, settings):
 def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
     """Three initialisations trained together as one stacked model end where each ends when
     trained alone, weight decay, mini-batches and weight average included (to 1e-12)."""
-    system = dataclasses.replace(cartpole, reflection=None)
+    system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:300], run.u[:300]
     settings = config.TrainingSettings(epochs=3, batch_size=64, seed=3, restarts=3, weight_decay=0.1,

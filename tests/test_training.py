@@ -111,8 +111,8 @@ def test_residual_acts_only_on_dynamic_states(cartpole, clean_model):
     assert np.all(delta[:, [0, 2]] == 0.0) and np.abs(delta[:, [1, 3]]).min() > 0
     f = hybrid_model(cartpole, clean_model.net).f_continuous.map(50)(x.numpy().T, u.numpy().T)
     np.testing.assert_allclose(f.full().T[:, [0, 2]], x.numpy()[:, [1, 3]], rtol=0, atol=1e-14)
-    with pytest.raises(ValueError, match="residual_states"):
-        get_system("cartpole").__class__(**{**cartpole.__dict__, "residual_states": ("nope",)})
+    with pytest.raises(ValueError, match=r"residual\.states"):
+        cartpole.with_residual(via=None, states=("nope",))
 
 
 def test_full_state_smoother_beats_raw_noise(cartpole, cartpole_run):
@@ -168,8 +168,8 @@ def test_residual_ignores_the_coordinates_the_physics_is_invariant_to(name):
 
 
 def test_residual_inputs_must_name_signals(cartpole):
-    with pytest.raises(ValueError, match="residual_inputs"):
-        dataclasses.replace(cartpole, residual_inputs=("p", "nonsense"))
+    with pytest.raises(ValueError, match=r"residual\.inputs"):
+        cartpole.with_residual(inputs=("p", "nonsense"))
     with pytest.raises(ValueError, match="inputs must be a non-empty subset"):
         ResidualNet(4, 1, inputs=(7,))
 
@@ -198,7 +198,7 @@ def _assert_acts_as_force(cartpole, net, x, u, force) -> np.ndarray:
 
 
 def test_residual_via_an_input_is_an_input_correction(cartpole):
-    """With ``residual_via`` the net's output is a force: Delta = f(x, u + c) - f(x, u) for a net
+    """With ``residual.via`` the net's output is a force: Delta = f(x, u + c) - f(x, u) for a net
     that outputs the constant c, in torch and CasADi; it changes only the accelerations."""
     assert cartpole.residual_via_names == ["F"]
     net = make_net(cartpole)
@@ -213,16 +213,16 @@ def test_residual_via_an_input_is_an_input_correction(cartpole):
 
 
 def test_residual_via_is_checked(cartpole, tmp_path):
-    with pytest.raises(ValueError, match="residual_via"):
-        dataclasses.replace(cartpole, residual_via=("pdot",))
+    with pytest.raises(ValueError, match=r"residual\.via"):
+        cartpole.with_residual(via=("pdot",))
     with pytest.raises(ValueError, match="not both"):
-        dataclasses.replace(cartpole, residual_states=("pdot",))
+        cartpole.with_residual(states=("pdot",))
     with pytest.raises(ValueError, match="via must index"):
         ResidualNet(4, 1, via=(0,))  # no prior dynamics to act through
     run = simulate(cartpole, 0, duration=0.2)
     model = train(cartpole, run.x, run.u, run.dt, TrainingSettings(epochs=1), progress=False)
     model.save(tmp_path / "m")
-    unstructured = dataclasses.replace(cartpole, residual_via=None)
+    unstructured = cartpole.with_residual(via=None)
     with pytest.raises(ModelMismatchError, match="residual structure"):
         load_model(tmp_path / "m", unstructured)
     assert load_model(tmp_path / "m", cartpole).hash == model.hash
@@ -243,17 +243,17 @@ def test_prior_features_are_the_prior_derivatives(cartpole):
         net.mlp.input_layer.weight[0, -2] = 0.3  # hidden unit 0 reads the prior's pdd
         net.mlp.output_layer.weight[0, 0] = 2.0
     _assert_acts_as_force(cartpole, net, x, u, 2.0 * np.tanh(0.3 * cartpole.f(x, u)[:, 1]))  # unit scaling
-    with pytest.raises(ValueError, match="residual_prior_features"):
-        dataclasses.replace(cartpole, residual_prior_features=("nope",))
+    with pytest.raises(ValueError, match=r"residual\.prior_features"):
+        cartpole.with_residual(prior_features=("nope",))
     with pytest.raises(ValueError, match="prior_features must index"):
         ResidualNet(4, 1, prior_features=(1,))
 
 
 def test_prior_gains_multiply_the_prior_accelerations(cartpole):
-    """``residual_prior_gains``: further MLP outputs are gains on the (scaled) prior
+    """``residual.prior_gains``: further MLP outputs are gains on the (scaled) prior
     accelerations. A net whose only nonzero weight is the bias of the gain on pdd acts through
     the force ``g * pdd_prior``, identically in torch and CasADi."""
-    assert cartpole.residual_prior_gains
+    assert cartpole.residual.prior_gains
     net = make_net(cartpole)
     assert net.mlp.output_layer.bias.shape == (3,)  # force, gain on pdd, gain on alpha_dd
     rng = np.random.default_rng(9)
@@ -264,14 +264,14 @@ def test_prior_gains_multiply_the_prior_accelerations(cartpole):
         net.mlp.output_layer.bias[1] = -0.4
         net.in_scale[-2] = 2.0  # the gain multiplies the prior feature over its scale
     _assert_acts_as_force(cartpole, net, x, u, -0.4 * cartpole.f(x, u)[:, 1] / 2.0)
-    with pytest.raises(ValueError, match="residual_prior_gains"):
-        dataclasses.replace(cartpole, residual_prior_features=())
+    with pytest.raises(ValueError, match=r"residual\.prior_gains"):
+        cartpole.with_residual(prior_features=())
     with pytest.raises(ValueError, match="prior_gains"):
         ResidualNet(4, 1, prior_gains=True)
 
 
 def test_heavier_cart_is_a_gain_on_the_prior_acceleration(cartpole):
-    """Closed form behind ``residual_prior_gains``: with ``b = d pdd_prior / dF`` (pdd is affine
+    """Closed form behind ``residual.prior_gains``: with ``b = d pdd_prior / dF`` (pdd is affine
     in F), the true cartpole is the prior driven by ``F + g * pdd_prior`` with
     ``g = -Delta m_c / (1 + b Delta m_c)``, a gain that depends on the pole angle only."""
     rng = np.random.default_rng(10)
@@ -363,7 +363,7 @@ def test_weight_decay_settings_and_identity():
 def test_weight_decay_is_decoupled_adamw(cartpole, cartpole_run):
     """One epoch with decay equals torch's AdamW from the same initialisation (and differs from
     plain Adam): the setting reaches the optimiser."""
-    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)  # the pairs as given
+    run, cartpole = cartpole_run, cartpole.with_residual(reflection=None)  # the pairs as given
     settings = TrainingSettings(epochs=1, seed=3, weight_decay=0.5, validation_fraction=0.0,
                                 batch_size=10_000)
     model = train(cartpole, run.x[:400], run.u[:400], run.dt, settings, progress=False)
@@ -396,7 +396,7 @@ def test_final_learning_rate_is_a_cosine_annealing(cartpole, cartpole_run):
     """Three full-batch epochs equal plain Adam steps at the closed-form cosine rates
     ``eta_min + (eta_0 - eta_min) (1 + cos(pi t / (E - 1))) / 2``, t = 0, 1, 2, and differ from
     steps at the constant rate."""
-    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)
+    run, cartpole = cartpole_run, cartpole.with_residual(reflection=None)
     lr0, lr1, epochs = 1e-2, 1e-4, 3
     settings = TrainingSettings(epochs=epochs, seed=5, validation_fraction=0.0, batch_size=10_000,
                                 learning_rate=lr0, final_learning_rate=lr1)
@@ -434,7 +434,7 @@ def test_weight_average_keeps_the_moving_average(cartpole, cartpole_run):
     """With ``weight_average = d`` the net validated and kept is the exponential moving average
     ``w_bar <- d w_bar + (1 - d) w`` of plain Adam's iterates, started at the initialisation:
     four full-batch epochs replicated by hand."""
-    run, cartpole = cartpole_run, dataclasses.replace(cartpole, reflection=None)
+    run, cartpole = cartpole_run, cartpole.with_residual(reflection=None)
     d, epochs = 0.5, 4
     settings = TrainingSettings(epochs=epochs, seed=7, validation_fraction=0.0, batch_size=10_000,
                                 weight_average=d)
@@ -488,7 +488,7 @@ def test_cartpole_reflection_is_a_symmetry_of_prior_and_truth(cartpole):
                                    sxt * cartpole.f(xt, ut, variant=variant))
     assert get_system("ground_robot").reflection_signs() is None
     with pytest.raises(ValueError, match="reflection"):
-        dataclasses.replace(cartpole, reflection=("p", "nope"))
+        cartpole.with_residual(reflection=("p", "nope"))
 
 
 def test_training_with_reflection_learns_a_mirror_symmetric_residual(cartpole, cartpole_run):
@@ -496,7 +496,7 @@ def test_training_with_reflection_learns_a_mirror_symmetric_residual(cartpole, c
     run never visited in that direction; trained on the run alone it does not."""
     run = cartpole_run
     sx, su = (torch.as_tensor(s) for s in cartpole.reflection_signs())
-    plain = dataclasses.replace(cartpole, reflection=None)
+    plain = cartpole.with_residual(reflection=None)
     x, u = torch.as_tensor(run.x), torch.as_tensor(run.u)
     asymmetry = {}
     for name, system in (("mirrored", cartpole), ("plain", plain)):

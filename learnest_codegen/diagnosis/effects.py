@@ -38,14 +38,15 @@ bias                 ``ds' = theta``                            ``direct:<s>`` (
 ===================  =========================================  =======================
 
 *Velocity states* are the residual states whose unit is a rate (``.../s`` but not ``.../s^2``),
-or ``System.extra["velocity_states"]`` when a system declares them. A velocity-dependent force
+or ``System.diagnosis.velocity_states`` when a system declares them. A velocity-dependent force
 on velocity ``v`` is offered directly on ``v'`` and through every input whose prior path reaches
 ``v'`` (structurally, ``casadi.depends_on``); which one fits is for the data to decide.
 *Mass parameters* are those named like masses or inertias (``m``, ``m_*``, ``mass*``, ``I*``,
-``J*``, ``inertia*``) or listed in ``System.extra["mass_params"]``.
+``J*``, ``inertia*``) or listed in ``System.diagnosis.mass_params``.
 
 Systems may add their own kinds: :func:`register_system_effects` (built-in systems) or
-``System.extra["effects"] = fn(system, context) -> list[Effect]`` in a user's system file.
+``System(..., diagnosis=DiagnosisHints(effects=fn))`` in a user's system file, with
+``fn(system, context) -> list[Effect]``.
 """
 
 from __future__ import annotations
@@ -147,13 +148,13 @@ _MASS = re.compile(r"^(m|mass.*|m_.*|inertia.*|i|i_.*|j|j_.*|i[xyz]{1,2}|j[xyz]{
 
 
 def velocity_states(system: System) -> dict[str, str]:
-    """Velocity states (unit a rate, ``m/s``, ``rad/s``; or ``extra["velocity_states"]``) that a
+    """Velocity states (unit a rate, ``m/s``, ``rad/s``; or ``System.diagnosis.velocity_states``) that a
     residual can act on, each mapped to the state whose derivative a force on it changes: itself
     if it is a residual state, else the residual state that ends its kinematic chain."""
     residual = system.residual_state_names
     chain_end = {n: c.states[-1] for c in system.kinematic_chains for n in c.states
                  if c.states[-1] in residual}
-    declared = system.extra.get("velocity_states")
+    declared = system.diagnosis.velocity_states
     units = {s.name: s.unit.strip() for s in system.states}
     names = declared if declared is not None else [n for n in system.state_names if _RATE.search(units[n])]
     out = {}
@@ -166,8 +167,8 @@ def velocity_states(system: System) -> dict[str, str]:
 
 
 def mass_params(system: System) -> tuple[str, ...]:
-    """Prior parameters that are masses or inertias (by name, or ``extra["mass_params"]``)."""
-    declared = system.extra.get("mass_params")
+    """Prior parameters that are masses or inertias (by name, or ``System.diagnosis.mass_params``)."""
+    declared = system.diagnosis.mass_params
     if declared is not None:
         return tuple(declared)
     return tuple(p for p in system.params if _MASS.match(p))
@@ -369,7 +370,7 @@ def _system_effects(system: System, context: LibraryContext) -> list[Effect]:
     out = []
     if system.name in _SYSTEM_EFFECTS:
         out += list(_SYSTEM_EFFECTS[system.name](system, context))
-    user = system.extra.get("effects")
+    user = system.diagnosis.effects
     if callable(user):
         out += list(user(system, context))
     return out

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..systems import KinematicChain, NoiseModel, Signal, System
+from ..systems import DiagnosisHints, KinematicChain, NoiseModel, Signal, System
 
 PENDULUM_PRIOR = {"J": 0.05, "mgl": 1.0}  # [kg m^2], [N m]
 PENDULUM_TRUE = {"J": 0.1, "mgl": 1.6}
@@ -52,7 +52,7 @@ def pendulum(friction: float = PENDULUM_FRICTION) -> System:
         dt=0.01, duration=30.0, x0=(0.2, 0.0),
         excitation=_excitation,
         kinematic_chains=(KinematicChain("q", ("q", "qdot")),),
-        extra={"mass_params": ("J",)},
+        diagnosis=DiagnosisHints(mass_params=("J",)),
     )
 
 

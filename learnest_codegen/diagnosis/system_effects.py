@@ -3,7 +3,7 @@
 The generic kinds of :mod:`~learnest_codegen.diagnosis.effects` are derived from any system's
 structure; the terms here need to know what a system's states and inputs mean (the quadrotor's
 commanded thrust, its battery voltage). A user's system file adds its own through
-``System.extra["effects"]`` instead.
+``System.diagnosis.effects`` instead.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ unseen run):
   states' velocities fell from 0.017-0.028 to 0.004-0.005 in steps of 10-20 %.
 
 A system's declared mirror symmetry doubles the data: every pair is also used mirrored
-(``System.reflection``). On the cartpole this took the worst Table I job from 90.5 % to 99.8 %
+(``System.residual.reflection``). On the cartpole this took the worst Table I job from 90.5 % to 99.8 %
 of the UKF gap closed: its training run had swung one way harder than the other.
 
 And an optional decoupled weight decay (``weight_decay``, AdamW): on the cartpole it takes the
@@ -121,7 +121,7 @@ def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> R
     prior_features = tuple(names.index(n) for n in system.residual_prior_feature_names)
     return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs, via,
                        prior=system.f if via or prior_features else None,
-                       prior_features=prior_features, prior_gains=system.residual_prior_gains)
+                       prior_features=prior_features, prior_gains=system.residual.prior_gains)
 
 
 def residual_structure(system: System) -> dict:
@@ -129,7 +129,7 @@ def residual_structure(system: System) -> dict:
     return {"inputs": system.residual_input_names, "via": system.residual_via_names,
             "states": [] if system.residual_via_names else system.residual_state_names,
             "prior_features": system.residual_prior_feature_names,
-            **({"prior_gains": True} if system.residual_prior_gains else {})}
+            **({"prior_gains": True} if system.residual.prior_gains else {})}
 
 
 def data_hash(*arrays: np.ndarray) -> str:

@@ -16,7 +16,7 @@
   ``system.residual_state_names`` (for the quadrotor: white jerk) and every output used (the
   quadrotor's accelerometer as well as its position). Intensities by maximum likelihood.
 * ``ukf_kf`` - the paper's observer for the ground robot, for systems that declare
-  ``extra={"planar_pose": (x, y, v, psi)}``: a precursory UKF on a kinematic model extracts the
+  ``planar_pose=(x, y, v, psi)``: a precursory UKF on a kinematic model extracts the
   position and heading through the system's own ``h``, then a linear constant-acceleration KF
   extracts the speed from those positions. Causal filters only.
 * ``ukf_rts`` - the same with an RTS backward pass after each stage (the ground robot's default).
@@ -47,7 +47,6 @@ from .model_based import _model_ukf
 from .model_based import _rts_backward as _rts_backward
 from .model_based import ekf_rts as ekf_rts
 from .model_based import innovation_loglik as innovation_loglik
-from .planar_pose import PLANAR_POSE as PLANAR_POSE
 from .planar_pose import _two_stage
 from .planar_pose import planar_pose_indices as planar_pose_indices
 

@@ -29,23 +29,22 @@ from .base import JERK_GRID, Observations
 # robot: speed MSE 3e-3 instead of 3e-4 after smoothing). The speed is the norm of the (vx, vy)
 # estimate, which is the bicycle's speed whatever the slip angle (the projection on the heading
 # would be v cos(beta)).
-PLANAR_POSE = "planar_pose"
 ACCEL_GRID = np.logspace(-2, 3, 6)  # white-acceleration densities tried, stage 1 [m^2 / s^3]
 TURN_GRID = np.logspace(-3, 2, 6)  # white angular-acceleration densities [rad^2 / s^3]
 STAGE1_TUNING_SAMPLES = 1000  # the likelihood grid of stage 1 runs on the first samples only
 
 
 def planar_pose_indices(system: System) -> tuple[int, int, int, int]:
-    """Indices of the states ``(x, y, v, psi)`` named by ``system.extra["planar_pose"]``."""
-    names = system.extra.get(PLANAR_POSE)
+    """Indices of the states ``(x, y, v, psi)`` named by ``system.planar_pose``."""
+    names = system.planar_pose
     if names is None:
         raise ValueError(f"system {system.name!r} declares no planar pose: the 'ukf_kf' and "
-                         f"'ukf_rts' observers need extra={{'{PLANAR_POSE}': (x, y, v, psi)}} "
+                         "'ukf_rts' observers need planar_pose=(x, y, v, psi) "
                          "naming its position, speed and heading states")
     names = tuple(names)
     unknown = [n for n in names if n not in system.state_names]
     if len(names) != 4 or unknown:
-        raise ValueError(f"system {system.name!r}: extra['{PLANAR_POSE}'] must name 4 states "
+        raise ValueError(f"system {system.name!r}: planar_pose must name 4 states "
                          f"(x, y, v, psi) among {system.state_names}, got {names}")
     if len(set(names)) != 4 or system.nx != 4:
         raise ValueError(f"system {system.name!r}: the planar-pose observers estimate exactly "

@@ -7,8 +7,10 @@ import importlib.util
 from pathlib import Path
 
 from ..errors import SystemFileError, UnknownNameError
+from .base import DiagnosisHints as DiagnosisHints
 from .base import KinematicChain as KinematicChain
 from .base import NoiseModel as NoiseModel
+from .base import ResidualStructure as ResidualStructure
 from .base import Signal as Signal
 from .base import System as System
 from .cartpole import CARTPOLE

@@ -67,6 +67,50 @@ class KinematicChain:
 
 
 @dataclass(frozen=True)
+class ResidualStructure:
+    """Where the learned residual enters the dynamics and what it may depend on.
+
+    Every field is optional; the defaults give a residual on every state derivative that is not
+    a kinematic identity, depending on all states and inputs. The resolved names are
+    :attr:`System.residual_state_names` and its siblings, which document each field's effect.
+
+    Attributes
+    ----------
+    states : states whose derivative the residual may change.
+    inputs : states and inputs the residual depends on (leave out what the physics is invariant to).
+    via : inputs through which the residual acts as a generalised force (exclusive with ``states``).
+    prior_features : states whose prior derivative the residual also sees.
+    prior_gains : the residual also multiplies those prior derivatives by learned gains.
+    reflection : states and inputs that change sign under the system's mirror symmetry.
+    """
+
+    states: tuple[str, ...] | None = None
+    inputs: tuple[str, ...] | None = None
+    via: tuple[str, ...] | None = None
+    prior_features: tuple[str, ...] = ()
+    prior_gains: bool = False
+    reflection: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class DiagnosisHints:
+    """What ``learnest diagnose`` cannot infer from the names of a system (all optional).
+
+    Attributes
+    ----------
+    velocity_states : states that are velocities (default: the last state of each kinematic
+        chain, then names such as ``*dot`` / ``v*``); velocity-dependent effects act on them.
+    mass_params : parameters that are masses or inertias (default: names such as ``m*``, ``J*``).
+    effects : ``fn(system, context) -> list[Effect]``, the system's own candidate effects added
+        to the library (see :mod:`learnest_codegen.diagnosis.effects`).
+    """
+
+    velocity_states: tuple[str, ...] | None = None
+    mass_params: tuple[str, ...] | None = None
+    effects: Callable | None = None
+
+
+@dataclass(frozen=True)
 class System:
     """A dynamical system ``xdot = f(x, u, p)``, ``y = h(x, u, p)``.
 
@@ -74,6 +118,10 @@ class System:
     ``true_params`` is the system that generates simulated data. Both are written once against
     an ``ops`` backend and evaluate on numpy arrays ``(..., n)``, torch tensors ``(..., n)`` and
     CasADi columns ``(n, 1)``.
+
+    ``residual`` says where a learned residual enters (learning's view of the system),
+    ``planar_pose`` names the pose states of a planar vehicle (the ``ukf_rts`` observer) and
+    ``diagnosis`` gives ``learnest diagnose`` what it cannot infer from names.
     """
 
     name: str
@@ -93,14 +141,10 @@ class System:
     kinematic_chains: tuple[KinematicChain, ...] = ()
     periodic_states: tuple[str, ...] = ()  # angles: learned models see their sin and cos
     default_observer: str = "rts"  # pre-training observer used when none is named
-    residual_states: tuple[str, ...] | None = None  # see residual_state_names
-    residual_inputs: tuple[str, ...] | None = None  # see residual_input_names
-    residual_via: tuple[str, ...] | None = None  # see residual_via_names
-    residual_prior_features: tuple[str, ...] = ()  # see residual_prior_feature_names
-    residual_prior_gains: bool = False  # see the docstring of residual_prior_feature_names
-    reflection: tuple[str, ...] | None = None  # see reflection_signs
+    planar_pose: tuple[str, str, str, str] | None = None  # states (x, y, v, psi) of a planar vehicle
+    residual: ResidualStructure = field(default_factory=ResidualStructure)
+    diagnosis: DiagnosisHints = field(default_factory=DiagnosisHints)
     description: str = ""
-    extra: Mapping[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
@@ -117,30 +161,34 @@ class System:
                 raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
         if not self.dt > 0 or not self.duration > self.dt:
             raise ValueError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, {self.duration}")
-        unknown = [n for n in (*self.periodic_states, *(self.residual_states or ()),
-                               *self.residual_prior_features) if n not in self.state_names]
+        unknown = [n for n in (*self.periodic_states, *(self.residual.states or ()),
+                               *self.residual.prior_features) if n not in self.state_names]
         if unknown:
-            raise ValueError(f"system {self.name!r}: periodic_states/residual_states/"
-                             f"residual_prior_features {unknown} are not states")
+            raise ValueError(f"system {self.name!r}: periodic_states/residual.states/"
+                             f"residual.prior_features {unknown} are not states")
         signals = {*self.state_names, *self.input_names}
-        unknown = [n for n in (self.reflection or ()) if n not in signals]
-        if unknown or self.reflection == ():
-            raise ValueError(f"system {self.name!r}: reflection {unknown or '()'} must name "
+        unknown = [n for n in (self.residual.reflection or ()) if n not in signals]
+        if unknown or self.residual.reflection == ():
+            raise ValueError(f"system {self.name!r}: residual.reflection {unknown or '()'} must name "
                              f"states or inputs ({sorted(signals)})")
-        unknown = [n for n in (self.residual_inputs or ()) if n not in signals]
-        if unknown or self.residual_inputs == ():
-            raise ValueError(f"system {self.name!r}: residual_inputs {unknown or '()'} must name "
+        unknown = [n for n in (self.residual.inputs or ()) if n not in signals]
+        if unknown or self.residual.inputs == ():
+            raise ValueError(f"system {self.name!r}: residual.inputs {unknown or '()'} must name "
                              f"states or inputs ({sorted(signals)})")
-        unknown = [n for n in (self.residual_via or ()) if n not in self.input_names]
-        if unknown or self.residual_via == ():
-            raise ValueError(f"system {self.name!r}: residual_via {unknown or '()'} must name "
+        unknown = [n for n in (self.residual.via or ()) if n not in self.input_names]
+        if unknown or self.residual.via == ():
+            raise ValueError(f"system {self.name!r}: residual.via {unknown or '()'} must name "
                              f"inputs ({self.input_names})")
-        if self.residual_prior_gains and not self.residual_prior_features:
-            raise ValueError(f"system {self.name!r}: residual_prior_gains multiplies the prior "
-                             "features by learned gains; name them in residual_prior_features")
-        if self.residual_via is not None and self.residual_states is not None:
-            raise ValueError(f"system {self.name!r}: give residual_states or residual_via, not both "
+        if self.residual.prior_gains and not self.residual.prior_features:
+            raise ValueError(f"system {self.name!r}: residual.prior_gains multiplies the prior "
+                             "features by learned gains; name them in residual.prior_features")
+        if self.residual.via is not None and self.residual.states is not None:
+            raise ValueError(f"system {self.name!r}: give residual.states or residual.via, not both "
                              "(a residual through inputs changes whichever states those inputs drive)")
+        if self.planar_pose is not None and (len(self.planar_pose) != 4 or any(
+                n not in self.state_names for n in self.planar_pose)):
+            raise ValueError(f"system {self.name!r}: planar_pose {self.planar_pose} must name four "
+                             f"states (x, y, v, psi) of {self.state_names}")
         for chain in self.kinematic_chains:
             unknown = [n for n in chain.states if n not in self.state_names]
             if chain.output not in self.output_names or unknown:
@@ -168,11 +216,11 @@ class System:
     def residual_state_names(self) -> list[str]:
         """States whose derivative a learned residual may change.
 
-        ``residual_states`` when given; otherwise every state except those whose derivative is
+        ``residual.states`` when given; otherwise every state except those whose derivative is
         by definition the next state of a kinematic chain (``pdot`` is the derivative of ``p``).
         """
-        if self.residual_states is not None:
-            return list(self.residual_states)
+        if self.residual.states is not None:
+            return list(self.residual.states)
         exact = {n for chain in self.kinematic_chains for n in chain.states[:-1]}
         return [n for n in self.state_names if n not in exact]
 
@@ -183,22 +231,22 @@ class System:
         A system leaves out the coordinates its physics is invariant to, e.g. a ground robot's
         position and heading (no force depends on where the robot is or which way it points).
         """
-        if self.residual_inputs is not None:
-            return list(self.residual_inputs)
+        if self.residual.inputs is not None:
+            return list(self.residual.inputs)
         return [*self.state_names, *self.input_names]
 
     @property
     def residual_via_names(self) -> list[str]:
         """Inputs through which a learned residual acts; empty: it acts on state derivatives.
 
-        With ``residual_via`` the hybrid model is ``f_prior(x, u + G Delta(x, u))``, ``G``
+        With ``residual.via`` the hybrid model is ``f_prior(x, u + G Delta(x, u))``, ``G``
         selecting these inputs: the net learns a generalised force where the actuators act, and
         the prior's own input map carries it to every state it drives. A heavier cart is exactly
         such a force (``-Delta m_c * pdd``); so are friction and drag on a driven axis and an
         actuator's gain or offset. An effect elsewhere (friction in an unactuated joint) is out
-        of reach of such a residual: leave ``residual_via`` unset for those.
+        of reach of such a residual: leave ``residual.via`` unset for those.
         """
-        return list(self.residual_via or ())
+        return list(self.residual.via or ())
 
     @property
     def residual_prior_feature_names(self) -> list[str]:
@@ -210,7 +258,7 @@ class System:
         cartpole this lifts the gap closure of a net trained on the exact states from 97.4 % to
         99.8 % on an unseen run.
 
-        With ``residual_prior_gains`` the features also enter multiplied: each residual channel
+        With ``residual.prior_gains`` the features also enter multiplied: each residual channel
         is ``a(x, u) + sum_k g_k(x, u) * f_prior_k(x, u)``, the additive term and the gains all
         outputs of the one MLP. A mass or inertia error is then a gain that hardly varies (for
         the cart, ``-Delta m_c / (1 + Delta m_c dpdd/dF)``, a function of the pole angle only),
@@ -218,12 +266,12 @@ class System:
         the observer with two refinement rounds, this lifts the UKF gap closure of seeds 0-7
         from 98.2 % to 98.6 %, and the worst seed from 95.8 % to 96.5 %.
         """
-        return list(self.residual_prior_features)
+        return list(self.residual.prior_features)
 
     def reflection_signs(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Signs ``(s_x, s_u)`` of the system's mirror symmetry, or ``None`` if it declares none.
 
-        ``reflection`` names the states and inputs that change sign when the system is seen in
+        ``residual.reflection`` names the states and inputs that change sign when the system is seen in
         a mirror; the physics then obeys ``f(s_x x, s_u u) = s_x f(x, u)``. A cartpole on a level
         rail does: pushed the other way, it does the mirror image, whatever its masses, friction
         or drag. A slope along the rail or an actuator offset would break it; a system with such
@@ -231,9 +279,9 @@ class System:
         so the net sees both directions of every motion the run made (see
         :func:`learnest_codegen.learning.training.train`).
         """
-        if self.reflection is None:
+        if self.residual.reflection is None:
             return None
-        flip = lambda names: np.array([-1.0 if n in self.reflection else 1.0 for n in names])  # noqa: E731
+        flip = lambda names: np.array([-1.0 if n in self.residual.reflection else 1.0 for n in names])  # noqa: E731
         return flip(self.state_names), flip(self.input_names)
 
     @property
@@ -284,6 +332,10 @@ class System:
         """A copy whose true system uses changed parameters (for experiments)."""
         return dataclasses.replace(self, true_params={**self.true_params, **changes})
 
+    def with_residual(self, **changes) -> "System":
+        """A copy whose :class:`ResidualStructure` has these fields changed (validated again)."""
+        return dataclasses.replace(self, residual=dataclasses.replace(self.residual, **changes))
+
     def fingerprint(self) -> str:
         """Hash of what the system computes: its description, true parameters, noise, residual
         structure, and ``f`` (both variants) and ``h`` at fixed random points, so an edit to the
@@ -296,9 +348,9 @@ class System:
                                        "residual": [self.residual_input_names, self.residual_via_names,
                                                     self.residual_state_names,
                                                     self.residual_prior_feature_names,
-                                                    *(["prior_gains"] if self.residual_prior_gains else []),
-                                                    *([["reflection", *self.reflection]]
-                                                      if self.reflection else [])]},
+                                                    *(["prior_gains"] if self.residual.prior_gains else []),
+                                                    *([["reflection", *self.residual.reflection]]
+                                                      if self.residual.reflection else [])]},
                                       sort_keys=True, default=str).encode())
         with np.errstate(all="ignore"):
             excitation = self.excitation(np.arange(16) * self.dt * 25, np.random.default_rng(0))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import KinematicChain, NoiseModel, Signal, System
+from .base import KinematicChain, NoiseModel, ResidualStructure, Signal, System
 
 
 def dynamics(ops, x, u, p):
@@ -79,17 +79,20 @@ CARTPOLE = System(
     excitation=excitation,
     periodic_states=("alpha",),
     kinematic_chains=(KinematicChain("p", ("p", "pdot")), KinematicChain("alpha", ("alpha", "alphadot"))),
-    # Translation invariance: no force depends on where the cart is on the rail.
-    residual_inputs=("pdot", "alpha", "alphadot", "F"),
-    # Unmodelled effects act on the cart, where the force acts (a heavier cart is the force
-    # -Delta m_c * pdd): the net learns a force and the prior carries it to both accelerations.
-    residual_via=("F",),
-    # ... and sees the prior's accelerations: given those, a mass error is nearly linear;
-    # with gains on them, a mass error is a gain that barely varies.
-    residual_prior_features=("pdot", "alphadot"),
-    residual_prior_gains=True,
-    # A level rail and a symmetric cart: pushed the other way, the cartpole does the mirror image
-    # (true for any mass, friction or drag). Training adds the mirror image of every pair; one
-    # run's excursions are lopsided, and the test run goes where the training run did not.
-    reflection=("p", "pdot", "alpha", "alphadot", "F"),
+    residual=ResidualStructure(
+        # Translation invariance: no force depends on where the cart is on the rail.
+        inputs=("pdot", "alpha", "alphadot", "F"),
+        # Unmodelled effects act on the cart, where the force acts (a heavier cart is the force
+        # -Delta m_c * pdd): the net learns a force and the prior carries it to both accelerations.
+        via=("F",),
+        # ... and sees the prior's accelerations: given those, a mass error is nearly linear;
+        # with gains on them, a mass error is a gain that barely varies.
+        prior_features=("pdot", "alphadot"),
+        prior_gains=True,
+        # A level rail and a symmetric cart: pushed the other way, the cartpole does the mirror
+        # image (true for any mass, friction or drag). Training adds the mirror image of every
+        # pair; one run's excursions are lopsided, and the test run goes where the training run
+        # did not.
+        reflection=("p", "pdot", "alpha", "alphadot", "F"),
+    ),
 )

@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import NoiseModel, Signal, System
+from .base import NoiseModel, ResidualStructure, Signal, System
 
 L_F, L_R = 0.18, 0.15  # distances front / rear axle to the centre of gravity [m]
 MASS, AREA, RHO = 1.5, 0.06, 1.225  # [kg], frontal area [m^2], air density [kg/m^3]
@@ -157,10 +157,12 @@ GROUND_ROBOT = System(
     excitation=excitation,
     periodic_states=("psi",),
     default_observer="ukf_rts",
-    # x, y are kinematics of (v, psi) through the slip angle; unknown forces act on v and psi.
-    residual_states=("v", "psi"),
-    # Invariance to translation and rotation: without wind or slopes no force depends on where
-    # the robot is or which way it points, so the residual sees speed and inputs only.
-    residual_inputs=("v", "a", "delta"),
-    extra={"planar_pose": ("x", "y", "v", "psi")},
+    residual=ResidualStructure(
+        # x, y are kinematics of (v, psi) through the slip angle; unknown forces act on v and psi.
+        states=("v", "psi"),
+        # Invariance to translation and rotation: without wind or slopes no force depends on
+        # where the robot is or which way it points, so the residual sees speed and inputs only.
+        inputs=("v", "a", "delta"),
+    ),
+    planar_pose=("x", "y", "v", "psi"),
 )

@@ -13,7 +13,7 @@ Inputs ``[Tx, Ty, Tz, vbat]``: the collective thrust command as a world-frame ve
 of full throttle (the mean motor PWM over 65535 along the body z axis ``R(q) e3``) and the
 battery voltage [V]. Nothing in the prior uses them; they are there for the learned residual,
 which acts on ``adot`` (``residual_state_names`` are the chains' last states ``ax, ay, az``).
-The residual never sees the position (``residual_inputs``): no force on the vehicle depends on
+The residual never sees the position (``residual.inputs``): no force on the vehicle depends on
 where it is in the room, and a net that sees ``p`` keys on where the training flight went.
 :data:`QUADROTOR` gives it velocity, acceleration, thrust and battery voltage;
 :data:`QUADROTOR_STATE` (``"quadrotor_state"``, the paper's setting) velocity and acceleration
@@ -66,7 +66,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .base import KinematicChain, NoiseModel, Signal, System
+from .base import KinematicChain, NoiseModel, ResidualStructure, Signal, System
 
 GRAVITY = 9.81  # [m/s^2]
 V_NOM = 3.5  # battery voltage at which k_T is given [V]
@@ -191,13 +191,13 @@ QUADROTOR = System(
     excitation=excitation,
     kinematic_chains=tuple(KinematicChain(f"p{a}", (f"p{a}", f"v{a}", f"a{a}")) for a in AXES),
     default_observer="linear_rts",
-    residual_inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES),
-                     *(f"T{a}" for a in AXES), "vbat"),
+    residual=ResidualStructure(inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES),
+                                       *(f"T{a}" for a in AXES), "vbat")),
 )
 
 QUADROTOR_STATE = replace(
     QUADROTOR, name="quadrotor_state",
     description="The quadrotor whose residual sees only velocity and acceleration (the paper's "
                 "features: no thrust, no battery voltage).",
-    residual_inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES)),
+    residual=ResidualStructure(inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES))),
 )

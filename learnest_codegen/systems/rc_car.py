@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import KinematicChain, NoiseModel, Signal, System
+from .base import KinematicChain, NoiseModel, ResidualStructure, Signal, System
 
 WHEELBASE = 0.1735  # [m] DART, measured
 L_REF = 0.115  # [m] rear axle to the Vicon reference point, DART, measured
@@ -206,7 +206,7 @@ RC_CAR = System(
     ),
     periodic_states=("psi",),
     default_observer="ukf_rts",
-    residual_states=("v", "psi"),
-    residual_inputs=("v", "throttle", "steering"),  # invariant to where the car is and its heading
-    extra={"planar_pose": ("x", "y", "v", "psi")},
+    # invariant to where the car is and its heading
+    residual=ResidualStructure(states=("v", "psi"), inputs=("v", "throttle", "steering")),
+    planar_pose=("x", "y", "v", "psi"),
 )
