@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+import subprocess
+import sys
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "import_graph.py"
@@ -23,3 +25,15 @@ def test_the_checker_sees_an_upward_import_and_a_cycle():
              "estimators.ukf": {"runtime.ukf"}}
     assert import_graph.violations(edges) == ["estimators.ukf (stage 6) imports runtime.ukf (stage 8)"]
     assert import_graph.cycles(edges) == [["estimators.ukf", "runtime.ukf", "estimators.ukf"]]
+
+
+def test_loading_a_compiled_estimator_needs_no_training_or_code_generation_stack():
+    """The bindings (``runtime/``) import no torch, FilterPy, scipy, code generator or compiler
+    driver: a deployed library is loaded with numpy and ctypes (plus the package's light core)."""
+    code = ("import sys, learnest_codegen.runtime.ukf, learnest_codegen.runtime.mhe, "
+            "learnest_codegen.runtime.mhe_gn, learnest_codegen.pipeline\n"
+            "heavy = ('torch', 'filterpy', 'scipy', 'learnest_codegen.codegen', "
+            "'learnest_codegen.toolchain', 'learnest_codegen.learning')\n"
+            "print(sorted(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
