@@ -11,8 +11,6 @@ an existing file or folder without ``--force``, and appear whole or not at all.
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from .common import USER_ERRORS as USER_ERRORS
@@ -41,6 +39,3 @@ def compile_main() -> None:
     """Entry point of ``learnest-compile``."""
     compile_standalone(prog_name="learnest-compile")
 
-
-if __name__ == "__main__":
-    sys.exit(main())
