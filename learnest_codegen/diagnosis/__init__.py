@@ -3,10 +3,10 @@
 The public API; the modules follow the data: ``loading`` (runs and recordings) -> ``segments``
 (state observations, held-out split) -> ``floor`` (the noise floor) -> ``where`` -> ``effects``,
 ``generic_effects`` and ``system_effects`` (the candidate library) -> ``fit`` (one-step
-residual, features) -> ``selection`` and ``refine`` (sparse cross-validated selection, damped bounded refit) ->
-``pooling`` (runs held out in turn, consistency) -> ``shrink`` (held-out evidence, verdicts) ->
-``findings`` / ``report`` (JSON, Markdown, figures); ``selftest`` checks all of it on withheld
-effects.
+residual, features) -> ``selection`` and ``refine`` (sparse cross-validated selection, damped
+bounded refit) -> ``pooling`` (runs held out in turn, consistency) -> ``shrink`` (held-out
+evidence, verdicts) -> ``findings`` / ``report`` (JSON, Markdown, figures); ``selftest``
+checks all of it on withheld effects.
 """
 
 from . import generic_effects as generic_effects  # registers the generic effect kinds
