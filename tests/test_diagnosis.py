@@ -162,6 +162,19 @@ def test_full_selftest_passes():
     assert all(r["pass"] for r in rows), table(rows)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("key", ["pendulum_small_friction: J x2, mgl x1.6, Coulomb 0.05 N m (observer)",
+                                 "cartpole: cart mass +0.5 kg (built-in), 4 runs of 4 s pooled (observer)"])
+def test_selftest_with_estimators(key):
+    """A small friction under two large parameter errors, and short runs pooled, with the MHE and
+    the UKF: right, and each estimator improved by the correction on its own held-out runs."""
+    (case,) = select_cases([key])
+    row = run_case(case, DiagnosisSettings(estimators=("mhe", "ukf")))
+    assert row["pass"], row
+    assert row["estimator_verdicts"] == {"mhe": "improved", "ukf": "improved"}
+    assert row["param_error"] < 0.1
+
+
 def _real(name: str):
     root = data_root()
     if root is None or not (root / name).is_dir():
