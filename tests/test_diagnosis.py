@@ -396,6 +396,15 @@ def test_verdicts_follow_the_held_out_evidence():
     per = by_estimator(["coulomb_friction(v)"], numbers, ("mhe", "ukf"))
     assert per["mhe"]["found"] == ["coulomb_friction(v)"] and per["mhe"]["rejected"] == []
     assert per["ukf"]["found"] == [] and per["ukf"]["rejected"] == ["coulomb_friction(v)"]
+    from learnest_codegen.diagnosis import summary
+
+    report = {"system": "s", "verdict": "partly explained", "source": "observer", "unexplained": 0.1,
+              "where": [], "consistency": [], "rejected_effects": [],
+              "effects": [{"name": "coulomb_friction(v)", "params": {"F_c": 0.3},
+                           "uncertainty": {"F_c": 0.01}, "explained": 0.9,
+                           "estimators": {"mhe": "improved", "ukf": "rejected"}}],
+              "shrink": {"one_step": {"before": 10.0, "after": 1.0, "closed": 0.9}, **numbers}}
+    assert "coulomb_friction(v): F_c=0.3 (+-0.01), explains 90%; rejected for the UKF" in summary(report)
     assert by_estimator(["x"], {"ukf": {"verdict": "unchanged", "before": 1.0, "after": 1.0}},
                         ("mhe", "ukf")) == {"ukf": {"verdict": "unchanged", "before": 1.0, "after": 1.0,
                                                     "found": [], "rejected": []}}
