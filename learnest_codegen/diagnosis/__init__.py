@@ -1,14 +1,15 @@
 """``learnest diagnose``: where a prior's sim-to-real gap lies, which effect causes it, how far it shrinks.
 
 The public API; the modules follow the data: ``loading`` (runs and recordings) -> ``segments``
-(state observations, held-out split) -> ``floor`` (the noise floor) -> ``where`` -> ``effects``
-and ``system_effects`` (the candidate library) -> ``fit`` (one-step residual, features) ->
-``selection`` and ``refine`` (sparse cross-validated selection, damped bounded refit) ->
-``pooling`` (runs held out in turn, consistency) -> ``shrink`` (held-out evidence, verdicts) ->
-``findings`` / ``report`` (JSON, Markdown, figures); ``selftest`` checks all of it on withheld
-effects.
+(state observations, held-out split) -> ``floor`` (the noise floor) -> ``where`` -> ``effects``,
+``generic_effects`` and ``system_effects`` (the candidate library) -> ``fit`` (one-step
+residual, features) -> ``selection`` and ``refine`` (sparse cross-validated selection, damped
+bounded refit) -> ``pooling`` (runs held out in turn, consistency) -> ``shrink`` (held-out
+evidence, verdicts) -> ``findings`` / ``report`` (JSON, Markdown, figures); ``selftest``
+checks all of it on withheld effects.
 """
 
+from . import generic_effects as generic_effects  # registers the generic effect kinds
 from . import system_effects as system_effects  # registers the built-in systems' own effects
 from .core import Diagnosis as Diagnosis
 from .core import diagnose as diagnose

@@ -41,7 +41,7 @@ from .pooling import consistency, leave_one_out
 from .segments import observations, pairs_of, split
 from .selection import EffectFit, fit_effects
 from .settings import DiagnosisSettings
-from .shrink import HeldOut, shrink, verdict
+from .shrink import HeldOut, by_estimator, shrink, verdict
 from .where import knode_comparison, where
 
 
@@ -136,6 +136,9 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
     gap_present = bool(fit.chosen) or any(s["gap"] for s in where_part["states"])
     overall = verdict(gap_present, bool(chosen), fit.refit, result, settings)
     found = effects_json(system, effects, fit)
+    per_estimator = by_estimator([e["name"] for e in found], result, settings.estimators)
+    for e in found:
+        e["estimators"] = {n: v["verdict"] for n, v in per_estimator.items()}
     report = {
         "system": system.name, "source": source,
         "observer": settings.observer or (system.default_observer if source == "observer" else None),
@@ -149,7 +152,8 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
         "rejected_effects": found if overall == "rejected" else [],
         "unexplained": float(1.0 - fit.explained_total) if gap_present else 0.0,
         "verdict": overall,
-        "estimator_verdicts": {n: result[n]["verdict"] for n in settings.estimators if n in result},
+        "estimator_verdicts": {n: v["verdict"] for n, v in per_estimator.items()},
+        "by_estimator": per_estimator,
         "consistency": per_run,
         "selection": {"steps": [step_json(effects, s) for s in fit.steps],
                       "stopped_at": step_json(effects, fit.rejected) if fit.rejected else None,

@@ -22,9 +22,6 @@ The corrected dynamics are ``f(x, u + sum du, p + sum dp) + sum direct``, writte
 ``ops`` backend (:func:`corrected_dynamics`), so a corrected prior runs in numpy, torch and CasADi
 like any system, and an effect's regression feature is an exact CasADi derivative.
 
-Generic kinds (:data:`KINDS`) and where they are placed:
-
-===================  =========================================  =======================
 kind                 term (parameter ``theta`` >= 0 physical)   channels
 ===================  =========================================  =======================
 mass                 ``dp = theta``  (mass / inertia params)    ``param:<p>``
@@ -43,6 +40,13 @@ on velocity ``v`` is offered directly on ``v'`` and through every input whose pr
 ``v'`` (structurally, ``casadi.depends_on``); which one fits is for the data to decide.
 *Mass parameters* are those named like masses or inertias (``m``, ``m_*``, ``mass*``, ``I*``,
 ``J*``, ``inertia*``) or listed in ``System.diagnosis.mass_params``.
+=======
+The kinds themselves live by family: the generic ones, derived from any system's structure
+(friction, drag, actuator, bias, one per prior parameter), in
+:mod:`~learnest_codegen.diagnosis.generic_effects`; those of particular built-in systems in
+:mod:`~learnest_codegen.diagnosis.system_effects`. This module holds what they share: the
+:class:`Effect`, the structure of the prior they are derived from, the registry and
+:func:`library`, and the corrected dynamics.
 
 Systems may add their own kinds: :func:`register_system_effects` (built-in systems) or
 ``System(..., diagnosis=DiagnosisHints(effects=fn))`` in a user's system file, with
@@ -59,7 +63,6 @@ import casadi as cs
 
 from ..errors import UnknownNameError
 from ..systems import System
-from ..systems.backends import CasadiOps
 
 # term(ops, x: list, u: list, theta) -> value added to the channel's target
 Term = Callable[..., object]
@@ -129,7 +132,8 @@ DERIVED: dict[str, Callable[[Mapping[str, float]], dict]] = {}
 _SYSTEM_EFFECTS: dict[str, KindBuilder] = {}
 
 
-def _kind(name: str):
+def register_kind(name: str):
+    """Decorator: register ``fn(system, context) -> list[Effect]`` as the generic kind ``name``."""
     def register(fn: KindBuilder) -> KindBuilder:
         KINDS[name] = fn
         return fn
@@ -188,148 +192,6 @@ def default_context(system: System, speed_scale: Mapping[str, float] | None = No
     vel = velocity_states(system)
     scale = {v: 0.02 * float((speed_scale or {}).get(v, 1.0)) or 0.02 for v in vel}
     return LibraryContext(tuple(vel), scale, vel)
-
-
-# -- the generic kinds -----------------------------------------------------------------------------
-def _index(system: System, name: str) -> int:
-    return system.state_names.index(name)
-
-
-def _unit(system: System, state: str) -> str:
-    return next(s.unit for s in system.states if s.name == state)
-
-
-def _input_unit(system: System, name: str) -> str:
-    return next(s.unit for s in system.inputs if s.name == name)
-
-
-def _velocity_kinds(system: System, ctx: LibraryContext, kind: str, shape, power: int, label: str):
-    """One effect per velocity state and channel (direct, then each input reaching it).
-
-    ``shape(ctx, v)`` gives ``g(ops, v)``; the term is ``-theta g(v)``. ``power`` is the power of
-    ``v``'s unit in ``g`` (1 viscous, 0 Coulomb, 2 drag), which fixes the parameter's unit.
-    """
-    reach = input_reach(system)
-    out = []
-    for v in ctx.velocity_states:
-        target = ctx.targets.get(v, v)
-        i, vu, tu = _index(system, v), _unit(system, v), _unit(system, target)
-        per_v = {0: "", 1: f"/({vu})", 2: f"/({vu})^2"}[power]
-        shaped = shape(ctx, v)
-        term = lambda ops, x, u, th, i=i, shaped=shaped: -th * shaped(ops, x[i])  # noqa: E731
-        text = kind.replace("_", " ")
-        out.append(Effect(kind, target, f"direct:{target}", label, f"({tu})/s{per_v}", term,
-                          f"{text} on {v}, acting on {target}' directly", v))
-        for name in reach[target]:
-            out.append(Effect(kind, target, f"input:{name}", label, f"{_input_unit(system, name)}{per_v}",
-                              term, f"{text} on {v} as a force on input {name}", v))
-    return out
-
-
-@_kind("viscous_friction")
-def _viscous(system: System, ctx: LibraryContext) -> list:
-    return _velocity_kinds(system, ctx, "viscous_friction", lambda c, v: lambda ops, s: s, 1, "c")
-
-
-@_kind("coulomb_friction")
-def _coulomb(system: System, ctx: LibraryContext) -> list:
-    def shape(c, v):
-        vs = c.coulomb_scale[v]
-        return lambda ops, s: ops.tanh(s / vs)
-    return _velocity_kinds(system, ctx, "coulomb_friction", shape, 0, "F_c")
-
-
-@_kind("quadratic_drag")
-def _drag(system: System, ctx: LibraryContext) -> list:
-    return _velocity_kinds(system, ctx, "quadratic_drag", lambda c, v: lambda ops, s: s * ops.abs(s), 2,
-                           "k")
-
-
-def _primary_state(system: System, reach_of_input: str) -> str:
-    """The residual state an input acts on first (for reporting an input-channel effect)."""
-    reach = input_reach(system)
-    for s in system.residual_state_names:
-        if reach_of_input in reach[s]:
-            return s
-    return system.residual_state_names[0]
-
-
-def _driving_inputs(system: System) -> list[tuple[int, str]]:
-    """Inputs whose prior path reaches some residual state (a prior that ignores an input, like
-    the quadrotor's triple integrator, cannot have a gain error on it)."""
-    reach = input_reach(system)
-    used = {n for s in system.residual_state_names for n in reach[s]}
-    return [(j, n) for j, n in enumerate(system.input_names) if n in used]
-
-
-@_kind("actuator_gain")
-def _gain(system: System, ctx: LibraryContext) -> list:
-    return [Effect("actuator_gain", _primary_state(system, n), f"input:{n}", "gain", "1",
-                   lambda ops, x, u, th, j=j: th * u[j], f"input {n} scaled by (1 + gain)")
-            for j, n in _driving_inputs(system)]
-
-
-@_kind("actuator_offset")
-def _offset(system: System, ctx: LibraryContext) -> list:
-    return [Effect("actuator_offset", _primary_state(system, n), f"input:{n}", "offset",
-                   _input_unit(system, n), lambda ops, x, u, th: th, f"input {n} shifted by offset")
-            for _, n in _driving_inputs(system)]
-
-
-@_kind("bias")
-def _bias(system: System, ctx: LibraryContext) -> list:
-    return [Effect("bias", s, f"direct:{s}", "b", f"{_unit(system, s)}/s",
-                   lambda ops, x, u, th: th, f"constant term on {s}'")
-            for s in system.residual_state_names]
-
-
-def _param_effects(system: System, kind: str, names: Sequence[str]) -> list:
-    reach = _param_reach(system)
-    out = []
-    for p in names:
-        if not reach.get(p):
-            continue  # the prior does not depend on it: no signature to find
-        out.append(Effect(kind, reach[p][0], f"param:{p}", f"d{p}", f"unit of {p}",
-                          lambda ops, x, u, th: th, f"prior parameter {p} changed by d{p}"))
-    return out
-
-
-def _param_reach(system: System, points: int = 8) -> dict[str, list[str]]:
-    """For each prior parameter, the residual states whose derivative depends on it.
-
-    A structural dependence is not enough: the ground robot's mass ``m`` enters only through the
-    drag, which the prior switches off with ``C_D = 0``. So the Jacobian is evaluated at the
-    prior's parameter values on a few random points (seeded) and must be non-zero somewhere.
-    """
-    import numpy as np
-
-    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
-    names = list(system.params)
-    syms = cs.SX.sym("p", len(names))
-    f = cs.vertcat(*system.dynamics(CasadiOps, [x[i] for i in range(system.nx)],
-                                    [u[j] for j in range(system.nu)],
-                                    {n: syms[k] for k, n in enumerate(names)}))
-    jac = cs.Function("dfdp", [x, u, syms], [cs.jacobian(f, syms)])
-    rng = np.random.default_rng(0)
-    values = [system.params[n] for n in names]
-    size = np.zeros((system.nx, len(names)))
-    for _ in range(points):
-        J = np.asarray(jac(rng.uniform(0.2, 1.0, system.nx), rng.uniform(0.2, 1.0, system.nu), values))
-        size = np.maximum(size, np.nan_to_num(np.abs(J)))
-    states = system.state_names
-    return {n: [s for s in system.residual_state_names if size[states.index(s), k] > 0]
-            for k, n in enumerate(names)}
-
-
-@_kind("mass")
-def _mass(system: System, ctx: LibraryContext) -> list:
-    return _param_effects(system, "mass", mass_params(system))
-
-
-@_kind("parameter")
-def _parameter(system: System, ctx: LibraryContext) -> list:
-    masses = set(mass_params(system))
-    return _param_effects(system, "parameter", [p for p in system.params if p not in masses])
 
 
 # Order matters only for ties: of two candidates with the same signature on the data the first

@@ -72,8 +72,10 @@ def summary(report: dict) -> str:
     for label, key in (("", "effects"), ("rejected: ", "rejected_effects")):
         for e in report.get(key, []):
             p = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
+            against = [n.upper() for n, v in e.get("estimators", {}).items() if v == "rejected"]
+            note = f"; rejected for the {' and the '.join(against)}" if against and not label else ""
             lines.append(f"  {label}{e['name']}: {p} (+-{next(iter(e['uncertainty'].values())):.2g}), "
-                         f"explains {e['explained']:.0%}")
+                         f"explains {e['explained']:.0%}{note}")
     for c in report.get("consistency", []):
         if not c["consistent"]:
             lines.append(f"  {c['effect']}: not consistent across runs (median {c['median']:.4g}, "

@@ -169,6 +169,21 @@ def estimator_verdict(before: float, after: float, tolerance: float) -> str:
     return "improved" if after < before * (1 - tolerance) else "unchanged"
 
 
+def by_estimator(names: Sequence[str], result: dict, estimators: Sequence[str]) -> dict:
+    """Per estimator: its verdict on the correction, its held-out MSE before and after, and the
+    effects that are findings *for it* (``found``: the correction improved it) or rejected by it
+    (``rejected``: it made it worse); with ``unchanged`` the effects are neither."""
+    out = {}
+    for n in estimators:
+        if n not in result:
+            continue
+        v = result[n]["verdict"]
+        out[n] = {"verdict": v, "before": result[n]["before"], "after": result[n]["after"],
+                  "found": list(names) if v == "improved" else [],
+                  "rejected": list(names) if v == "rejected" else []}
+    return out
+
+
 def verdict(gap_present: bool, chosen: bool, refit: str, result: dict, settings: DiagnosisSettings) -> str:
     """The overall verdict from the held-out evidence (see the module docstring)."""
     if not gap_present:
