@@ -37,3 +37,17 @@ def test_loading_a_compiled_estimator_needs_no_training_or_code_generation_stack
             "print(sorted(m for m in heavy if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+MAX_LINES = 400
+
+
+def test_no_module_is_over_400_lines_without_a_stated_reason():
+    """A module over ``MAX_LINES`` says why in its docstring, in a paragraph starting ``Length:``."""
+    root = SCRIPT.parents[1] / "learnest_codegen"
+    long = []
+    for path in sorted(root.rglob("*.py")):
+        text = path.read_text()
+        if text.count("\n") > MAX_LINES and "\nLength:" not in text.split('"""')[1]:
+            long.append(f"{path.relative_to(root)} ({text.count(chr(10))} lines)")
+    assert long == []
