@@ -19,7 +19,9 @@ import torch
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
-from learnest_codegen.codegen.ukf import generate_ukf, merwe_weights, ukf_step_function, ukf_update_function
+from learnest_codegen.codegen.ukf import (generate_ukf, merwe_weights, ukf_gated_update_function,
+                                          ukf_step_function, ukf_update_function)
+from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.errors import BuildError, DataError, ModelMismatchError, ShapeError
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model
@@ -131,7 +133,9 @@ def test_ukf_equals_kalman_filter_on_linear_model():
 
 
 def test_symbolic_functions_match_filterpy(cartpole, models):
-    model, settings = models["nominal"], UKFSettings.from_system(cartpole)
+    # random measurements far from the state: the gate is off to compare the plain update
+    model = models["nominal"]
+    settings = UKFSettings.from_system(cartpole, gate=GateSettings(threshold=0))
     step_fn, update_fn = ukf_step_function(model, settings), ukf_update_function(model, settings)
     assert step_fn.name_in() == ["x", "P", "u", "y", "Q", "R"]
     assert step_fn.name_out() == ["x_post", "P_post"]
@@ -149,6 +153,37 @@ def test_symbolic_functions_match_filterpy(cartpole, models):
             ukf.step(u, y)
             assert relative_difference(x_sym.T, ukf.x[None])[0] < 1e-12
             assert relative_difference(P_sym[None], ukf.P[None])[0] < 1e-12
+
+
+def test_gated_update_equals_filterpy_update_on_the_kept_outputs(cartpole, models):
+    """The masked update of the C (``M S M + (I - M)``, ``Pxz M``) is FilterPy's own update on
+    the kept outputs alone (reduced ``R`` and ``hx``); mask 0 everywhere is the prediction; d2
+    is ``(y - zp)^2 / diag(S)`` of FilterPy's unscented transform."""
+    from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
+
+    model, settings = models["nominal"], UKFSettings.from_system(cartpole)
+    fn = ukf_gated_update_function(model, settings)
+    Wm, Wc, _ = merwe_weights(4, settings)
+    points = MerweScaledSigmaPoints(4, settings.alpha, settings.beta, settings.kappa)
+    rng = np.random.default_rng(5)
+    for mask in ([1.0, 0.0], [0.0, 1.0], [0.0, 0.0]):
+        A = rng.normal(size=(4, 4))
+        x, P = np.array(cartpole.x0) + rng.normal(size=4), 0.01 * (A @ A.T + 0.1 * np.eye(4))
+        u, y = rng.normal(size=1), rng.normal(size=2)
+        x_sym, P_sym, d2 = (np.array(v) for v in fn(x, P, u, y, settings.R(), mask))
+        keep = np.array(mask, dtype=bool)
+        kf = UnscentedKalmanFilter(4, 2, model.dt, hx=lambda s, u: model.measure(s, u),
+                                   fx=lambda s, dt: s, points=points)
+        kf.x, kf.P, kf.R = x.copy(), P.copy(), settings.R()
+        kf.sigmas_f = points.sigma_points(x, P)
+        zp, S = unscented_transform(np.array([model.measure(s, u) for s in kf.sigmas_f]), Wm, Wc,
+                                    settings.R())
+        np.testing.assert_allclose(d2.ravel(), (y - zp) ** 2 / np.diag(S), rtol=1e-12)
+        if keep.any():
+            kf.update(y[keep], R=settings.R()[np.ix_(keep, keep)],
+                      hx=lambda s, u: model.measure(s, u)[keep], u=u)
+        assert relative_difference(x_sym.T, kf.x[None])[0] < 1e-12
+        assert relative_difference(P_sym[None], kf.P[None])[0] < 1e-12
 
 
 # -- compiled parity -----------------------------------------------------------------------

@@ -11,6 +11,15 @@ previous solution shifted by one stage, its new last state predicted by ``F``; t
 the last window state. A step Ipopt does not solve raises :class:`SolverError` and leaves the
 estimator as it was: silently keeping a poor estimate would hide the problem, and the caller
 can still decide to go on.
+
+Innovation gate (:mod:`.gate`): before a sample enters the window, each output's innovation
+``y_j - h_j(xpred, u)`` at the prediction ``xpred`` (the warm start's last state) is normalised
+by ``S_jj = (C P_arr C^T)_jj + (R^-1)_jj`` (``C = dh/dx`` at ``xpred``, ``P_arr`` the inverse of
+the arrival weight times the current inflation); a rejected output gets a 0 in the window's
+gate block ``G`` and never enters the cost while the sample is in the window. Recovery: the
+gate's inflation ``rho`` (1 normally; times ``inflation`` at each rejecting step from the
+``recover_after``-th consecutive one on, divided by it, down to 1, at each step without
+rejection) divides the arrival weight, so a lost track re-anchors on the new measurements.
 """
 
 from __future__ import annotations
@@ -20,7 +29,8 @@ import numpy as np
 from ..errors import SolverError
 from ..export import DiscreteModel
 from . import validation
-from .mhe_problem import MHESettings, ParamLayout, build_problem
+from .gate import GateState
+from .mhe_problem import MHESettings, ParamLayout, build_problem, gate_variances, measurement_function
 
 NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
                  "propagates no P. The arrival-cost weight is `arrival_weight`.")
@@ -39,6 +49,9 @@ class MHE:
     x : (nx,) current estimate, the last window state.
     window : (N+1, nx) current window solution, oldest first.
     iterations : Ipopt iterations of the last step.
+    rejected : (ny,) bool, the outputs the gate rejected in the last step.
+    last_status : 0 (OK) or 1 (MEASUREMENT_REJECTED), the C status of the last step.
+    rejections : outputs rejected since :meth:`reset`.
     """
 
     def __init__(self, model: DiscreteModel, settings: MHESettings | None = None):
@@ -47,6 +60,10 @@ class MHE:
         self.problem = build_problem(model, self.settings, f"{model.system.name}_{model.kind}_mhe")
         self.layout: ParamLayout = self.problem.layout
         self.iterations = 0
+        self.rejections = 0
+        self._gate = GateState(self.settings.gate, model.ny)
+        self._meas = measurement_function(model, "meas")
+        self._P_given = self._P_cov = self._R_weight = None
         self._p: np.ndarray | None = None
         self._window: np.ndarray | None = None
         self._count = 0
@@ -66,9 +83,18 @@ class MHE:
 
     @property
     def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight ``P`` of the arrival cost in use."""
+        """(nx, nx) the weight ``P`` of the arrival cost given at :meth:`reset` (the gate's
+        recovery divides it by its inflation while a track is being recovered)."""
         self._started()
-        return self._p[self.layout.slice("P")].reshape(self.model.nx, self.model.nx).T.copy()
+        return self._P_given.copy()
+
+    @property
+    def rejected(self) -> np.ndarray:
+        return self._gate.rejected.copy()
+
+    @property
+    def last_status(self) -> int:
+        return self._gate.status
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from the prior ``x0 (nx,)``, the first arrival ``xbar``.
@@ -86,6 +112,9 @@ class MHE:
         for name, W in (("Q", Q), ("R", R), ("P", P)):
             p[lay.slice(name)] = W.ravel(order="F")
         self._p, self._window, self._count = p, np.tile(x0, (n1, 1)), 0
+        self._P_given, self._P_cov, self._R_weight = P, np.linalg.inv(P), R
+        self._gate.reset()
+        self.rejections = 0
 
     def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Take the sample ``y (ny,)`` with ``u (nu,)``, the input applied since the previous one.
@@ -96,7 +125,7 @@ class MHE:
         self._started()
         u = validation.vector("MHE.step: u", u, self.model.nu)
         y = validation.vector("MHE.step: y", y, self.model.ny)
-        p, guess = self._advance(u, y)
+        p, guess, rejected = self._advance(u, y)
         try:
             solution = self.problem.solver(x0=guess.ravel(), p=p)
         except RuntimeError as exc:  # error_on_fail: nlpsol raises when Ipopt did not succeed
@@ -105,6 +134,8 @@ class MHE:
         self.iterations = int(self.problem.solver.stats()["iter_count"])
         self._p, self._window = p, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
         self._count += 1
+        self._gate.record(rejected)
+        self.rejections += int(rejected.sum())
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
@@ -122,20 +153,26 @@ class MHE:
             X_hat[k] = self.step(U[k - 1], Y[k])
         return X_hat
 
-    def _advance(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Parameters and warm start for the next sample (mirrored by ``<prefix>_step`` in C)."""
+    def _advance(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Parameters, warm start and rejected outputs of the next sample (mirrored by
+        ``<prefix>_step`` in C)."""
         lay = self.layout
         p, guess = self._p.copy(), self._window.copy()
         U, Y = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("Y")].reshape(-1, lay.ny)
-        mask = p[lay.slice("mask")]
+        mask, G = p[lay.slice("mask")], p[lay.slice("G")].reshape(-1, lay.ny)
         if self._count > 0:
             if mask[0] == 1.0:  # window was full: the arrival moves on to the next sample
                 p[lay.slice("xbar")] = self._window[1]
-            for block in (U, Y, mask, guess):
+            for block in (U, Y, mask, G, guess):
                 block[:-1] = block[1:]
             guess[-1] = self.model.step(self._window[-1], u)
-        U[-1], Y[-1], mask[-1] = u, y, 1.0
-        return p, guess
+        rho = self._gate.inflation
+        h, C = (np.asarray(v) for v in self._meas(guess[-1], u))
+        S = gate_variances(C, rho * self._P_cov, self._R_weight)
+        rejected = self._gate.test((y - h.ravel()) ** 2 / S)
+        U[-1], Y[-1], mask[-1], G[-1] = u, y, 1.0, ~rejected
+        p[lay.slice("P")] = (self._P_given / rho).ravel(order="F")
+        return p, guess, rejected
 
     def _started(self) -> np.ndarray:
         if self._window is None:
