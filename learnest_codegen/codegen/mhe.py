@@ -138,4 +138,5 @@ def gate_values(settings: MHESettings, precision: str) -> dict[str, str]:
     """The gate defaults as template fields ``gate_threshold``, ... (C literals)."""
     gate = settings.gate
     return {"gate_threshold": repr(gate.c_threshold()), "gate_recover_after": str(gate.recover_after),
-            "gate_inflation": repr(gate.inflation), "max_inflation": repr(MAX_INFLATION[precision])}
+            "gate_inflation": repr(gate.inflation), "max_inflation": repr(MAX_INFLATION[precision]),
+            "gate_header_sha256": templates.gate_header_digest()}

@@ -285,6 +285,7 @@ def _write_sources(model: DiscreteModel, settings: UKFSettings, functions, out_d
                   gate_threshold=repr(gate.c_threshold()), gate_recover_after=gate.recover_after,
                   gate_inflation=repr(gate.inflation),
                   max_inflation=repr(MAX_INFLATION["float32" if real == "float" else "float64"]),
+                  gate_header_sha256=templates.gate_header_digest(),
                   workspace_bound=bound, **{f"sz_{k}": v for k, v in work.items()})
     status_h = templates.write_status_header(out_dir)
     gate_h = templates.write_gate_header(out_dir)

@@ -66,7 +66,7 @@ class GateSettings:
     """
 
     threshold: float = DEFAULT_THRESHOLD
-    recover_after: int = 5
+    recover_after: int = 10
     inflation: float = 2.0
 
     def __post_init__(self) -> None:

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from ..errors import ShapeError, SolverError
+from ..errors import DataError, ShapeError, SolverError
 from ..export import DiscreteModel
 from ..systems import System
 from . import validation
@@ -146,7 +146,7 @@ class UKF:
         self._kf.x = validation.vector("UKF.reset x0", x0, nx).copy()
         P0 = self.settings.P0() if P0 is None else P0
         self._kf.P = validation.covariance("UKF.reset P0", P0, nx).copy()
-        self._gate.reset()
+        self._gate = GateState(self.settings.gate, self.model.ny)  # as of this reset
         self.rejections = 0
         self._first = True
 
@@ -184,6 +184,11 @@ class UKF:
         if not (np.all(np.isfinite(self._kf.x)) and np.all(np.isfinite(self._kf.P))):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
+        try:  # the compiled filter's PSD guard (P - K S K^T can lose definiteness in rounding)
+            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx)
+        except DataError as exc:
+            self._kf.x, self._kf.P, self._kf.sigmas_f = saved
+            raise SolverError(f"{exc} (state left as before)") from exc
         self._kf.P = self._kf.P * self._gate.record(rejected)
         self.rejections += int(rejected.sum())
         self._first = False
@@ -196,7 +201,8 @@ class UKF:
         kf = self._kf
         sigmas_h = np.atleast_2d([self._hx(s, u) for s in kf.sigmas_f])
         zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
-        rejected = self._gate.test((y - zp) ** 2 / np.diag(S))
+        with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
+            rejected = self._gate.test((y - zp) ** 2 / np.diag(S))
         if not rejected.any():
             kf.update(y, u=u)
         elif rejected.all():
