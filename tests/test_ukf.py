@@ -19,10 +19,15 @@ import torch
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
-from learnest_codegen.codegen.ukf import (generate_ukf, merwe_weights, ukf_gated_update_function,
-                                          ukf_step_function, ukf_update_function)
-from learnest_codegen.estimators.gate import GateSettings
+from learnest_codegen.codegen.ukf import (
+    generate_ukf,
+    merwe_weights,
+    ukf_gated_update_function,
+    ukf_step_function,
+    ukf_update_function,
+)
 from learnest_codegen.errors import BuildError, DataError, ModelMismatchError, ShapeError
+from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model
 from learnest_codegen.learning.network import ResidualNet
@@ -181,7 +186,7 @@ def test_gated_update_equals_filterpy_update_on_the_kept_outputs(cartpole, model
         np.testing.assert_allclose(d2.ravel(), (y - zp) ** 2 / np.diag(S), rtol=1e-12)
         if keep.any():
             kf.update(y[keep], R=settings.R()[np.ix_(keep, keep)],
-                      hx=lambda s, u: model.measure(s, u)[keep], u=u)
+                      hx=lambda s, u, keep=keep: model.measure(s, u)[keep], u=u)
         assert relative_difference(x_sym.T, kf.x[None])[0] < 1e-12
         assert relative_difference(P_sym[None], kf.P[None])[0] < 1e-12
 
@@ -308,6 +313,28 @@ def test_manifest_mismatch_raises(built):
         CompiledUKF(directory, settings=other_alpha)  # the message used to swap the two
     with pytest.raises(FileNotFoundError, match="does not exist"):
         CompiledUKF(directory / "missing")
+
+
+def test_library_built_before_the_gate_must_be_recompiled(built, tmp_path):
+    """A folder written before the innovation gate (manifest format 1, settings without a gate)
+    is refused with a "recompile" message, as is a manifest whose settings were edited after
+    the build (its settings hash no longer matches)."""
+    import shutil
+
+    folder = tmp_path / "old"
+    shutil.copytree(built["nominal"].directory, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    old = {**manifest, "format_version": 1, "settings": {k: v for k, v in manifest["settings"].items()
+                                                         if k != "gate"}}
+    old.pop("settings_hash")
+    (folder / "manifest.json").write_text(json.dumps(old))
+    with pytest.raises(ModelMismatchError, match="format_version 1.*innovation gate.*recompile"):
+        CompiledUKF(folder)
+    edited = {**manifest, "settings": {**manifest["settings"], "gate": {
+        **manifest["settings"]["gate"], "threshold": 9.0}}}
+    (folder / "manifest.json").write_text(json.dumps(edited))
+    with pytest.raises(ModelMismatchError, match="settings were edited.*recompile"):
+        CompiledUKF(folder)
 
 
 def test_missing_library_raises(built, tmp_path):

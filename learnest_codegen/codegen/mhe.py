@@ -18,8 +18,13 @@ import casadi as cs
 
 from .. import toolchain
 from ..estimators.gate import MAX_INFLATION
-from ..estimators.mhe_problem import (IPOPT_OPTIONS, MHESettings, ParamLayout, build_problem,
-                                      measurement_function)
+from ..estimators.mhe_problem import (
+    IPOPT_OPTIONS,
+    MHESettings,
+    ParamLayout,
+    build_problem,
+    measurement_function,
+)
 from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
 from ..runtime.status import STATUS_NAMES

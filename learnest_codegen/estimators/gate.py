@@ -22,14 +22,14 @@ step is not an error and reports ``LEARNEST_MEASUREMENT_REJECTED`` (status 1).
 Recovery. A lost track (a real jump of the system, a wrong ``x0``, a sensor offset that
 persists) would otherwise be rejected forever. From the ``recover_after``-th (K) consecutive
 step with at least one rejected output on, every such step multiplies the estimator's
-uncertainty by ``inflation`` (gamma): the UKF's covariance ``P`` (after the step), the MHEs'
-arrival covariance (in the gate and in the arrival cost, i.e. the arrival weight is divided by
-the inflation ``rho`` in force). The inflation compounds, so a persistent offset of any size is
-accepted after about ``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K
-only costs the prediction. A step without rejection resets the streak and divides ``rho`` by
-gamma (down to 1): the MHEs' arrival cost tightens back over as many steps as it was relaxed
-(the UKF's ``P`` shrinks by its own updates; its ``rho`` only bounds the next episode). ``rho``
-is capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
+uncertainty by ``inflation`` (gamma): the UKF's variances (the diagonal of ``P``, after the
+step; the covariances stay, so stale correlations fade), the MHEs' arrival covariance in the
+gate (and a restart of the window once the measurements pass, see :mod:`.mhe`). The
+inflation compounds, so a persistent offset of any size is accepted after about
+``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
+prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
+1; the UKF's ``P`` shrinks by its own updates, and an MHE restart sets it to 1). ``rho`` is
+capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
 """
@@ -74,9 +74,9 @@ class GateSettings:
         if math.isnan(t) or t < 0:
             raise ValueError(f"GateSettings.threshold must be >= 0 (0 or inf: no gate), got {t}")
         object.__setattr__(self, "threshold", math.inf if t == 0 else t)
-        if isinstance(self.recover_after, bool) or not isinstance(self.recover_after, (int, np.integer)) \
-                or self.recover_after < 1:
-            raise ValueError(f"GateSettings.recover_after must be an integer >= 1, got {self.recover_after!r}")
+        k = self.recover_after
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise ValueError(f"GateSettings.recover_after must be an integer >= 1, got {k!r}")
         object.__setattr__(self, "recover_after", int(self.recover_after))
         g = float(self.inflation)
         if not (math.isfinite(g) and g > 1):

@@ -103,7 +103,8 @@ class UKF:
     Each update is gated (:mod:`.gate`): an output whose normalised innovation
     ``(y_j - zp_j)^2 / S_jj`` exceeds ``settings.gate.threshold`` is left out (FilterPy's update
     on the other outputs; none left: the prediction), and after ``recover_after`` consecutive
-    steps with rejections each further one multiplies ``P`` by ``inflation``.
+    steps with rejections each further one multiplies the variances (the diagonal of ``P``)
+    by ``inflation``.
 
     Parameters
     ----------
@@ -189,7 +190,8 @@ class UKF:
         except DataError as exc:
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc
-        self._kf.P = self._kf.P * self._gate.record(rejected)
+        # recovery: the variances grow, the covariances stay (see estimators/gate.py)
+        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected)
         self.rejections += int(rejected.sum())
         self._first = False
         return self.x
