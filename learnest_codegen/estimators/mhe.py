@@ -19,11 +19,14 @@ the arrival weight times the gate's inflation ``rho``); a rejected output gets a
 window's gate block ``G`` and never enters the cost while the sample is in the window.
 Recovery: ``rho`` is 1 normally and multiplied by ``inflation`` at each rejecting step from the
 ``recover_after``-th consecutive one on, so the gate widens until the new measurements pass.
-The first step that then rejects nothing while ``rho > 1`` restarts the window: it is emptied,
+The first step that then rejects nothing ends the episode and restarts the window: it is emptied,
 its prior ``xbar`` is the Kalman update of the prediction ``xpred ~ (., rho diag(P^-1))`` by the
 sample (:func:`restart_prior`), the sample itself is folded into that prior (gate weight 0)
-and the step is taken as the first after a reset, with the arrival weight ``P`` as given; the
-episode ends (``rho = 1``). A step the solver fails on also restarts the window at the next
+and the step is taken as the first after a reset, with the arrival weight ``P`` as given.
+``rho`` then shrinks by ``inflation`` per step without rejection, so the gate stays wide while
+the window re-learns what the restart could not set (measured: resetting ``rho`` to 1 at the
+restart made a wrap of the whole cartpole state, velocities included, lose the track again
+for 1,500 samples). A step the solver fails on also restarts the window at the next
 step (the estimate stays as it was; the prior is updated by the outputs the gate keeps), so a
 window the solver cannot solve is not retried forever.
 
@@ -151,8 +154,6 @@ class MHE:
         self._count += 1
         self._gate.record(rejected)
         self._restart = False
-        if restart:
-            self._gate.inflation = 1.0  # the track is re-acquired: the episode ends
         self.rejections += int(rejected.sum())
         return self.x
 
@@ -190,7 +191,8 @@ class MHE:
         S = gate_variances(C, rho * self._P_cov, self._R_weight)
         with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
             rejected = self._gate.test((y - h) ** 2 / S)
-        restart = self._count > 0 and (self._restart or (rho > 1 and not rejected.any()))
+        recovering = self._gate.streak >= self.settings.gate.recover_after
+        restart = self._count > 0 and (self._restart or (recovering and not rejected.any()))
         if restart:
             xbar = restart_prior(guess[-1], C, rho * self._P_cov, self._R_cov, y - h, rejected)
             p, guess = self._restarted(p, xbar)
