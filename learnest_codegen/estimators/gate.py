@@ -28,7 +28,7 @@ gate (and a restart of the window once the measurements pass, see :mod:`.mhe`). 
 inflation compounds, so a persistent offset of any size is accepted after about
 ``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
 prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
-1; the UKF's ``P`` shrinks by its own updates, and an MHE restart sets it to 1). ``rho`` is
+1; the UKF's ``P`` shrinks by its own updates). ``rho`` is
 capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
