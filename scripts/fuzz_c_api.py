@@ -59,11 +59,13 @@ class Api:
     matrices: tuple[str, ...]  # the matrices init/reset take after x0, in order
     getters: tuple[str, ...]  # get_<what>(..., real* out), out sized by GETTER_SIZE
     options: bool = False  # set_options(h, mode, max_iter, tol)
+    gate: bool = True  # set_gate(h, threshold, recover_after, inflation) (learnest_gate.h)
     ok_positive: bool = True  # codes > 0 are success (learnest_status.h); else only 0 is
 
     def symbols(self) -> tuple[str, ...]:
         return ("init", "step", "run", *(() if not self.handle else ("reset", "workspace_size")),
-                *self.getters, *(("set_options",) if self.options else ()))
+                *self.getters, *(("set_options",) if self.options else ()),
+                *(("set_gate",) if self.gate else ()))
 
 
 _EMBEDDED = Api(True, ("Q", "R", "P"), ("get_state", "get_window", "get_arrival_weight"), options=True)
@@ -248,7 +250,7 @@ class Planner:
         t, r = self.t, self.rng
         api = t.api
         table = {"init": 5, "reset": 5 if api.handle else 0, "step": 64, "run": 3,
-                 "set_options": 4 if api.options else 0}
+                 "set_options": 4 if api.options else 0, "set_gate": 3 if api.gate else 0}
         table.update({g: 16 / len(api.getters) for g in api.getters})
         name = self._pick(table)
         call = Call(name)
@@ -288,6 +290,11 @@ class Planner:
             call.args["mode"] = int(r.choice([-1, 0, 1, 2, 1 << 30]))
             call.args["max_iter"] = int(r.choice([-5, 0, 1, 3, 20, 1000]))
             call.args["tol"] = float(r.choice([np.nan, np.inf, -1.0, 0.0, 1e-300, 1e-10, 1e-6, 1e300]))
+        elif name == "set_gate":  # a tiny threshold rejects everything: the recovery's path
+            call.args["threshold"] = float(r.choice([np.nan, np.inf, -1.0, 0.0, 1e-300, 1e-3, 9.0,
+                                                     50.8, 1e300]))
+            call.args["recover_after"] = int(r.choice([-5, 0, 1, 3, 10, 1 << 30]))
+            call.args["inflation"] = float(r.choice([np.nan, np.inf, -2.0, 1.0, 1.5, 2.0, 1e3, 1e300]))
         else:  # a getter; the older API's void getters cannot report a NULL, so none is passed
             call.args["out"] = None if (api.handle and self._null(0.05)) else "given"
         return call
@@ -328,6 +335,8 @@ class Executor:
                 self.fn[g].argtypes = [vp, vp]
             if api.options:
                 self.fn["set_options"].argtypes = [vp, i, i, self.c_real]
+            if api.gate:
+                self.fn["set_gate"].argtypes = [vp, self.c_real, i, self.c_real]
             self.workspace = int(self.fn["workspace_size"]())
             self.memory = np.zeros(self.workspace + 64, dtype=np.uint8)
             self.garbage = np.random.default_rng(1).integers(0, 256, self.workspace + 64, dtype=np.uint8)
@@ -443,6 +452,9 @@ class Executor:
             extra = X if X is not None and T > 0 else None
         elif call.name == "set_options":
             code = self.fn["set_options"](self._h(a["handle"]), a["mode"], a["max_iter"], a["tol"])
+        elif call.name == "set_gate":
+            code = self.fn["set_gate"](self._h(a["handle"]), a["threshold"], a["recover_after"],
+                                       a["inflation"])
         else:
             out = np.full(t.size(call.name), np.nan, dtype=self.dtype)
             if t.api.handle:

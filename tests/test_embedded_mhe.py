@@ -158,7 +158,8 @@ int main(void) {
   for (k = 0; k < T_RUN; ++k) {
     if (PREFIX_step(a, k ? U[k - 1] : zero, Y[k]) != LEARNEST_OK) return 20;
     for (i = 0; i < 2; ++i) other[i] = 0.5 * Y[T_RUN - 1 - k][i];
-    if (PREFIX_step(b, zero, other) != LEARNEST_OK) return 21;
+    /* b's made-up samples are partly rejected by the gate: status 1, not an error */
+    if (PREFIX_step(b, zero, other) < 0) return 21;
     PREFIX_get_state(a, x);
     for (i = 0; i < NX; ++i) printf("%.17g%c", x[i], i + 1 < NX ? ' ' : '\n');
   }

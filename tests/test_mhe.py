@@ -9,6 +9,7 @@ does not amplify (the solver tolerance leaves each step within ~4e-9 of its opti
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -26,6 +27,7 @@ from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
 from learnest_codegen.codegen.mhe import generate_mhe
 from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe
 from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, SolverError
+from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_problem import MHESettings, build_problem
 from learnest_codegen.export import hybrid_model, prior_model
@@ -339,14 +341,29 @@ def test_bad_shapes_and_nan_raise(any_mhe, cartpole, data):
 
 
 def test_failed_solve_raises_and_keeps_state(any_mhe, cartpole, data):
-    """A measurement of 1e200 makes the cost overflow: Ipopt (or the Gauss-Newton line search)
-    fails, the step raises and the estimator is left as it was, ready for the next sample."""
+    """Gate off, a measurement of 1e200 makes the cost overflow: Ipopt (or the Gauss-Newton line
+    search) fails, the step raises and the estimator is left as it was, ready for the next
+    sample."""
+    any_mhe.settings = dataclasses.replace(any_mhe.settings, gate=GateSettings(threshold=0))
     any_mhe.run(data["U"][:5], data["Y"][:5], cartpole.x0)
     window = any_mhe.window
     with pytest.raises(SolverError, match="sample 5"):
         any_mhe.step(data["U"][4], np.array([1e200, 0.0]))
     np.testing.assert_array_equal(any_mhe.window, window)
     any_mhe.step(data["U"][4], data["Y"][5])
+
+
+def test_gate_rejects_an_absurd_output_and_steps_on(any_mhe, cartpole, data):
+    """Gate on (the default), the same 1e200 is rejected: status 1, not an error, the other
+    output is used, and the next clean sample is accepted."""
+    any_mhe.run(data["U"][:5], data["Y"][:5], cartpole.x0)
+    assert (any_mhe.last_status, any_mhe.rejections) == (0, 0)
+    x = any_mhe.step(data["U"][4], np.array([1e200, data["Y"][5, 1]]))
+    assert np.all(np.isfinite(x)) and np.abs(x[0] - data["X"][5, 0]) < 0.05
+    assert any_mhe.last_status == 1 and any_mhe.rejected.tolist() == [True, False]
+    any_mhe.step(data["U"][5], data["Y"][6])
+    assert any_mhe.last_status == 0 and any_mhe.rejected.tolist() == [False, False]
+    assert any_mhe.rejections == 1
 
 
 def test_arrival_weight_from_P0(any_mhe, cartpole):

@@ -19,8 +19,15 @@ import torch
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
 
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
-from learnest_codegen.codegen.ukf import generate_ukf, merwe_weights, ukf_step_function, ukf_update_function
+from learnest_codegen.codegen.ukf import (
+    generate_ukf,
+    merwe_weights,
+    ukf_gated_update_function,
+    ukf_step_function,
+    ukf_update_function,
+)
 from learnest_codegen.errors import BuildError, DataError, ModelMismatchError, ShapeError
+from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.estimators.ukf import UKF, UKFSettings
 from learnest_codegen.export import hybrid_model, prior_model
 from learnest_codegen.learning.network import ResidualNet
@@ -131,7 +138,9 @@ def test_ukf_equals_kalman_filter_on_linear_model():
 
 
 def test_symbolic_functions_match_filterpy(cartpole, models):
-    model, settings = models["nominal"], UKFSettings.from_system(cartpole)
+    # random measurements far from the state: the gate is off to compare the plain update
+    model = models["nominal"]
+    settings = UKFSettings.from_system(cartpole, gate=GateSettings(threshold=0))
     step_fn, update_fn = ukf_step_function(model, settings), ukf_update_function(model, settings)
     assert step_fn.name_in() == ["x", "P", "u", "y", "Q", "R"]
     assert step_fn.name_out() == ["x_post", "P_post"]
@@ -149,6 +158,37 @@ def test_symbolic_functions_match_filterpy(cartpole, models):
             ukf.step(u, y)
             assert relative_difference(x_sym.T, ukf.x[None])[0] < 1e-12
             assert relative_difference(P_sym[None], ukf.P[None])[0] < 1e-12
+
+
+def test_gated_update_equals_filterpy_update_on_the_kept_outputs(cartpole, models):
+    """The masked update of the C (``M S M + (I - M)``, ``Pxz M``) is FilterPy's own update on
+    the kept outputs alone (reduced ``R`` and ``hx``); mask 0 everywhere is the prediction; d2
+    is ``(y - zp)^2 / diag(S)`` of FilterPy's unscented transform."""
+    from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
+
+    model, settings = models["nominal"], UKFSettings.from_system(cartpole)
+    fn = ukf_gated_update_function(model, settings)
+    Wm, Wc, _ = merwe_weights(4, settings)
+    points = MerweScaledSigmaPoints(4, settings.alpha, settings.beta, settings.kappa)
+    rng = np.random.default_rng(5)
+    for mask in ([1.0, 0.0], [0.0, 1.0], [0.0, 0.0]):
+        A = rng.normal(size=(4, 4))
+        x, P = np.array(cartpole.x0) + rng.normal(size=4), 0.01 * (A @ A.T + 0.1 * np.eye(4))
+        u, y = rng.normal(size=1), rng.normal(size=2)
+        x_sym, P_sym, d2 = (np.array(v) for v in fn(x, P, u, y, settings.R(), mask))
+        keep = np.array(mask, dtype=bool)
+        kf = UnscentedKalmanFilter(4, 2, model.dt, hx=lambda s, u: model.measure(s, u),
+                                   fx=lambda s, dt: s, points=points)
+        kf.x, kf.P, kf.R = x.copy(), P.copy(), settings.R()
+        kf.sigmas_f = points.sigma_points(x, P)
+        zp, S = unscented_transform(np.array([model.measure(s, u) for s in kf.sigmas_f]), Wm, Wc,
+                                    settings.R())
+        np.testing.assert_allclose(d2.ravel(), (y - zp) ** 2 / np.diag(S), rtol=1e-12)
+        if keep.any():
+            kf.update(y[keep], R=settings.R()[np.ix_(keep, keep)],
+                      hx=lambda s, u, keep=keep: model.measure(s, u)[keep], u=u)
+        assert relative_difference(x_sym.T, kf.x[None])[0] < 1e-12
+        assert relative_difference(P_sym[None], kf.P[None])[0] < 1e-12
 
 
 # -- compiled parity -----------------------------------------------------------------------
@@ -273,6 +313,28 @@ def test_manifest_mismatch_raises(built):
         CompiledUKF(directory, settings=other_alpha)  # the message used to swap the two
     with pytest.raises(FileNotFoundError, match="does not exist"):
         CompiledUKF(directory / "missing")
+
+
+def test_library_built_before_the_gate_must_be_recompiled(built, tmp_path):
+    """A folder written before the innovation gate (manifest format 1, settings without a gate)
+    is refused with a "recompile" message, as is a manifest whose settings were edited after
+    the build (its settings hash no longer matches)."""
+    import shutil
+
+    folder = tmp_path / "old"
+    shutil.copytree(built["nominal"].directory, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    old = {**manifest, "format_version": 1, "settings": {k: v for k, v in manifest["settings"].items()
+                                                         if k != "gate"}}
+    old.pop("settings_hash")
+    (folder / "manifest.json").write_text(json.dumps(old))
+    with pytest.raises(ModelMismatchError, match="format_version 1.*innovation gate.*recompile"):
+        CompiledUKF(folder)
+    edited = {**manifest, "settings": {**manifest["settings"], "gate": {
+        **manifest["settings"]["gate"], "threshold": 9.0}}}
+    (folder / "manifest.json").write_text(json.dumps(edited))
+    with pytest.raises(ModelMismatchError, match="settings were edited.*recompile"):
+        CompiledUKF(folder)
 
 
 def test_missing_library_raises(built, tmp_path):

@@ -17,9 +17,16 @@ from pathlib import Path
 import casadi as cs
 
 from .. import toolchain
-from ..estimators.mhe_problem import IPOPT_OPTIONS, MHESettings, ParamLayout, build_problem
+from ..estimators.gate import MAX_INFLATION
+from ..estimators.mhe_problem import (
+    IPOPT_OPTIONS,
+    MHESettings,
+    ParamLayout,
+    build_problem,
+    measurement_function,
+)
 from ..export import DiscreteModel
-from ..runtime.manifest import MANIFEST, read_manifest, write_manifest
+from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
 from ..runtime.status import STATUS_NAMES
 from . import templates
 
@@ -70,19 +77,22 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     problem = build_problem(model, settings, prefix)
-    solver_c = _generate_solver(problem.solver, _renamed_F(model, prefix), out, prefix)
-    api_h, api_c = _write_api(out, prefix, problem.layout)
+    solver_c = _generate_solver(problem.solver, (_renamed_F(model, prefix),
+                                measurement_function(model, f"{prefix}_meas")), out, prefix)
+    api_h, api_c = _write_api(out, prefix, problem.layout, settings)
     include, lib = toolchain.casadi_dirs()
     build = toolchain.build_shared([solver_c, api_c], out / f"lib{prefix}.so",
                                    include_dirs=[out, include], lib_dirs=[lib], libs=["ipopt"],
                                    cflags=API_CFLAGS)
-    files = (solver_c, solver_c.with_suffix(".h"), api_c, api_h, out / templates.STATUS_HEADER)
+    files = (solver_c, solver_c.with_suffix(".h"), api_c, api_h, out / templates.STATUS_HEADER,
+             out / templates.GATE_HEADER)
     code_bytes = sum(f.stat().st_size for f in files)
     manifest = write_manifest(out, {
         "estimator": "mhe", "system": model.system.name, "model_kind": model.kind,
         "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
-        "horizon": settings.horizon, "settings": settings.to_json(), "model_hash": model_hash,
+        "horizon": settings.horizon, "settings": settings.to_json(),
+        "settings_hash": settings_hash(settings.to_json()), "model_hash": model_hash,
         "code_hash": toolchain.file_hash(*files), "casadi_version": cs.__version__,
         "ipopt_options": dict(IPOPT_OPTIONS), "library": build.library.name,
         "build_seconds": _build_seconds(out, build), "code_bytes": code_bytes,
@@ -98,10 +108,12 @@ def _renamed_F(model: DiscreteModel, prefix: str) -> cs.Function:
     return cs.Function(f"{prefix}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
 
 
-def _generate_solver(solver: cs.Function, F: cs.Function, out: Path, prefix: str) -> Path:
+def _generate_solver(solver: cs.Function, helpers: tuple[cs.Function, ...], out: Path,
+                     prefix: str) -> Path:
     cg = cs.CodeGenerator(f"{prefix}.c", {"with_header": True})
     cg.add(solver)
-    cg.add(F)
+    for fn in helpers:
+        cg.add(fn)
     cg.generate(f"{out}/")
     return out / f"{prefix}.c"
 
@@ -113,13 +125,23 @@ def _build_seconds(out: Path, build: toolchain.BuildResult) -> float:
     return round(build.seconds, 3)
 
 
-def _write_api(out: Path, prefix: str, layout: ParamLayout) -> tuple[Path, Path]:
+def _write_api(out: Path, prefix: str, layout: ParamLayout,
+               settings: MHESettings) -> tuple[Path, Path]:
     offsets = layout.offsets()
     values = {"p": prefix, "P": prefix.upper(), "nx": layout.nx, "nu": layout.nu,
               "ny": layout.ny, "horizon": layout.horizon, "np": layout.size,
               "off_xbar": offsets["xbar"], "off_u": offsets["U"], "off_y": offsets["Y"],
-              "off_mask": offsets["mask"], "off_q": offsets["Q"], "off_r": offsets["R"],
-              "off_pw": offsets["P"]}
+              "off_mask": offsets["mask"], "off_g": offsets["G"], "off_q": offsets["Q"],
+              "off_r": offsets["R"], "off_pw": offsets["P"], **gate_values(settings, "float64")}
     templates.write_status_header(out)
+    templates.write_gate_header(out)
     return (templates.write(out, "mhe_ipopt_api.h.in", f"{prefix}_api.h", values),
             templates.write(out, "mhe_ipopt_api.c.in", f"{prefix}_api.c", values))
+
+
+def gate_values(settings: MHESettings, precision: str) -> dict[str, str]:
+    """The gate defaults as template fields ``gate_threshold``, ... (C literals)."""
+    gate = settings.gate
+    return {"gate_threshold": repr(gate.c_threshold()), "gate_recover_after": str(gate.recover_after),
+            "gate_inflation": repr(gate.inflation), "max_inflation": repr(MAX_INFLATION[precision]),
+            "gate_header_sha256": templates.gate_header_digest()}

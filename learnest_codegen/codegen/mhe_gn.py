@@ -19,10 +19,10 @@ from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
 from ..estimators.precision import PRECISIONS
 from ..export import DiscreteModel
-from ..runtime.manifest import MANIFEST, read_manifest, write_manifest
+from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
 from ..runtime.status import STATUS_NAMES
 from . import templates
-from .mhe import GeneratedMHE
+from .mhe import GeneratedMHE, gate_values
 
 CFLAGS = (*toolchain.DEFAULT_CFLAGS, "-Wall", "-Wextra")
 
@@ -56,19 +56,22 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     values = {"p": prefix, "P": prefix.upper(), "nx": model.nx, "nu": model.nu, "ny": model.ny,
               "horizon": settings.horizon, "real": real, "default_mode": solver.mode,
               "default_mode_value": int(solver.mode == "rti"),
-              "default_max_iter": solver.max_iterations, "default_tol": repr(solver.tolerance)}
+              "default_max_iter": solver.max_iterations, "default_tol": repr(solver.tolerance),
+              **gate_values(settings, solver.precision)}
     status_h = templates.write_status_header(out)
+    gate_h = templates.write_gate_header(out)
     header = templates.write(out, "mhe_gn.h.in", f"{prefix}.h", values)
     source = templates.write(out, "mhe_gn.c.in", f"{prefix}.c", values)
     build = toolchain.build_shared([model_c, source], out / f"lib{prefix}.so", include_dirs=[out],
                                    cflags=CFLAGS)
-    files = (model_c, model_c.with_suffix(".h"), source, header, status_h)
+    files = (model_c, model_c.with_suffix(".h"), source, header, status_h, gate_h)
     code_bytes = sum(f.stat().st_size for f in files)
     manifest = write_manifest(out, {
         "estimator": solver.estimator, "system": model.system.name, "model_kind": model.kind,
         "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
         "horizon": settings.horizon, "settings": settings.to_json(), "solver": solver.to_json(),
+        "settings_hash": settings_hash(settings.to_json()),
         "precision": solver.precision, "model_hash": model_hash,
         "code_hash": toolchain.file_hash(*files), "casadi_version": cs.__version__,
         "library": build.library.name, "build_seconds": _build_seconds(out, build),

@@ -14,6 +14,7 @@ from ..runtime.status import STATUSES
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 STATUS_HEADER = "learnest_status.h"
+GATE_HEADER = "learnest_gate.h"
 
 
 def render(name: str, values: Mapping[str, object]) -> str:
@@ -35,3 +36,16 @@ def write_status_header(out: Path) -> Path:
         lines.append(f"/* {s.meaning}.\n * Recovery: {s.recovery}. */")
         lines.append(f"#define LEARNEST_{s.name} ({s.code})")
     return write(out, f"{STATUS_HEADER}.in", STATUS_HEADER, {"codes": "\n".join(lines)})
+
+
+def gate_header_digest() -> str:
+    """SHA-256 of ``learnest_gate.h``: the sources that include it quote it, so a change of the
+    header changes them and the toolchain (which hashes the .c files) rebuilds."""
+    import hashlib
+
+    return hashlib.sha256((TEMPLATES / f"{GATE_HEADER}.in").read_bytes()).hexdigest()
+
+
+def write_gate_header(out: Path) -> Path:
+    """``out/learnest_gate.h``: the innovation gate's C, shared by every estimator."""
+    return write(out, f"{GATE_HEADER}.in", GATE_HEADER, {})

@@ -19,10 +19,11 @@ from pathlib import Path
 import casadi as cs
 import numpy as np
 
+from ..estimators.gate import MAX_INFLATION
 from ..estimators.precision import PRECISIONS, check_precision
 from ..estimators.ukf import UKFSettings
 from ..export import DiscreteModel
-from ..runtime.manifest import write_manifest
+from ..runtime.manifest import settings_hash, write_manifest
 from ..runtime.status import STATUS_NAMES
 from ..toolchain import BuildResult, build_shared, file_hash
 from . import templates
@@ -31,6 +32,8 @@ from . import templates
 FLOAT32_MIN_ALPHA = 0.5
 ARG_NAMES = ["x", "P", "u", "y", "Q", "R"]
 RES_NAMES = ["x_post", "P_post"]
+PREDICT_ARGS, PREDICT_RES = ["x", "P", "u", "Q"], ["x_prior", "P_prior"]
+UPDATE_ARGS, UPDATE_RES = ["x", "P", "u", "y", "R", "mask"], ["x_post", "P_post", "d2"]
 _C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # -Wall -Wextra keep the hand-written API honest; CasADi's own code may still warn.
 CFLAGS = ("-O2", "-fPIC", "-fno-math-errno", "-std=c99", "-Wall", "-Wextra")
@@ -104,15 +107,56 @@ def _symbols(model: DiscreteModel) -> list[cs.SX]:
             cs.SX.sym("Q", nx, nx), cs.SX.sym("R", ny, ny)]
 
 
-def _update(model, x, P, u, y, R, Wm, Wc, scale) -> tuple[cs.SX, cs.SX]:
-    """FilterPy ``update``: sigma points of ``(x, P)`` through ``h``, explicit ``S^-1``."""
+def _update(model, x, P, u, y, R, Wm, Wc, scale, mask=None) -> tuple[cs.SX, cs.SX, cs.SX]:
+    """FilterPy ``update``: sigma points of ``(x, P)`` through ``h``, explicit ``S^-1``.
+
+    ``mask (ny)`` of 0/1 keeps the outputs marked 1: with ``M = diag(mask)`` the update uses
+    ``M S M + (I - M)``, ``Pxz M`` and ``M (y - zp)``, i.e. exactly FilterPy's update on the kept
+    outputs alone (the dropped ones get a unit block that couples to nothing). Also returns
+    ``d2 (ny)``, each output's normalised innovation ``(y - zp)_j^2 / S_jj`` (unmasked).
+    """
     sig_f = sigma_points(x, P, scale)
     sig_h = [model.h(s, u) for s in sig_f]
     zp, S = unscented_transform(sig_h, Wm, Wc, R)
     Pxz = sum((Wc[i] * cs.mtimes(sig_f[i] - x, (sig_h[i] - zp).T) for i in range(len(sig_f))),
               cs.SX.zeros(model.nx, model.ny))
+    nu_ = y - zp
+    d2 = nu_ * nu_ / cs.diag(S)
+    if mask is not None:
+        M = cs.diag(mask)
+        S = cs.mtimes(M, cs.mtimes(S, M)) + cs.diag(1 - mask)
+        Pxz, nu_ = cs.mtimes(Pxz, M), mask * nu_
     K = cs.mtimes(Pxz, inv_spd(S))
-    return x + cs.mtimes(K, y - zp), P - cs.mtimes(K, cs.mtimes(S, K.T))
+    return x + cs.mtimes(K, nu_), P - cs.mtimes(K, cs.mtimes(S, K.T)), d2
+
+
+def ukf_predict_function(model: DiscreteModel, settings: UKFSettings, *,
+                         name: str | None = None) -> cs.Function:
+    """FilterPy ``predict``: ``Function(name, [x, P, u, Q], [x_prior, P_prior])``."""
+    settings.validate_for(model)
+    Wm, Wc, scale = merwe_weights(model.nx, settings)
+    x, P, u, _, Q, _ = _symbols(model)
+    x_prior, P_prior = unscented_transform([model.F(s, u) for s in sigma_points(x, P, scale)],
+                                           Wm, Wc, Q)
+    return cs.Function(name or f"{default_prefix(model)}_predict", [x, P, u, Q],
+                       [x_prior, P_prior], PREDICT_ARGS, PREDICT_RES)
+
+
+def ukf_gated_update_function(model: DiscreteModel, settings: UKFSettings, *,
+                              name: str | None = None) -> cs.Function:
+    """The update on the outputs a mask keeps, and every output's normalised innovation.
+
+    ``Function(name, [x, P, u, y, R, mask (ny)], [x_post, P_post, d2 (ny)])`` (see
+    :func:`_update`); the compiled filter calls it once with ``mask = 1`` and, when the gate
+    rejects an output, again with that output's mask entry 0.
+    """
+    settings.validate_for(model)
+    Wm, Wc, scale = merwe_weights(model.nx, settings)
+    x, P, u, y, _, R = _symbols(model)
+    mask = cs.SX.sym("mask", model.ny)
+    outputs = _update(model, x, P, u, y, R, Wm, Wc, scale, mask)
+    return cs.Function(name or f"{default_prefix(model)}_gated_update", [x, P, u, y, R, mask],
+                       list(outputs), UPDATE_ARGS, UPDATE_RES)
 
 
 def ukf_step_function(model: DiscreteModel, settings: UKFSettings, *,
@@ -127,7 +171,7 @@ def ukf_step_function(model: DiscreteModel, settings: UKFSettings, *,
     x, P, u, y, Q, R = args = _symbols(model)
     x_prior, P_prior = unscented_transform([model.F(s, u) for s in sigma_points(x, P, scale)],
                                            Wm, Wc, Q)
-    outputs = _update(model, x_prior, P_prior, u, y, R, Wm, Wc, scale)
+    outputs = _update(model, x_prior, P_prior, u, y, R, Wm, Wc, scale)[:2]
     return cs.Function(name or f"{default_prefix(model)}_predict_update", args, list(outputs),
                        ARG_NAMES, RES_NAMES)
 
@@ -138,7 +182,7 @@ def ukf_update_function(model: DiscreteModel, settings: UKFSettings, *,
     settings.validate_for(model)
     Wm, Wc, scale = merwe_weights(model.nx, settings)
     x, P, u, y, _, R = args = _symbols(model)
-    outputs = _update(model, x, P, u, y, R, Wm, Wc, scale)
+    outputs = _update(model, x, P, u, y, R, Wm, Wc, scale)[:2]
     return cs.Function(name or f"{default_prefix(model)}_update", args, list(outputs),
                        ARG_NAMES, RES_NAMES)
 
@@ -195,9 +239,9 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    functions = (ukf_step_function(model, settings, name=f"{prefix}_predict_update"),
-                 ukf_update_function(model, settings, name=f"{prefix}_update"))
-    sources = _write_sources(model, functions, out_dir, prefix, PRECISIONS[precision])
+    functions = (ukf_predict_function(model, settings, name=f"{prefix}_predict"),
+                 ukf_gated_update_function(model, settings, name=f"{prefix}_update"))
+    sources = _write_sources(model, settings, functions, out_dir, prefix, PRECISIONS[precision])
     generate_seconds = time.perf_counter() - start
     library = out_dir / f"lib{prefix}.so"
     build = build_shared([p for p in sources if p.suffix == ".c"], library,
@@ -207,7 +251,8 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
         "estimator": "ukf", "system": model.system.name, "model_kind": model.kind,
         "system_fingerprint": model.system.fingerprint(),
         "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
-        "settings": settings.to_json(), "model_hash": model_hash,
+        "settings": settings.to_json(), "settings_hash": settings_hash(settings.to_json()),
+        "model_hash": model_hash,
         "code_hash": file_hash(*sources), "casadi_version": cs.__version__,
         "library": library.name, "generate_seconds": generate_seconds,
         "build_seconds": build.seconds, "build_reused": build.reused, "code_bytes": code_bytes,
@@ -218,7 +263,7 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                         code_bytes)
 
 
-def _write_sources(model: DiscreteModel, functions, out_dir: Path, prefix: str,
+def _write_sources(model: DiscreteModel, settings: UKFSettings, functions, out_dir: Path, prefix: str,
                    real: str) -> tuple[Path, ...]:
     """CasADi's C for ``functions`` and the API around them; returns the file paths."""
     casadi_c = f"{prefix}_casadi.c"
@@ -231,13 +276,19 @@ def _write_sources(model: DiscreteModel, functions, out_dir: Path, prefix: str,
     work = {key: max(1, *(int(getattr(fn, f"sz_{key}")()) for fn in functions))
             for key in ("arg", "res", "iw", "w")}
     real_bytes = 4 if real == "float" else 8
-    bound = (64 + 8 * (work["arg"] + work["res"] + work["iw"])
-             + real_bytes * (model.nx + 2 * model.nx**2 + model.ny**2 + work["w"]))
+    bound = (128 + 8 * (work["arg"] + work["res"] + work["iw"]) + 4 * model.ny
+             + real_bytes * (model.nx + 2 * model.nx**2 + model.ny**2 + work["w"] + 4))
+    gate = settings.gate
     values = dict(prefix=prefix, PREFIX=prefix.upper(), casadi_header=f"{prefix}_casadi.h",
-                  step_fn=functions[0].name(), update_fn=functions[1].name(), nx=model.nx,
+                  predict_fn=functions[0].name(), update_fn=functions[1].name(), nx=model.nx,
                   nu=model.nu, ny=model.ny, dt=repr(float(model.dt)), real=real,
+                  gate_threshold=repr(gate.c_threshold()), gate_recover_after=gate.recover_after,
+                  gate_inflation=repr(gate.inflation),
+                  max_inflation=repr(MAX_INFLATION["float32" if real == "float" else "float64"]),
+                  gate_header_sha256=templates.gate_header_digest(),
                   workspace_bound=bound, **{f"sz_{k}": v for k, v in work.items()})
     status_h = templates.write_status_header(out_dir)
+    gate_h = templates.write_gate_header(out_dir)
     api_h = templates.write(out_dir, "ukf_api.h.in", f"{prefix}_api.h", values)
     api_c = templates.write(out_dir, "ukf_api.c.in", f"{prefix}_api.c", values)
-    return (out_dir / casadi_c, out_dir / f"{prefix}_casadi.h", api_c, api_h, status_h)
+    return (out_dir / casadi_c, out_dir / f"{prefix}_casadi.h", api_c, api_h, status_h, gate_h)

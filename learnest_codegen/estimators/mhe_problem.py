@@ -52,6 +52,7 @@ import casadi as cs
 import numpy as np
 
 from ..errors import ShapeError
+from .gate import GateSettings
 
 if TYPE_CHECKING:  # for annotations only
     from ..export import DiscreteModel
@@ -98,8 +99,10 @@ class MHESettings:
     measurement_std: tuple[float, ...]
     arrival_std: tuple[float, ...]
     arrival_covariance: tuple[tuple[float, ...], ...] | None = None
+    gate: GateSettings = GateSettings()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) \
                 or self.horizon < 1:
             raise ValueError(f"MHESettings.horizon must be an integer >= 1, got {self.horizon!r}")
@@ -144,7 +147,8 @@ class MHESettings:
         return Q, R, P
 
     def to_json(self) -> dict:
-        return json.loads(json.dumps(dataclasses.asdict(self)))  # tuples -> lists, recursively
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "gate"}
+        return {**json.loads(json.dumps(data)), "gate": self.gate.to_json()}  # tuples -> lists
 
     @classmethod
     def from_json(cls, data: dict) -> "MHESettings":
@@ -186,7 +190,8 @@ class ParamLayout:
     """Where each block of the parameter vector ``p`` lives; shared with the generated C.
 
     Blocks in order: ``xbar (nx)``, ``U (N+1, nu)``, ``Y (N+1, ny)``, ``mask (N+1)``,
-    ``Q (nx, nx)``, ``R (ny, ny)``, ``P (nx, nx)``. Window blocks are stage-contiguous (stage
+    ``G (N+1, ny)`` (the innovation gate's 0/1 per output, :mod:`.gate`), ``Q (nx, nx)``,
+    ``R (ny, ny)``, ``P (nx, nx)``. Window blocks are stage-contiguous (stage
     ``i`` at ``offset + i * width``) and matrices column-major, CasADi's order.
     """
 
@@ -198,7 +203,7 @@ class ParamLayout:
     def sizes(self) -> dict[str, int]:
         n1 = self.horizon + 1
         return {"xbar": self.nx, "U": n1 * self.nu, "Y": n1 * self.ny, "mask": n1,
-                "Q": self.nx**2, "R": self.ny**2, "P": self.nx**2}
+                "G": n1 * self.ny, "Q": self.nx**2, "R": self.ny**2, "P": self.nx**2}
 
     def offsets(self) -> dict[str, int]:
         starts = np.cumsum([0, *self.sizes().values()])
@@ -234,11 +239,11 @@ def build_problem(model: "DiscreteModel", settings: MHESettings, name: str) -> M
     stage, stage_hess, node, node_hess = _stage_functions(model)
     X = cs.MX.sym("X", model.nx, n + 1)
     p = cs.MX.sym("p", layout.size)
-    xbar, U, Y, mask, Q, R, P = _split(p, layout)
+    xbar, U, Y, mask, G, Q, R, P = _split(p, layout)
     mask_prev = cs.horzcat(cs.MX.zeros(1, 1), mask[:, :n])
-    args = (X[:, :n], X[:, 1:], U[:, :n], U[:, 1:], Y[:, :n], mask[:, :n], mask_prev[:, :n],
-            xbar, Q, R, P)
-    last = (X[:, n], U[:, n], Y[:, n], mask[:, n], mask_prev[:, n], xbar, R, P)
+    args = (X[:, :n], X[:, 1:], U[:, :n], U[:, 1:], Y[:, :n], G[:, :n], mask[:, :n],
+            mask_prev[:, :n], xbar, Q, R, P)
+    last = (X[:, n], U[:, n], Y[:, n], G[:, n], mask[:, n], mask_prev[:, n], xbar, R, P)
     scale = 1.0 / cs.mmax(cs.vertcat(cs.diag(Q), cs.diag(R), cs.diag(P)))  # see IPOPT_OPTIONS
     cost = scale * (cs.sum2(stage.map(n)(*args)) + node(*last))
     lam_f, lam_g = cs.MX.sym("lam_f"), cs.MX.sym("lam_g", 0)
@@ -251,11 +256,24 @@ def build_problem(model: "DiscreteModel", settings: MHESettings, name: str) -> M
     return MHEProblem(name, layout, solver, hessian)
 
 
+def measurement_function(model: "DiscreteModel", name: str) -> cs.Function:
+    """``name(x, u) -> (h (ny), C = dh/dx (ny, nx))``: what the MHEs' innovation gate needs."""
+    x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
+    h = model.h(x, u)
+    return cs.Function(name, [x, u], [h, cs.densify(cs.jacobian(h, x))], ["x", "u"], ["h", "C"])
+
+
+def gate_variances(C: np.ndarray, P_arrival_cov: np.ndarray, R_weight: np.ndarray) -> np.ndarray:
+    """``S_jj = (C P C^T)_jj + (R^-1)_jj``: the predicted innovation variance of each output."""
+    return np.einsum("ij,jk,ik->i", C, P_arrival_cov, C) + np.diag(np.linalg.inv(R_weight))
+
+
 def _split(p: cs.MX, layout: ParamLayout) -> list[cs.MX]:
-    """The blocks of ``p`` as MX of shapes (nx,1), (nu,N+1), (ny,N+1), (1,N+1), Q, R, P."""
+    """The blocks of ``p`` as MX of shapes (nx,1), (nu,N+1), (ny,N+1), (1,N+1), (ny,N+1), Q, R, P."""
     n1 = layout.horizon + 1
     shapes = {"xbar": (layout.nx, 1), "U": (layout.nu, n1), "Y": (layout.ny, n1), "mask": (1, n1),
-              "Q": (layout.nx, layout.nx), "R": (layout.ny, layout.ny), "P": (layout.nx, layout.nx)}
+              "G": (layout.ny, n1), "Q": (layout.nx, layout.nx), "R": (layout.ny, layout.ny),
+              "P": (layout.nx, layout.nx)}
     return [cs.reshape(p[layout.slice(name)], *shape) for name, shape in shapes.items()]
 
 
@@ -263,20 +281,21 @@ def _stage_functions(model: "DiscreteModel") -> tuple[cs.Function, ...]:
     """SX cost of one stage ``i < N`` and of the last node, and their exact Hessians.
 
     Stage: ``node_i + m_i ||x_{i+1} - F(x_i, u_{i+1})||^2_Q``; node:
-    ``m_i ||y_i - h(x_i, u_i)||^2_R + (1 - m_{i-1}) ||x_i - xbar||^2_P``.
+    ``m_i ||g_i * (y_i - h(x_i, u_i))||^2_R + (1 - m_{i-1}) ||x_i - xbar||^2_P``, with ``g_i``
+    the 0/1 gate of each output (0: rejected; for a diagonal ``R`` the output is simply dropped).
     """
     nx, nu, ny = model.nx, model.nu, model.ny
     x, x_next, xbar = cs.SX.sym("x", nx), cs.SX.sym("x_next", nx), cs.SX.sym("xbar", nx)
     u, u_next, y = cs.SX.sym("u", nu), cs.SX.sym("u_next", nu), cs.SX.sym("y", ny)
-    m, m_prev = cs.SX.sym("m"), cs.SX.sym("m_prev")
+    m, m_prev, g = cs.SX.sym("m"), cs.SX.sym("m_prev"), cs.SX.sym("g", ny)
     Q, R, P = cs.SX.sym("Q", nx, nx), cs.SX.sym("R", ny, ny), cs.SX.sym("P", nx, nx)
-    v, e, w = y - model.h(x, u), x - xbar, x_next - model.F(x, u_next)
+    v, e, w = g * (y - model.h(x, u)), x - xbar, x_next - model.F(x, u_next)
     node_cost = m * cs.bilin(R, v, v) + (1 - m_prev) * cs.bilin(P, e, e)
     stage_cost = node_cost + m * cs.bilin(Q, w, w)
-    node_in = [x, u, y, m, m_prev, xbar, R, P]
-    node_names = ["x", "u", "y", "m", "m_prev", "xbar", "R", "P"]
-    stage_in = [x, x_next, u, u_next, y, m, m_prev, xbar, Q, R, P]
-    stage_names = ["x", "x_next", "u", "u_next", "y", "m", "m_prev", "xbar", "Q", "R", "P"]
+    node_in = [x, u, y, g, m, m_prev, xbar, R, P]
+    node_names = ["x", "u", "y", "g", "m", "m_prev", "xbar", "R", "P"]
+    stage_in = [x, x_next, u, u_next, y, g, m, m_prev, xbar, Q, R, P]
+    stage_names = ["x", "x_next", "u", "u_next", "y", "g", "m", "m_prev", "xbar", "Q", "R", "P"]
     H, _ = cs.hessian(stage_cost, cs.vertcat(x, x_next))
     H_node, _ = cs.hessian(node_cost, x)
     return (

@@ -13,10 +13,11 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from ..errors import ShapeError, SolverError
+from ..errors import DataError, ShapeError, SolverError
 from ..export import DiscreteModel
 from ..systems import System
 from . import validation
+from .gate import GateSettings, GateState
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -32,6 +33,7 @@ class UKFSettings:
     process_std : (nx,) stds of the assumed process noise, ``Q = diag(process_std**2)``.
     measurement_std : (ny,) stds of the measurement noise, ``R = diag(measurement_std**2)``.
     initial_std : (nx,) stds of the initial uncertainty, ``P0 = diag(initial_std**2)``.
+    gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
     """
 
     alpha: float = 0.1
@@ -40,8 +42,10 @@ class UKFSettings:
     process_std: tuple[float, ...]
     measurement_std: tuple[float, ...]
     initial_std: tuple[float, ...]
+    gate: GateSettings = GateSettings()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         for name in ("alpha", "beta", "kappa"):
             value = float(getattr(self, name))
             if not math.isfinite(value):
@@ -77,7 +81,8 @@ class UKFSettings:
             raise ValueError(f"UKFSettings: need kappa > -nx = {-model.nx}, got {self.kappa}")
 
     def to_json(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        data = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        return {**data, "gate": self.gate.to_json()}
 
     def Q(self) -> np.ndarray:
         """Process-noise covariance ``(nx, nx)``."""
@@ -95,10 +100,22 @@ class UKFSettings:
 class UKF:
     """Reference UKF (FilterPy) with ``fx = model.step`` and ``hx = model.measure``.
 
+    Each update is gated (:mod:`.gate`): an output whose normalised innovation
+    ``(y_j - zp_j)^2 / S_jj`` exceeds ``settings.gate.threshold`` is left out (FilterPy's update
+    on the other outputs; none left: the prediction), and after ``recover_after`` consecutive
+    steps with rejections each further one multiplies the variances (the diagonal of ``P``)
+    by ``inflation``.
+
     Parameters
     ----------
     model : the discrete model ``x+ = F(x, u)``, ``y = h(x, u)``.
     settings : tuning; default ``UKFSettings.from_system(model.system)``.
+
+    Attributes
+    ----------
+    rejected : (ny,) bool, the outputs the gate rejected in the last step.
+    last_status : 0 (OK) or 1 (MEASUREMENT_REJECTED), the C status of the last step.
+    rejections : outputs rejected since :meth:`reset`.
     """
 
     def __init__(self, model: DiscreteModel, settings: UKFSettings | None = None):
@@ -114,6 +131,8 @@ class UKF:
         self._kf = UnscentedKalmanFilter(model.nx, model.ny, model.dt, hx=self._hx, fx=self._fx,
                                          points=self._points)
         self._kf.Q, self._kf.R = s.Q(), s.R()
+        self._gate = GateState(s.gate, model.ny)
+        self.rejections = 0
         self._first: bool | None = None  # None until reset(): no state to filter from
 
     def _fx(self, x: np.ndarray, dt: float, u: np.ndarray) -> np.ndarray:
@@ -128,7 +147,17 @@ class UKF:
         self._kf.x = validation.vector("UKF.reset x0", x0, nx).copy()
         P0 = self.settings.P0() if P0 is None else P0
         self._kf.P = validation.covariance("UKF.reset P0", P0, nx).copy()
+        self._gate = GateState(self.settings.gate, self.model.ny)  # as of this reset
+        self.rejections = 0
         self._first = True
+
+    @property
+    def rejected(self) -> np.ndarray:
+        return self._gate.rejected.copy()
+
+    @property
+    def last_status(self) -> int:
+        return self._gate.status
 
     def step(self, u, y) -> np.ndarray:
         """Filter one sample and return the posterior mean ``x (nx,)``.
@@ -136,7 +165,7 @@ class UKF:
         Predicts with ``u (nu,)``, the input applied since the previous sample (no predict on
         the first call after :meth:`reset`), then updates with ``y (ny,)``, evaluating ``h`` at
         the same ``u``. Raises :class:`SolverError` (state unchanged) if the covariance stops
-        being positive definite.
+        being positive definite. An output the gate rejects is not an error (see the class).
         """
         self._require_reset("step")
         u = validation.vector("UKF.step u", u, self.model.nu)
@@ -149,15 +178,42 @@ class UKF:
                 self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
             else:
                 self._kf.predict(u=u)
-            self._kf.update(y, u=u)
+            rejected = self._gated_update(u, y)
         except np.linalg.LinAlgError as exc:  # Cholesky of a non-positive-definite P
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"UKF.step: {exc} (state left as before this step)") from exc
         if not (np.all(np.isfinite(self._kf.x)) and np.all(np.isfinite(self._kf.P))):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
+        try:  # the compiled filter's PSD guard (P - K S K^T can lose definiteness in rounding)
+            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx)
+        except DataError as exc:
+            self._kf.x, self._kf.P, self._kf.sigmas_f = saved
+            raise SolverError(f"{exc} (state left as before)") from exc
+        # recovery: the variances grow, the covariances stay (see estimators/gate.py)
+        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected)
+        self.rejections += int(rejected.sum())
         self._first = False
         return self.x
+
+    def _gated_update(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """FilterPy's update on the outputs the gate keeps; returns the rejected mask."""
+        from filterpy.kalman import unscented_transform
+
+        kf = self._kf
+        sigmas_h = np.atleast_2d([self._hx(s, u) for s in kf.sigmas_f])
+        zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
+        with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
+            rejected = self._gate.test((y - zp) ** 2 / np.diag(S))
+        if not rejected.any():
+            kf.update(y, u=u)
+        elif rejected.all():
+            kf.update(None)  # the prediction stands
+        else:
+            keep = ~rejected
+            kf.update(y[keep], R=kf.R[np.ix_(keep, keep)],
+                      hx=lambda x, u: self._hx(x, u)[keep], u=u)
+        return rejected
 
     @property
     def x(self) -> np.ndarray:

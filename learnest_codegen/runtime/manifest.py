@@ -17,7 +17,15 @@ from typing import Any, Mapping
 from ..errors import ModelMismatchError
 
 MANIFEST = "manifest.json"
-FORMAT_VERSION = 1
+# 2: every estimator gates its measurements (settings "gate", C status 1 MEASUREMENT_REJECTED,
+# <prefix>_set_gate / _get_rejected); a version-1 library has no gate and must be recompiled.
+FORMAT_VERSION = 2
+
+
+def settings_hash(settings: Mapping[str, Any]) -> str:
+    """SHA-256 of the settings' canonical JSON (sorted keys), as recorded in manifests."""
+    text = json.dumps(settings, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def library_digest(path: Path) -> dict:
@@ -72,7 +80,12 @@ def read_manifest(directory: Path) -> dict:
         raise ModelMismatchError(f"{path} is not valid JSON: {exc}") from exc
     if manifest.get("format_version") != FORMAT_VERSION:
         raise ModelMismatchError(f"{path}: format_version {manifest.get('format_version')!r}, "
-                                 f"this runtime reads {FORMAT_VERSION}; recompile")
+                                 f"this runtime reads {FORMAT_VERSION} (version 2 added the "
+                                 "innovation gate to every estimator); recompile the estimator")
+    if "settings" in manifest and "settings_hash" in manifest \
+            and settings_hash(manifest["settings"]) != manifest["settings_hash"]:
+        raise ModelMismatchError(f"{path}: its settings were edited after the library was built "
+                                 "(settings_hash differs); recompile the estimator")
     if "library" in manifest:
         verify_library(directory, manifest)
     return manifest

@@ -40,6 +40,7 @@ class CompiledMHE(CompiledEstimator):
     Attributes
     ----------
     x : (nx,) current estimate; window : (N+1, nx) current window solution, oldest first.
+    rejected, last_status, rejections : the innovation gate's report, as :class:`MHE`'s.
     """
 
     ESTIMATORS = ("mhe",)
@@ -58,6 +59,7 @@ class CompiledMHE(CompiledEstimator):
         self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
         self._handle: int | None = None
         self._P: np.ndarray | None = None
+        self.last_status = 0
 
     def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
         R, h = self.real_pointer, _HANDLE
@@ -71,6 +73,9 @@ class CompiledMHE(CompiledEstimator):
             "get_window": (_INT, [h, R]),
             "samples": (_INT, [h]),
             "sizes": (None, [ctypes.POINTER(_INT)] * 4),
+            "set_gate": (_INT, [h, self.c_real, _INT, self.c_real]),
+            "get_rejected": (_INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
+            "rejections": (_INT, [h]),
         }
 
     @property
@@ -111,7 +116,23 @@ class CompiledMHE(CompiledEstimator):
             self._configure(self._handle)
         else:
             self.check_status("reset", self._c["reset"](self._handle, *args))
+        gate = self.settings.gate
+        self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
+                                                       gate.recover_after, gate.inflation))
         self._P = P
+        self.last_status = 0
+
+    @property
+    def rejected(self) -> np.ndarray:
+        """(ny,) bool: the outputs the gate rejected in the last step."""
+        mask = np.zeros(self.ny, dtype=np.intc)
+        self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
+        return mask.astype(bool)
+
+    @property
+    def rejections(self) -> int:
+        """Outputs rejected since :meth:`reset`."""
+        return int(self._c["rejections"](self._started("rejections")))
 
     def _configure(self, handle: int) -> None:
         """Run-time options after the first init (the Ipopt MHE has none)."""
@@ -122,7 +143,7 @@ class CompiledMHE(CompiledEstimator):
         name = type(self).__name__
         u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
         y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
-        self.check_status("step", self._c["step"](handle, u, y), self._sample())
+        self.last_status = self.check_status("step", self._c["step"](handle, u, y), self._sample())
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
@@ -134,8 +155,8 @@ class CompiledMHE(CompiledEstimator):
         U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
-        self.check_status("run", self._c["run"](self._handle, len(Y), self.real_array(U),
-                                                self.real_array(Y), X_hat), self._sample())
+        self.last_status = self.check_status("run", self._c["run"](
+            self._handle, len(Y), self.real_array(U), self.real_array(Y), X_hat), self._sample())
         return X_hat.astype(float)
 
     def _sample(self) -> str:

@@ -24,9 +24,11 @@ class Status:
 STATUSES = (
     Status(0, "OK", "the call did what it says", "nothing to do"),
     Status(1, "MEASUREMENT_REJECTED",
-           "reserved (not produced yet): the innovation gate rejected the measurement; the "
-           "estimate is the prediction without it",
-           "not an error; keep stepping"),
+           "the innovation gate rejected at least one output of this sample (its normalised "
+           "innovation exceeded the threshold): the step succeeded without those outputs, and "
+           "<prefix>_get_rejected says which; after recover_after such steps in a row the "
+           "estimator inflates its uncertainty to re-acquire a lost track",
+           "not an error; keep stepping (a long run of it means the sensor or the model is off)"),
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
            "call <prefix>_init on the workspace first"),
     Status(-2, "BAD_ARGUMENT", "a NULL pointer, or a size or option out of range",

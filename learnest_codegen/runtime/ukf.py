@@ -36,9 +36,13 @@ class CompiledUKF(CompiledEstimator):
     directory : folder written by :func:`learnest_codegen.codegen.ukf.generate_ukf`.
     expect : manifest entries the caller requires, e.g. ``{"system": "cartpole", "nx": 4}``;
         any difference raises :class:`ModelMismatchError`.
-    settings : :class:`UKFSettings` whose Q, R and P0 to use (default: those compiled with the
-        library). Its alpha, beta and kappa must equal the compiled ones (they are constants in
-        the C).
+    settings : :class:`UKFSettings` whose Q, R, P0 and gate to use (default: those compiled
+        with the library). Its alpha, beta and kappa must equal the compiled ones (they are
+        constants in the C).
+
+    Attributes
+    ----------
+    rejected, last_status, rejections : as :class:`~learnest_codegen.estimators.ukf.UKF`.
     """
 
     ESTIMATORS = ("ukf",)
@@ -51,6 +55,7 @@ class CompiledUKF(CompiledEstimator):
         self._check_library()
         self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
         self._handle: int | None = None
+        self.last_status = 0
 
     def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
         R, h = self.real_pointer, _HANDLE
@@ -63,6 +68,9 @@ class CompiledUKF(CompiledEstimator):
             "get_state": (_INT, [h, R]),
             "get_covariance": (_INT, [h, R]),
             "run": (_INT, [h, _INT, R, R, R]),
+            "set_gate": (_INT, [h, self.c_real, _INT, self.c_real]),
+            "get_rejected": (_INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
+            "rejections": (_INT, [h]),
         }
 
     def _settings(self, settings: UKFSettings | None) -> UKFSettings:
@@ -97,13 +105,30 @@ class CompiledUKF(CompiledEstimator):
             self._handle = handle.value
         else:
             self.check_status("reset", self._c["reset"](self._handle, *args), "; state left as before")
+        gate = self.settings.gate
+        self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
+                                                       gate.recover_after, gate.inflation))
+        self.last_status = 0
+
+    @property
+    def rejected(self) -> np.ndarray:
+        """(ny,) bool: the outputs the gate rejected in the last step."""
+        mask = np.zeros(self.sizes.ny, dtype=np.intc)
+        self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
+        return mask.astype(bool)
+
+    @property
+    def rejections(self) -> int:
+        """Outputs rejected since :meth:`reset`."""
+        return int(self._c["rejections"](self._started("rejections")))
 
     def step(self, u, y) -> np.ndarray:
         """Filter one sample (same convention as ``UKF.step``); returns ``x (nx,)``."""
         handle = self._started("step")
         u = self.real_array(validation.vector("CompiledUKF.step u", u, self.sizes.nu))
         y = self.real_array(validation.vector("CompiledUKF.step y", y, self.sizes.ny))
-        self.check_status("step", self._c["step"](handle, u, y), "; state left as before")
+        self.last_status = self.check_status("step", self._c["step"](handle, u, y),
+                                             "; state left as before")
         return self.x
 
     @property
@@ -129,6 +154,7 @@ class CompiledUKF(CompiledEstimator):
         if code < 0:
             failed = int(np.flatnonzero(np.isnan(X_hat[:, 0]))[0])
             self.check_status("run", code, f", at sample {failed}")
+        self.last_status = code
         return X_hat.astype(float)
 
     def _started(self, what: str) -> int:

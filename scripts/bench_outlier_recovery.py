@@ -1,0 +1,168 @@
+"""Outlier recovery of every estimator: bursts of finite garbage injected into a clean test run.
+
+For each estimator and backend (Python reference, compiled C) the clean simulated run is
+estimated once, then once per burst: ``length`` consecutive samples (from ``BURST_START``) whose
+every output is replaced by ``+-size`` (random sign). Reported per burst:
+
+- ``samples_to_recover``: samples after the burst's last one until the estimate stays, for the
+  rest of the run, within ``TOLERANCE`` of the clean run's estimate, per state, in units of the
+  clean run's RMS error of that state (``|x - x_clean|_i <= TOLERANCE * rms_i``);
+- ``max_error_after``: the largest of those normalised deviations from ``RECOVERY_BUDGET``
+  samples after the burst to the end (so ``<= TOLERANCE`` means recovered in budget);
+- ``errors``: steps that raised (an error status of the C), and ``rejected``: samples with a
+  rejected output.
+
+The clean run is also estimated with the gate off: ``clean`` reports the MSE with the gate on
+and off and the clean samples the gate rejected. Usage::
+
+    python scripts/bench_outlier_recovery.py --out bench_outlier_recovery.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from learnest_codegen import get_system
+from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
+from learnest_codegen.errors import SolverError
+from learnest_codegen.estimators.gate import GateSettings
+from learnest_codegen.export import prior_model
+from learnest_codegen.simulation import simulate
+
+BURST_START = 150
+LENGTHS = (1, 3, 10)
+SIZES = (1e1, 1e3, 1e6)
+TOLERANCE = 1.0      # deviation from the clean estimate, in clean-run RMS errors per state
+RECOVERY_BUDGET = 60  # samples after the burst by which every estimator must be back
+# estimator -> backends; mhe_gn's Python reference is the Ipopt MHE (the same problem), and
+# mhe_rti has none (its C defines it)
+BACKENDS = {"ukf": ("python", "c"), "mhe": ("python", "c"), "mhe_gn": ("c",), "mhe_rti": ("c",)}
+
+
+def clean_run(system_name: str, samples: int, seed: int = 1):
+    system = get_system(system_name)
+    return system, simulate(system, seed=seed, duration=samples * system.dt)
+
+
+def inject(Y: np.ndarray, length: int, size: float, seed: int = 0) -> np.ndarray:
+    """``Y`` with samples ``BURST_START .. BURST_START + length - 1`` replaced by ``+-size``."""
+    Yb = Y.copy()
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(length, Y.shape[1]))
+    Yb[BURST_START:BURST_START + length] = size * signs
+    return Yb
+
+
+class Estimators:
+    """Builds (once) and makes the estimators of one system's nominal model."""
+
+    def __init__(self, system, build_dir: Path):
+        self.system, self.model = system, prior_model(system)
+        self.build_dir = Path(build_dir)
+        self._built: set[str] = set()
+
+    def make(self, estimator: str, backend: str, gate: GateSettings | None = None):
+        kind = estimator_kind(estimator)
+        settings = kind.default_settings(self.model)
+        if gate is not None:
+            settings = dataclasses.replace(settings, gate=gate)
+        if backend == "python":
+            return (kind.python or estimator_kind("mhe").python)(self.model, settings)
+        if estimator not in self._built:
+            compile_estimators(self.model, self.build_dir, model_hash="nominal", estimators=(estimator,))
+            self._built.add(estimator)
+        return kind.compiled(estimator_dir(self.build_dir, self.model, estimator), settings=settings)
+
+
+def estimate(est, U: np.ndarray, Y: np.ndarray, x0) -> tuple[np.ndarray, np.ndarray, int]:
+    """Step through a run; ``(X_hat, rejected (T,) bool, steps that raised)``."""
+    est.reset(x0)
+    X = np.empty((len(Y), len(x0)))
+    rejected = np.zeros(len(Y), dtype=bool)
+    errors = 0
+    for k in range(len(Y)):
+        u = U[k - 1] if k else (U[0] if type(est).__name__.endswith("UKF") else np.zeros(U.shape[1]))
+        try:
+            X[k] = est.step(u, Y[k])
+            rejected[k] = est.last_status == 1
+        except SolverError:
+            errors += 1
+            X[k] = est.x
+    return X, rejected, errors
+
+
+def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -> tuple[int, float]:
+    """``(samples_to_recover, max_error_after)`` of a burst run against the clean estimate."""
+    end = BURST_START + length
+    deviation = (np.abs(X - X_clean) / rms).max(axis=1)
+    outside = np.flatnonzero(deviation[end:] > TOLERANCE)
+    to_recover = 0 if outside.size == 0 else int(outside[-1]) + 1
+    return to_recover, float(deviation[end + RECOVERY_BUDGET:].max())
+
+
+def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENGTHS, sizes=SIZES,
+          backends=BACKENDS) -> dict:
+    """The recovery table of one system (see the module docstring)."""
+    system, run = clean_run(system_name, samples)
+    makers = Estimators(system, build_dir)
+    rows, clean = [], []
+    for estimator, kinds in backends.items():
+        for backend in kinds:
+            start = time.process_time()
+            est = makers.make(estimator, backend)
+            X_clean, rej_clean, err_clean = estimate(est, run.u, run.y, system.x0)
+            X_off, _, _ = estimate(makers.make(estimator, backend, GateSettings(threshold=0)),
+                                   run.u, run.y, system.x0)
+            rms = np.sqrt(np.mean((X_clean - run.x) ** 2, axis=0))
+            clean.append({"estimator": estimator, "backend": backend, "samples": samples,
+                          "mse_gate_on": float(np.mean((X_clean - run.x) ** 2)),
+                          "mse_gate_off": float(np.mean((X_off - run.x) ** 2)),
+                          "clean_samples_rejected": int(rej_clean.sum()), "errors": err_clean,
+                          "rms_error": rms.tolist()})
+            for length in lengths:
+                for size in sizes:
+                    X, rejected, errors = estimate(est, run.u, inject(run.y, length, size), system.x0)
+                    to_recover, after = recovery(X, X_clean, rms, length)
+                    rows.append({"system": system_name, "estimator": estimator, "backend": backend,
+                                 "burst": length, "size": size, "samples_to_recover": to_recover,
+                                 "max_error_after": after, "errors": errors,
+                                 "rejected": int(rejected.sum())})
+            clean[-1]["cpu_seconds"] = round(time.process_time() - start, 2)
+    return {"system": system_name, "tolerance": TOLERANCE, "budget": RECOVERY_BUDGET,
+            "burst_start": BURST_START, "clean": clean, "rows": rows}
+
+
+def markdown(result: dict) -> str:
+    lines = ["| system | estimator | backend | burst | size | rejected | samples to recover | "
+             "max error after | errors |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in result["rows"]:
+        lines.append(f"| {r['system']} | {r['estimator']} | {r['backend']} | {r['burst']} | "
+                     f"{r['size']:.0e} | {r['rejected']} | {r['samples_to_recover']} | "
+                     f"{r['max_error_after']:.2f} | {r['errors']} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--systems", nargs="+", default=["cartpole", "ground_robot"])
+    parser.add_argument("--samples", type=int, default=400)
+    parser.add_argument("--build-dir", type=Path, default=Path("build/outlier_recovery"))
+    parser.add_argument("--out", type=Path, default=Path("bench_outlier_recovery.json"))
+    args = parser.parse_args(argv)
+    results = [table(name, args.build_dir, samples=args.samples) for name in args.systems]
+    out = {"tables": results}
+    args.out.write_text(json.dumps(out, indent=1))
+    for r in results:
+        print(markdown(r))
+        for c in r["clean"]:
+            print(c)
+    return out
+
+
+if __name__ == "__main__":
+    main()
