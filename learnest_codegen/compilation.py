@@ -8,7 +8,7 @@ compiling the same model twice costs only the code generation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -95,8 +95,6 @@ def float32_ukf_settings(settings):
     A small alpha makes the sigma-point weights cancel, which single precision cannot afford
     (see ``codegen/ukf.py``); explicit settings with a smaller alpha are refused there.
     """
-    from dataclasses import replace
-
     from .codegen.ukf import FLOAT32_MIN_ALPHA
 
     return replace(settings, alpha=max(settings.alpha, FLOAT32_MIN_ALPHA))
@@ -122,11 +120,13 @@ def estimator_dir(out: Path, model: DiscreteModel, name: str, precision: str = "
 def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str,
                        estimators: tuple[str, ...] = DEFAULT_ESTIMATORS,
                        settings: Mapping[str, Any] | None = None,
-                       precision: str = "float64") -> dict[str, Any]:
+                       precision: str = "float64", gate: Any = None) -> dict[str, Any]:
     """Generate and build ``estimators`` for ``model`` under ``out``; returns name -> result.
 
     ``precision`` (``"float64"`` or ``"float32"``) is the C real type; an estimator that is
-    not generated in it raises :class:`ValueError`.
+    not generated in it raises :class:`ValueError`. ``gate`` (a
+    :class:`~learnest_codegen.estimators.gate.GateSettings`) replaces the innovation gate of
+    every estimator's settings.
     """
     problem = precision_problem(estimators, precision)
     if problem:
@@ -137,6 +137,8 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
         chosen = (settings or {}).get(name) or kind.default_settings(model)
         if name == "ukf" and precision == "float32" and not (settings or {}).get(name):
             chosen = float32_ukf_settings(chosen)
+        if gate is not None:
+            chosen = replace(chosen, gate=gate)
         directory = estimator_dir(Path(out), model, name, precision)
         directory.mkdir(parents=True, exist_ok=True)
         extra = {} if precision == "float64" else {"precision": precision}

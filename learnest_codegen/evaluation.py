@@ -20,11 +20,13 @@ class EstimateResult:
     label : e.g. ``"KNODE-MHE (C)"``.
     x_hat : (T, nx) estimates.
     seconds_per_step : mean wall time of one estimator step [s].
+    rejections : outputs the innovation gate rejected over the run (0 for a clean run).
     """
 
     label: str
     x_hat: np.ndarray
     seconds_per_step: float
+    rejections: int = 0
 
     def mse(self, x_true: np.ndarray) -> float:
         """Mean over samples and states of the squared error, the paper's metric."""
@@ -48,7 +50,8 @@ def run_estimator(estimator, run: Run, x0: np.ndarray, label: str) -> EstimateRe
     start = time.perf_counter()
     x_hat = estimator.run(run.u, run.y, np.asarray(x0, dtype=float))
     seconds = time.perf_counter() - start
-    return EstimateResult(label, np.asarray(x_hat), seconds / len(run))
+    return EstimateResult(label, np.asarray(x_hat), seconds / len(run),
+                          int(getattr(estimator, "rejections", 0)))
 
 
 def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:

@@ -17,7 +17,7 @@ directory. torch is imported only when a trained model is involved.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Union
 
@@ -87,7 +87,7 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
-                   settings: Any = None, precision: str = "float64"):
+                   settings: Any = None, precision: str = "float64", gate: Any = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -99,18 +99,21 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     out : folder of compiled estimators (one subfolder each; unchanged builds are reused).
     settings : the estimator's settings (default: the system's, as ``learnest-compile``).
     precision : the C real type, ``"float64"`` or ``"float32"`` (UKF and embedded MHE).
+    gate : a :class:`~learnest_codegen.estimators.gate.GateSettings` replacing the settings'
+        innovation gate (default: the settings' own, on by default).
     """
     resolved = resolve(model, system)
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
             raise ValueError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
-        return kind.python(resolved.model, settings or kind.default_settings(resolved.model))
+        chosen = settings or kind.default_settings(resolved.model)
+        return kind.python(resolved.model, chosen if gate is None else replace(chosen, gate=gate))
     if backend != "c":
         raise ValueError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
     compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
                        settings={estimator: settings} if settings is not None else None,
-                       precision=precision)
+                       precision=precision, gate=gate)
     return load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
                           expect=expected_manifest(resolved))
 
@@ -127,16 +130,24 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
                       system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64"):
+                      precision: str = "float64", gate: Any = None):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
     return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision)
+                          precision=precision, gate=gate)
 
 
-def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None):
-    """Load a compiled estimator folder, whichever estimator its manifest names."""
-    name = read_manifest(Path(directory)).get("estimator")
-    return estimator_kind(str(name)).compiled(directory, expect=expect)
+def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,
+                   gate: Any = None):
+    """Load a compiled estimator folder, whichever estimator its manifest names.
+
+    ``gate`` (:class:`~learnest_codegen.estimators.gate.GateSettings`) replaces the compiled
+    innovation gate; the library applies it at ``reset`` (the gate is a run-time setting).
+    """
+    kind = estimator_kind(str(read_manifest(Path(directory)).get("estimator")))
+    estimator = kind.compiled(directory, expect=expect)
+    if gate is None:
+        return estimator
+    return kind.compiled(directory, expect=expect, settings=replace(estimator.settings, gate=gate))
 
 
 def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: System | str | None = None,

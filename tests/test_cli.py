@@ -110,3 +110,37 @@ def test_demo_defaults_are_the_quick_training_recipe():
     assert f"Table I uses {RECOMMENDED_TRAINING.refine})" in help_text
     assert DEFAULT_TASKS["cartpole"].training == RECOMMENDED_TRAINING
     assert replace(RECOMMENDED_TRAINING, refine=QUICK_TRAINING.refine) == QUICK_TRAINING
+
+
+def test_gate_options_default_to_the_gate_settings():
+    from learnest_codegen.estimators.gate import GateSettings
+
+    for command in (cli.commands["estimate"], cli.commands["compile"], compile_standalone):
+        defaults = {p.name: p.default for p in command.params}
+        assert (defaults["gate_threshold"], defaults["gate_recover_after"], defaults["gate_inflation"]) == (
+            GateSettings().threshold, GateSettings().recover_after, GateSettings().inflation)
+
+
+def test_estimate_gates_garbage_and_the_gate_can_be_turned_off(workdir):
+    """Three absurd samples of p: the default gate rejects them (the summary counts them) and
+    the estimate stays near the truth; with --gate-threshold 0 they are used and it does not."""
+    clean, bad = workdir / "gate_run.csv", workdir / "gate_bad.csv"
+    invoke(cli, ["simulate", "--duration", 1, "--seed", 4, "--out", clean])
+    lines = clean.read_text().splitlines()
+    col = lines[0].split(",").index("y_p")
+    for k in (300, 301, 302):
+        cells = lines[k + 1].split(",")
+        cells[col] = "1000"
+        lines[k + 1] = ",".join(cells)
+    bad.write_text("\n".join(lines) + "\n")
+    truth = read_run(clean, get_system("cartpole")).x
+    errors, outputs = {}, {}
+    for name, extra in (("gated", []), ("open", ["--gate-threshold", 0])):
+        out = workdir / f"gate_{name}.csv"
+        r = invoke(cli, ["estimate", "--data", bad, "--estimator", "ukf", "--model", "true",
+                         "--out", out, *extra])
+        assert r.exit_code == 0, r.output
+        x_hat = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:]
+        errors[name], outputs[name] = np.max(np.abs(x_hat[300:320, 0] - truth[300:320, 0])), r.output
+    assert "3 output(s) rejected" in outputs["gated"] and "0 output(s) rejected" in outputs["open"]
+    assert errors["gated"] < 0.01 < 1.0 < errors["open"], errors

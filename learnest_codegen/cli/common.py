@@ -70,3 +70,36 @@ ESTIMATOR_HELP = ("mhe: the MHE solved by Ipopt (the reference); ukf: the UKF; m
                   "iteration per sample (real-time iteration, fastest)")
 PRECISION_HELP = ("C real type: float32 for single-precision FPUs (ukf, mhe_gn and mhe_rti; the "
                   "float32 UKF uses sigma-point spread alpha = 0.5)")
+
+
+#: The innovation gate's options (``learnest compile`` and ``learnest estimate``); the defaults
+#: are :class:`~learnest_codegen.estimators.gate.GateSettings`' (written out here so that
+#: ``--help`` loads no estimator module; a test checks they agree).
+GATE_OPTIONS = [
+    click.option("--gate-threshold", type=click.FloatRange(min=0.0), default=50.844127911818155,
+                 show_default="50.84",
+                 help="innovation gate: reject an output whose normalised innovation d^2 exceeds "
+                      "this chi-square(1) quantile (default: 1e-12 false rejections, 7.1 sigma); "
+                      "0 disables the gate and the recovery"),
+    click.option("--gate-recover-after", type=click.IntRange(min=1), default=10, show_default=True,
+                 help="after this many consecutive samples with a rejected output, widen the "
+                      "gate until measurements are accepted again (recovery from a lost track)"),
+    click.option("--gate-inflation", type=click.FloatRange(min=1.0, min_open=True), default=2.0,
+                 show_default=True,
+                 help="factor by which each further rejecting sample inflates the uncertainty"),
+]
+
+
+def with_gate_options(fn):
+    """Add :data:`GATE_OPTIONS` to a command (arguments ``gate_threshold``, ...)."""
+    for option in reversed(GATE_OPTIONS):
+        fn = option(fn)
+    return fn
+
+
+def gate_settings(threshold: float, recover_after: int, inflation: float):
+    """The :class:`GateSettings` of the options, or ``None`` when they are the defaults."""
+    from ..estimators.gate import GateSettings
+
+    gate = GateSettings(threshold=threshold, recover_after=recover_after, inflation=inflation)
+    return None if gate == GateSettings() else gate

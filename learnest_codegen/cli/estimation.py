@@ -18,13 +18,15 @@ from .common import (
     RESAMPLE,
     SYSTEM_HELP,
     friendly,
+    gate_settings,
     read_run,
     system_named,
+    with_gate_options,
 )
 
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
-             estimators: tuple[str, ...], precision: str = "float64") -> dict:
+             estimators: tuple[str, ...], precision: str = "float64", gate=None) -> dict:
     from ..compilation import compile_estimators, precision_problem, resolve_model
 
     if precision_problem(estimators, precision):
@@ -40,7 +42,7 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
             system_name = json.loads(meta_path.read_text()).get("system")
         model, model_hash = resolve_model(system_named(system_name or "cartpole"), model_dir)
     results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators,
-                                 precision=precision)
+                                 precision=precision, gate=gate)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    f"built in {res.build_seconds:.2f} s{', reused' if res.build_seconds == 0 else ''})")
@@ -63,23 +65,27 @@ COMPILE_OPTIONS = [
 def _with_compile_options(fn):
     for option in reversed(COMPILE_OPTIONS):
         fn = option(fn)
-    return fn
+    return with_gate_options(fn)
 
 
 @click.command("compile")
 @_with_compile_options
 @friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision) -> None:
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
+                gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision)
+    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision) -> None:
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
+                       gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision)
+    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
 
 
 @click.command()
@@ -93,12 +99,16 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
 @click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
               show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@with_gate_options
 @RESAMPLE
 @FORCE
 @friendly
-def estimate(system_name, data, estimator, model, backend, compiled, precision, out, resample,
-             force) -> None:
-    """Run an estimator over a run; write t and one xhat_<state> column per state."""
+def estimate(system_name, data, estimator, model, backend, compiled, precision, out, gate_threshold,
+             gate_recover_after, gate_inflation, resample, force) -> None:
+    """Run an estimator over a run; write t and one xhat_<state> column per state.
+
+    Samples whose outputs the innovation gate rejected are counted in the summary line; they
+    are not errors."""
     from ..compilation import estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -114,11 +124,13 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     system = system_named(system_name)
     run = read_run(data, system, resample)
     resolved = resolve(model, system)
+    gate = gate_settings(gate_threshold, gate_recover_after, gate_inflation)
     if backend == "c" and compiled is not None:
-        est = load_estimator(compiled, expect={"estimator": estimator, **expected_manifest(resolved)})
+        est = load_estimator(compiled, expect={"estimator": estimator, **expected_manifest(resolved)},
+                             gate=gate)
     else:  # compiled on demand next to the output (reused while the model is unchanged)
         est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
-                             out=Path(out).resolve().parent / ".learnest_compiled")
+                             out=Path(out).resolve().parent / ".learnest_compiled", gate=gate)
     result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
     with atomic_file(out) as tmp:
@@ -127,4 +139,5 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     line = f"wrote {out}: {len(run)} estimates, {result.seconds_per_step * 1e6:.1f} us/step"
     if run.x is not None:
         line += f", MSE vs truth {mse(result.x_hat, run.x):.4e}"
+    line += f", {result.rejections} output(s) rejected by the innovation gate"
     click.echo(line)
