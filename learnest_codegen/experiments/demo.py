@@ -40,6 +40,7 @@ class DemoReport:
         return format_table(self.rows, [
             ("method", "method", "s"), ("backend", "backend", "s"), ("mse", "MSE", ".4e"),
             ("vs_nominal", "x better than nominal", ".1f"), ("us_per_step", "us/step", ".1f"),
+            ("rejected", "gate rejections", "d"),
         ])
 
 
@@ -102,6 +103,7 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QU
             "method": res.label, "backend": backend, "mse": mse, "us_per_step": res.seconds_per_step * 1e6,
             "vs_nominal": nominal.mse(test_run.x) / mse if nominal else None,
             "mse_per_state": mse_per_state(res.x_hat, test_run.x).tolist(),
+            "rejected": res.rejections,
         })
     chosen = [results[(k, n, "C")] for k in ("nominal", "knode") for n in ("mhe", "ukf")]
     report.figures.append(str(plot_estimates(test_run, system, chosen, out / "estimates.png")))

@@ -345,6 +345,7 @@ def run_job(job: Job) -> dict:
             "mse": float(np.mean(per_state)), "mse_per_state": per_state.tolist(),
             "us_per_step": result.seconds_per_step * 1e6,
             "seconds": result.seconds_per_step * len(test_run),
+            "rejected": result.rejections,  # outputs the innovation gate left out (0 on clean runs)
         }
 
     results = {
