@@ -64,7 +64,9 @@ class TrainingSettings:
     learning_rate : Adam's (AdamW's) rate.
     batch_size : pairs per optimiser step; at least the number of training pairs is full batch
         (the default, :data:`FULL_BATCH`). The paper's 256 (32 steps per epoch on the demo data)
-        costs 5-8 times as much per epoch for no better model; see ``docs/training.md``.
+        costs about 8 times as much per epoch and reaches the same loss with the default
+        settings; the recipes, which refine and decay the weights, need its steps and keep it
+        (see ``docs/training.md``).
     seed : network initialisation, mini-batch order and (full-state training) the state noise.
     network : the residual MLP's architecture.
     validation_fraction : final segment of the run held out for early stopping; 0 disables.
