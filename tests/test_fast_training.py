@@ -208,3 +208,17 @@ def test_the_recipes_keep_the_weight_averages_window_and_other_batches_get_other
     new, other = (Job("cartpole", 0, t, "c", "/tmp/out", "/tmp/out/shared") for t in (task, full_task))
     assert new.config_hash() != other.config_hash()
     assert new.task_hash() != other.task_hash()
+
+
+def test_training_leaves_the_thread_setting_as_it_was(cartpole, cartpole_run):
+    """``train`` runs on one thread and restores the caller's torch thread count."""
+    from learnest_codegen.learning.training import train
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        train(cartpole, cartpole_run.x[:100], cartpole_run.u[:100], cartpole_run.dt,
+              config.TrainingSettings(epochs=1), progress=False)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

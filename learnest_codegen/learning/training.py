@@ -176,7 +176,12 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
         raise ValueError("train: zeta and u must be finite")
     start = time.perf_counter()
-    models = _train_stacked(system, zeta, u, dt, settings, observer, progress)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny operations: a second thread only spins (37x slower under load)
+    try:
+        models = _train_stacked(system, zeta, u, dt, settings, observer, progress)
+    finally:
+        torch.set_num_threads(threads)
     valid = [min(m.meta["validation_history"]) for m in models]
     scores = [float(score(m)) for m in models] if score is not None and len(models) > 1 else None
     best = models[int(np.argmax(scores)) if scores else int(np.argmin(valid))]
