@@ -5,6 +5,7 @@ Usage::
     python scripts/bench_training.py --out bench_training.json            # epochs only
     python scripts/bench_training.py --job --out bench_training.json      # + cartpole job 0
     python scripts/bench_training.py --job --sweep --out ...              # + the whole Table I
+    python scripts/bench_training.py --read-sweep /tmp/table1_fast ...     # a sweep run before
 
 Every figure is recorded with the wall time, the process's CPU time (its children's for the
 job and the sweep, which run in subprocesses) and the load average when it ran: the machine is
@@ -34,13 +35,20 @@ from learnest_codegen.learning.training import train
 from learnest_codegen.observers import observe
 from learnest_codegen.simulation import simulate
 
-#: the settings timed: the default, the recommended recipe's single round (3 restarts), and
-#: full batch (what the default would cost with one step per epoch; not a recipe yet)
+#: the settings timed: the default (full batch), the recommended recipe's single round (3
+#: restarts), and the earlier default and round with 256-pair mini-batches (the "before")
 EPOCH_CASES = {
     "default": TrainingSettings(),
     "recommended_round": replace(RECOMMENDED_TRAINING, refine=0),
-    "full_batch": TrainingSettings(batch_size=1 << 20),
+    "before_default_batches_256": TrainingSettings(batch_size=256),
+    "before_recommended_round_batches_256": replace(RECOMMENDED_TRAINING, refine=0, batch_size=256,
+                                                    weight_average=0.99),
 }
+#: The issue's figures for the code before (commit b12bfa1, idle machine, wall seconds): 250
+#: default epochs, one cartpole Table I job with RECOMMENDED_TRAINING, the whole sweep on 2 cores.
+BEFORE = {"default_250_epochs_seconds": 39.0, "cartpole_job_seconds": 635.0,
+          "table1_sweep_seconds": 6004.0,
+          "source": "issue figures and docs/results.md (code of commit a9b6c0a / b12bfa1, idle machine)"}
 
 
 def _children_cpu() -> float:
@@ -90,7 +98,19 @@ def bench_sweep(tasks: str, seeds: int, jobs: int, out_dir: Path) -> dict:
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     result = {"command": " ".join(cmd[2:]), "wall_seconds": time.perf_counter() - wall,
               "cpu_seconds": _children_cpu() - cpu0, "load_average_at_start": load,
-              "load_average_at_end": os.getloadavg()[0], "jobs": {}}
+              "load_average_at_end": os.getloadavg()[0]}
+    return {**result, **read_sweep(out_dir)}
+
+
+def read_sweep(out_dir: Path) -> dict:
+    """Per job of a finished sweep in ``out_dir``: its wall time, stage timings, training times,
+    final losses and gap closures; the sweep's wall time from its ``summary.json``; and the
+    mean gap closures per task."""
+    result: dict = {"out": str(out_dir), "jobs": {}}
+    summary = out_dir / "summary.json"
+    if summary.is_file():
+        result["sweep_wall_seconds"] = json.loads(summary.read_text()).get("sweep", {}).get("wall_seconds")
+    closures: dict = {}
     for path in sorted((out_dir / "runs").glob("*/seed_*.json")):
         job = json.loads(path.read_text())
         result["jobs"][f"{job['task']}/{job['seed']}"] = {
@@ -98,6 +118,10 @@ def bench_sweep(tasks: str, seeds: int, jobs: int, out_dir: Path) -> dict:
             "training": {k: {s: v[s] for s in ("train_seconds", "final_loss", "best_epoch")}
                          for k, v in job["training"].items()},
             "gap_closure_percent": _closures(job)}
+        for row, value in _closures(job).items():
+            closures.setdefault(job["task"], {}).setdefault(row, []).append(value)
+    result["mean_gap_closure_percent"] = {t: {r: sum(v) / len(v) for r, v in rows.items()}
+                                          for t, rows in closures.items()}
     return result
 
 
@@ -106,20 +130,32 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--out", type=Path, default=Path("bench_training.json"))
     parser.add_argument("--job", action="store_true", help="also time cartpole Table I job 0")
     parser.add_argument("--sweep", action="store_true", help="also time the whole Table I sweep")
+    parser.add_argument("--robot-job", action="store_true", help="also time ground-robot Table I job 0")
+    parser.add_argument("--read-sweep", type=Path, default=None,
+                        help="record a sweep already run into this directory (its summary.json "
+                             "and results) instead of running one")
     parser.add_argument("--jobs", type=int, default=2, help="parallel jobs of the sweep")
     parser.add_argument("--epochs", type=int, default=250,
                         help="epochs timed per case (the figures are also scaled to 250)")
     parser.add_argument("--label", default="", help="what code this is (e.g. a commit)")
+    parser.add_argument("--cases", default=",".join(EPOCH_CASES),
+                        help=f"epoch cases to time, of {','.join(EPOCH_CASES)}")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     report = {"label": args.label, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                                  "torch": torch.__version__},
-              "epochs": bench_epochs(EPOCH_CASES, args.epochs)}
+              "before": BEFORE,
+              "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},
+                                     args.epochs)}
     with tempfile.TemporaryDirectory() as tmp:
         if args.job:
             report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")
+        if args.robot_job:
+            report["ground_robot_job"] = bench_sweep("ground_robot", 1, 1, Path(tmp) / "robot_job")
         if args.sweep:
             report["table1_sweep"] = bench_sweep("cartpole,ground_robot", 15, args.jobs, Path(tmp) / "sweep")
+    if args.read_sweep is not None:
+        report["table1_sweep"] = read_sweep(args.read_sweep)
     args.out.write_text(json.dumps(report, indent=2))
     print(f"wrote {args.out}")
     return report

@@ -165,3 +165,59 @@ def test_help_imports_no_torch():
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_run):
+    """With the default batch size an epoch is one Adam step on the loss of all training pairs:
+    one epoch of ``train`` equals one hand-made Adam step on ``one_step_loss`` (to 1e-13)."""
+    from learnest_codegen.learning.training import train
+
+    system = dataclasses.replace(cartpole, reflection=None)
+    run = cartpole_run
+    zeta, u = run.x[:400], run.u[:400]
+    settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0)
+    assert settings.batch_size == config.FULL_BATCH
+    model = train(system, zeta, u, run.dt, settings, progress=False)
+    torch.manual_seed(11)
+    ref = make_net(system, settings.network)
+    ref.set_input_scaling(zeta, u)
+    optimiser = torch.optim.Adam(ref.parameters(), lr=settings.learning_rate)
+    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    one_step_loss(system, ref, *pairs, run.dt).backward()
+    optimiser.step()
+    for name, value in ref.state_dict().items():
+        np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-13)
+
+
+def test_the_recipes_keep_the_weight_averages_window_and_other_batches_get_other_job_identities():
+    """The recommended recipe's weight average spans the epochs of 0.99 per 256-pair step (32
+    steps per epoch on the demo's 8000 pairs), and batch size and weight average are part of a
+    Table I job's identity: the cartpole task trained full batch (average 0.725 per step) has
+    another configuration and task hash, so a resumed sweep never takes one's results for the
+    other's."""
+    from learnest_codegen.experiments.table1 import DEFAULT_TASKS, Job
+
+    recommended = config.RECOMMENDED_TRAINING
+    steps = -(-8000 // recommended.batch_size)
+    assert recommended.weight_average ** steps == pytest.approx(0.99 ** 32, rel=1e-3)
+    full = dataclasses.replace(recommended, batch_size=config.FULL_BATCH, weight_average=0.725)
+    task = DEFAULT_TASKS["cartpole"]
+    full_task = dataclasses.replace(task, training=full,
+                                    full_state_training=dataclasses.replace(full, refine=0, restarts=1))
+    new, other = (Job("cartpole", 0, t, "c", "/tmp/out", "/tmp/out/shared") for t in (task, full_task))
+    assert new.config_hash() != other.config_hash()
+    assert new.task_hash() != other.task_hash()
+
+
+def test_training_leaves_the_thread_setting_as_it_was(cartpole, cartpole_run):
+    """``train`` runs on one thread and restores the caller's torch thread count."""
+    from learnest_codegen.learning.training import train
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        train(cartpole, cartpole_run.x[:100], cartpole_run.u[:100], cartpole_run.dt,
+              config.TrainingSettings(epochs=1), progress=False)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

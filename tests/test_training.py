@@ -500,7 +500,8 @@ def test_training_with_reflection_learns_a_mirror_symmetric_residual(cartpole, c
     x, u = torch.as_tensor(run.x), torch.as_tensor(run.u)
     asymmetry = {}
     for name, system in (("mirrored", cartpole), ("plain", plain)):
-        model = train(system, run.x, run.u, run.dt, TrainingSettings(epochs=15), progress=False)
+        model = train(system, run.x, run.u, run.dt, TrainingSettings(epochs=15, batch_size=256),
+                      progress=False)
         with torch.no_grad():
             d, d_mirror = model.net(x, u), model.net(x * sx, u * su)
         asymmetry[name] = float((d_mirror - sx * d).norm() / d.norm())

@@ -118,18 +118,22 @@ class ResidualNet(torch.nn.Module):
         return self._evaluate(x, u, mlp, plus_prior=True)
 
     def _evaluate(self, x, u, mlp, plus_prior: bool):
-        xu = torch.cat([x, u], dim=-1)
         fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
         prior_xdot = [fp[..., i] for i in range(self.nx)] if self.prior_features else None
-        feats = self._features([xu[..., i] for i in range(xu.shape[-1])], torch.sin, torch.cos, prior_xdot)
+        parts = [x[..., i] for i in range(self.nx)] + [u[..., j] for j in range(self.nu)]
+        feats = self._features(parts, torch.sin, torch.cos, prior_xdot)
         out = (mlp or self.mlp)((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
         out = self._channels([out[..., j] for j in range(out.shape[-1])], prior_xdot)
-        zero = torch.zeros_like(out[0])
         if self.via:
-            du = torch.stack([out[self.via.index(i)] if i in self.via else zero
-                              for i in range(self.nu)], dim=-1)
+            if self.via == tuple(range(self.nu)):  # every input corrected: no zero channels
+                du = torch.stack(out[:self.nu], dim=-1)
+            else:
+                zero = torch.zeros_like(out[0])
+                du = torch.stack([out[self.via.index(i)] if i in self.via else zero
+                                  for i in range(self.nu)], dim=-1)
             shifted = self.prior(x, u + du)
             return shifted if plus_prior else shifted - fp
+        zero = torch.zeros_like(out[0])
         rows = [out[self.outputs.index(i)] if i in self.outputs else zero for i in range(self.nx)]
         delta = torch.stack(rows, dim=-1)
         return fp + delta if plus_prior else delta
@@ -185,8 +189,9 @@ class StackedMLP(torch.nn.Module):
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         last = len(self.weights) - 1
+        z = z.expand(len(self.weights[0]), *z.shape[-2:])
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            z = torch.matmul(z, w.transpose(1, 2)) + b
+            z = torch.baddbmm(b, z, w.transpose(1, 2))  # one fused product and bias per layer
             if i < last:
                 z = self.act(z)
         return z
