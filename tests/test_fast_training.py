@@ -3,6 +3,7 @@ models saved by earlier code."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
