@@ -173,7 +173,7 @@ def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_ru
     one epoch of ``train`` equals one hand-made Adam step on ``one_step_loss`` (to 1e-13)."""
     from learnest_codegen.learning.training import train
 
-    system = dataclasses.replace(cartpole, reflection=None)
+    system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:400], run.u[:400]
     settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0)
