@@ -22,25 +22,6 @@ The corrected dynamics are ``f(x, u + sum du, p + sum dp) + sum direct``, writte
 ``ops`` backend (:func:`corrected_dynamics`), so a corrected prior runs in numpy, torch and CasADi
 like any system, and an effect's regression feature is an exact CasADi derivative.
 
-kind                 term (parameter ``theta`` >= 0 physical)   channels
-===================  =========================================  =======================
-mass                 ``dp = theta``  (mass / inertia params)    ``param:<p>``
-parameter            ``dp = theta``  (other prior params)       ``param:<p>``
-viscous_friction     ``-theta v``                               velocity states
-coulomb_friction     ``-theta tanh(v / v_s)``                   velocity states
-quadratic_drag       ``-theta v |v|``                           velocity states
-actuator_gain        ``du = theta u``                           ``input:<u>``
-actuator_offset      ``du = theta``                             ``input:<u>``
-bias                 ``ds' = theta``                            ``direct:<s>`` (residual states)
-===================  =========================================  =======================
-
-*Velocity states* are the residual states whose unit is a rate (``.../s`` but not ``.../s^2``),
-or ``System.diagnosis.velocity_states`` when a system declares them. A velocity-dependent force
-on velocity ``v`` is offered directly on ``v'`` and through every input whose prior path reaches
-``v'`` (structurally, ``casadi.depends_on``); which one fits is for the data to decide.
-*Mass parameters* are those named like masses or inertias (``m``, ``m_*``, ``mass*``, ``I*``,
-``J*``, ``inertia*``) or listed in ``System.diagnosis.mass_params``.
-=======
 The kinds themselves live by family: the generic ones, derived from any system's structure
 (friction, drag, actuator, bias, one per prior parameter), in
 :mod:`~learnest_codegen.diagnosis.generic_effects`; those of particular built-in systems in
