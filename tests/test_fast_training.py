@@ -222,3 +222,90 @@ def test_training_leaves_the_thread_setting_as_it_was(cartpole, cartpole_run):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_patience_and_warm_refinement_settings_and_identity():
+    """``patience`` and ``warm_refinement`` are validated, and left out of the settings' JSON
+    when off, so models and jobs trained before they existed keep their identities."""
+    plain = config.TrainingSettings().to_json()
+    assert "patience" not in plain and "warm_refinement" not in plain
+    warm = config.WarmRefinement(epochs=7, batch_size=64, learning_rate=1e-3, weight_average=0.5)
+    out = config.TrainingSettings(patience=3, warm_refinement=warm).to_json()
+    assert out["patience"] == 3
+    assert out["warm_refinement"] == {"epochs": 7, "batch_size": 64, "learning_rate": 1e-3,
+                                      "weight_average": 0.5}
+    for bad in ({"patience": 0}, {"patience": -2}):
+        with pytest.raises(ValueError, match="patience"):
+            config.TrainingSettings(**bad)
+    for bad in ({"epochs": 0}, {"learning_rate": 0.0}, {"weight_average": 1.0}):
+        with pytest.raises(ValueError):
+            config.WarmRefinement(**bad)
+
+
+def test_patience_stops_where_the_validation_loss_stalled_and_keeps_that_runs_best(cartpole, cartpole_run):
+    """With ``patience = P`` training stops at the first epoch ``e`` that is ``P`` epochs past
+    the best so far, and the result is bit for bit that of training ``e + 1`` epochs."""
+    from learnest_codegen.learning.training import train
+
+    system = cartpole.with_residual(reflection=None)
+    run = cartpole_run
+    zeta, u = run.x[:600], run.u[:600]
+    base = config.TrainingSettings(epochs=80, seed=5, learning_rate=5e-2)
+    long = train(system, zeta, u, run.dt, base, progress=False)
+    history = long.meta["validation_history"]
+    patience, stop = None, None
+    for p in range(2, 12):  # the smallest patience that stops before the end
+        best = 0
+        for e, value in enumerate(history):
+            best = e if value < history[best] else best
+            if e - best >= p:
+                patience, stop = p, e
+                break
+        if stop is not None:
+            break
+    assert stop is not None and stop < base.epochs - 1, "the validation loss never stalled"
+    stopped = train(system, zeta, u, run.dt, dataclasses.replace(base, patience=patience), progress=False)
+    assert len(stopped.meta["validation_history"]) == stop + 1
+    same = train(system, zeta, u, run.dt, dataclasses.replace(base, epochs=stop + 1), progress=False)
+    assert stopped.meta["best_epoch"] == same.meta["best_epoch"] < stop
+    for name, value in same.net.state_dict().items():
+        assert torch.equal(stopped.net.state_dict()[name], value), name
+
+
+def test_a_warm_start_begins_at_the_given_net_and_keeps_its_input_scaling(cartpole, cartpole_run):
+    """``train(init=model)`` starts from ``model``'s weights and input scaling, not a fresh
+    initialisation or a scaling recomputed from the new data: at a vanishing rate the result is
+    ``model`` itself; a fresh start on the same data is not. It trains one net."""
+    from learnest_codegen.learning.training import train
+
+    system = cartpole.with_residual(reflection=None)
+    run = cartpole_run
+    first = train(system, run.x[:300], run.u[:300], run.dt, config.TrainingSettings(epochs=5, seed=2),
+                  progress=False)
+    still = config.TrainingSettings(epochs=1, seed=2, learning_rate=1e-12)
+    warm = train(system, run.x[600:900], run.u[600:900], run.dt, still, init=first, progress=False)
+    fresh = train(system, run.x[600:900], run.u[600:900], run.dt, still, progress=False)
+    for name, value in first.net.state_dict().items():
+        np.testing.assert_allclose(warm.net.state_dict()[name], value, rtol=0, atol=1e-10)
+    assert not torch.allclose(fresh.net.in_mean, first.net.in_mean)
+    with pytest.raises(ValueError, match="warm start"):
+        train(system, run.x[:300], run.u[:300], run.dt, dataclasses.replace(still, restarts=2),
+              init=first, progress=False)
+
+
+def test_warm_refinement_rounds_train_one_net_from_the_previous_round(cartpole):
+    """With ``warm_refinement`` the first round trains ``restarts`` nets and picks one; each later
+    round trains one net from the previous round's with the warm settings. The model records
+    the recipe, the rounds and the first round's choice."""
+    from learnest_codegen.learning.training import train_on_run
+
+    run = simulate(cartpole, seed=4, duration=2.0)
+    warm = config.WarmRefinement(epochs=2, batch_size=128, learning_rate=1e-3)
+    settings = config.TrainingSettings(epochs=3, restarts=2, refine=2, seed=1, batch_size=256,
+                                       warm_refinement=warm)
+    model = train_on_run(run, cartpole, settings, progress=False)
+    assert model.meta["observer"].endswith("+ekf_rts*2")
+    assert model.meta["training"] == settings.to_json()
+    assert len(model.meta["validation_history"]) == warm.epochs  # the last round's
+    assert len(model.meta["restart_score"]) == settings.restarts  # the first round's choice
+    assert model.meta["restart_seed"] in (1, 2)

@@ -119,11 +119,11 @@ class ResidualNet(torch.nn.Module):
 
     def _evaluate(self, x, u, mlp, plus_prior: bool):
         fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
-        prior_xdot = [fp[..., i] for i in range(self.nx)] if self.prior_features else None
-        parts = [x[..., i] for i in range(self.nx)] + [u[..., j] for j in range(self.nu)]
+        prior_xdot = list(fp.unbind(-1)) if self.prior_features else None
+        parts = [*x.unbind(-1), *u.unbind(-1)]
         feats = self._features(parts, torch.sin, torch.cos, prior_xdot)
         out = (mlp or self.mlp)((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
-        out = self._channels([out[..., j] for j in range(out.shape[-1])], prior_xdot)
+        out = self._channels(list(out.unbind(-1)), prior_xdot)
         if self.via:
             if self.via == tuple(range(self.nu)):  # every input corrected: no zero channels
                 du = torch.stack(out[:self.nu], dim=-1)

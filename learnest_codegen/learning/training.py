@@ -150,8 +150,12 @@ def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch
 
 def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
           settings: TrainingSettings = TrainingSettings(), *, observer: str = "",
-          progress: bool = True, score: Callable[[TrainedModel], float] | None = None) -> TrainedModel:
+          progress: bool = True, score: Callable[[TrainedModel], float] | None = None,
+          init: TrainedModel | None = None) -> TrainedModel:
     """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``.
+
+    ``init`` starts the training from that model's net (its weights and input scaling) instead
+    of a fresh initialisation; it needs ``settings.restarts == 1``.
 
     With ``settings.restarts > 1`` the net is trained from that many initialisations (seeds
     ``seed, seed + 1, ...``) and the one with the lowest validation loss is kept; ``model.json``
@@ -175,11 +179,13 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                          f"got {zeta.shape}, {u.shape}")
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
         raise ValueError("train: zeta and u must be finite")
+    if init is not None and settings.restarts != 1:
+        raise ValueError(f"train: a warm start (init) trains one net; got restarts={settings.restarts}")
     start = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny operations: a second thread only spins (37x slower under load)
     try:
-        models = _train_stacked(system, zeta, u, dt, settings, observer, progress)
+        models = _train_stacked(system, zeta, u, dt, settings, observer, progress, init)
     finally:
         torch.set_num_threads(threads)
     valid = [min(m.meta["validation_history"]) for m in models]
@@ -218,16 +224,21 @@ def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
-                   settings: TrainingSettings, observer: str, progress: bool) -> list[TrainedModel]:
+                   settings: TrainingSettings, observer: str, progress: bool,
+                   init: TrainedModel | None = None) -> list[TrainedModel]:
     """Train the ``settings.restarts`` initialisations together; one model per restart."""
     members = [replace(settings, seed=settings.seed + r, restarts=1) for r in range(settings.restarts)]
     nets = []
     for member in members:
         torch.manual_seed(member.seed)
         nets.append(make_net(system, settings.network))
+        if init is not None:  # its weights and the input scaling they were trained with
+            nets[-1].load_state_dict(init.net.state_dict())
     net = nets[0]  # the structure (features, scaling, channels); the weights live in `mlp`
     signs = system.reflection_signs()
-    if signs is None:
+    if init is not None:
+        pass  # the warm start keeps the scaling its weights were trained with
+    elif signs is None:
         net.set_input_scaling(zeta, u)
     else:
         net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
@@ -236,9 +247,9 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
         optimiser = torch.optim.AdamW(mlp.parameters(), lr=settings.learning_rate,
-                                      weight_decay=settings.weight_decay, foreach=True)
+                                      weight_decay=settings.weight_decay, fused=True)
     else:
-        optimiser = torch.optim.Adam(mlp.parameters(), lr=settings.learning_rate, foreach=True)
+        optimiser = torch.optim.Adam(mlp.parameters(), lr=settings.learning_rate, fused=True)
     schedule = None
     if settings.final_learning_rate is not None:
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
@@ -283,6 +294,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=f"{float(valid_history[-1].min()):.3e}")
         if schedule is not None:
             schedule.step()
+        if settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience:
+            break  # no restart improved for `patience` epochs
     with torch.no_grad():
         for saved, p in zip(best_state, kept.parameters()):
             p.copy_(saved)
@@ -377,9 +390,21 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
         zeta, source = observe(run, system, observer).zeta, observer
     model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
     rounds = 0 if full_state else settings.refine
+    warm = settings.warm_refinement
     for k in range(rounds):
         zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
-        model = train(system, zeta, run.u, run.dt, settings, observer=f"{source}+ekf_rts*{k + 1}",
-                      progress=progress, score=score)
+        round_observer = f"{source}+ekf_rts*{k + 1}"
+        if warm is None:  # every round from scratch, with the restarts
+            model = train(system, zeta, run.u, run.dt, settings, observer=round_observer,
+                          progress=progress, score=score)
+        else:  # one net, from the previous round's
+            first = {key: model.meta[key] for key in ("restart_seed", "restart_validation", "restart_score")
+                     if key in model.meta}  # the first round's choice of initialisation
+            model = train(system, zeta, run.u, run.dt,
+                          replace(settings, epochs=warm.epochs, batch_size=warm.batch_size,
+                                  learning_rate=warm.learning_rate, weight_average=warm.weight_average,
+                                  restarts=1, warm_refinement=None),
+                          observer=round_observer, progress=progress, init=model)
+            model.meta.update(first, training=settings.to_json())
     model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
     return model

@@ -58,7 +58,7 @@ class TorchOps:
     def unpack(self, v, n: int) -> list:
         if v.shape[-1] != n:
             raise ShapeError(f"expected last dimension {n}, got shape {tuple(v.shape)}")
-        return [v[..., i] for i in range(n)]
+        return list(v.unbind(-1))  # one operation (and one in the backward pass), not n
 
     def stack(self, parts: Sequence) -> Any:
         torch = self._torch
