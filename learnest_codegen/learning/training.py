@@ -182,12 +182,11 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             nets[-1].load_state_dict(init.net.state_dict())
     net = nets[0]  # the structure (features, scaling, channels); the weights live in `mlp`
     signs = system.reflection_signs()
-    if init is not None:
-        pass  # the warm start keeps the scaling its weights were trained with
-    elif signs is None:
-        net.set_input_scaling(zeta, u)
-    else:
-        net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
+    if init is None:  # a warm start keeps the scaling its weights were trained with
+        if signs is None:
+            net.set_input_scaling(zeta, u)
+        else:
+            net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings)
     n_train = len(train_set[0])
     mlp = StackedMLP([n.mlp for n in nets])
