@@ -158,3 +158,19 @@ class GateState:
     def status(self) -> int:
         """1 (MEASUREMENT_REJECTED) when the last step rejected an output, else 0 (OK)."""
         return int(self.rejected.any())
+
+
+class GateReport:
+    """What a Python estimator holding a :class:`GateState` as ``_gate`` reports of it."""
+
+    _gate: GateState
+
+    @property
+    def rejected(self) -> np.ndarray:
+        """(ny,) bool, the outputs the gate left out of the last step."""
+        return self._gate.rejected.copy()
+
+    @property
+    def last_status(self) -> int:
+        """The last step's status (1: an output was rejected, not an error)."""
+        return self._gate.status

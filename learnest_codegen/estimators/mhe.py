@@ -44,14 +44,14 @@ import numpy as np
 from ..errors import SolverError
 from ..export import DiscreteModel
 from . import validation
-from .gate import GateState
+from .gate import GateReport, GateState
 from .mhe_problem import MHESettings, ParamLayout, build_problem, gate_variances, measurement_function
 
 NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
                  "propagates no P. The arrival-cost weight is `arrival_weight`.")
 
 
-class MHE:
+class MHE(GateReport):
     """Moving horizon estimator over any :class:`DiscreteModel` (reference implementation).
 
     Parameters
@@ -102,14 +102,6 @@ class MHE:
         recovery divides it by its inflation while a track is being recovered)."""
         self._started()
         return self._P_given.copy()
-
-    @property
-    def rejected(self) -> np.ndarray:
-        return self._gate.rejected.copy()
-
-    @property
-    def last_status(self) -> int:
-        return self._gate.status
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from the prior ``x0 (nx,)``, the first arrival ``xbar``.

@@ -17,7 +17,7 @@ from ..errors import DataError, ShapeError, SolverError
 from ..export import DiscreteModel
 from ..systems import System
 from . import validation
-from .gate import GateSettings, GateState
+from .gate import GateReport, GateSettings, GateState
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -97,7 +97,7 @@ class UKFSettings:
         return np.diag(np.square(self.initial_std))
 
 
-class UKF:
+class UKF(GateReport):
     """Reference UKF (FilterPy) with ``fx = model.step`` and ``hx = model.measure``.
 
     Each update is gated (:mod:`.gate`): an output whose normalised innovation
@@ -150,14 +150,6 @@ class UKF:
         self._gate = GateState(self.settings.gate, self.model.ny)  # as of this reset
         self.rejections = 0
         self._first = True
-
-    @property
-    def rejected(self) -> np.ndarray:
-        return self._gate.rejected.copy()
-
-    @property
-    def last_status(self) -> int:
-        return self._gate.status
 
     def step(self, u, y) -> np.ndarray:
         """Filter one sample and return the posterior mean ``x (nx,)``.
