@@ -84,13 +84,15 @@ _TOLERANCE_WHY = ("the converged Gauss-Newton step stops when its largest compon
 #: Every option's range; a key with ``[precision]`` depends on the C real type.
 LIMITS: dict[str, Limit] = {limit.name: limit for limit in (
     Limit("max_iterations", 1, 1000, integer=True,
-          why="bounds the time of a converged step that cannot reach its tolerance "
-              "(the cartpole converges in 2-5 iterations); a larger limit only waits longer"),
+          why="bounds the time of a converged step that cannot reach its tolerance (the "
+              "KNODE cartpole takes 2 iterations on 94 % of samples, at most 18); a larger "
+              "limit only waits longer"),
     Limit("tolerance[float64]", 1e-14, 1e-3, why=_TOLERANCE_WHY),
     Limit("tolerance[float32]", 1e-6, 1e-3, why=_TOLERANCE_WHY),
     Limit("gate_threshold", 1.0, 1e12, off=(0.0, math.inf),
           why="a chi-square(1) quantile: below 1 the gate rejects a third of clean outputs or "
-              "more, above 1e12 it rejects nothing a float64 could hold (say 0 to turn it off)"),
+              "more; above 1e12 (a 1e6-sigma innovation) it is an 'off' that still runs the "
+              "recovery (say 0 to turn the gate off)"),
     Limit("gate_recover_after", 1, 1_000_000, integer=True,
           why="consecutive rejecting samples before the recovery starts; a C int, and beyond a "
               "million the recovery is in effect off"),
