@@ -130,7 +130,7 @@ GOOD = '[qdot, -p["k"] * ops.sin(q) + u[0]]'
 
 
 @pytest.mark.parametrize("dyn, meas, needles", [
-    (GOOD.replace("ops.sin", "np.sin"), "[x[0]]", ("dynamics in torch", "numpy function")),
+    (GOOD.replace("ops.sin", "np.sin"), "[x[0]]", ("dynamics in CasADi", "a numpy function was applied")),
     (GOOD.replace("ops.sin", "math.sin"), "[x[0]]", ("dynamics cannot be evaluated with numpy",)),
     ("[qdot, -9 * ops.sin(q), qdot]", "[x[0]]", ("dynamics returned 3 values", "2 states")),
     (GOOD, "[x[0], x[1]]", ("measurement returned 2 values", "1 outputs")),
@@ -191,3 +191,26 @@ def test_system_names_and_duplicates_are_refused():
             dataclasses.replace(s, name=name)
     with pytest.raises(ValueError, match=r"states \['p'\] are named twice"):
         dataclasses.replace(s, states=(s.states[0], s.states[0], *s.states[2:]))
+
+
+def test_the_torch_part_waits_for_the_first_torch_evaluation(tmp_path):
+    """A command that never trains does not import torch for the check (2.4 s of CPU); the
+    torch evaluation then runs when the system first meets a tensor, with the same one line."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "pend.py"
+    path.write_text(PENDULUM_BODY.format(
+        dyn='[qdot, -ops.sin(q) + (q.detach() if hasattr(q, "detach") else 0 * q) + u[0]]',
+        meas="[x[0]]"))
+    code = ("import sys\nfrom learnest_codegen.systems import get_system\n"
+            "s = get_system(sys.argv[1])\nprint('torch' in sys.modules)\n"
+            "import torch\nz = lambda n: torch.zeros(n, dtype=torch.float64)\n"
+            "try:\n    s.f(z(2), z(1))\n"
+            "except Exception as e:\n    print(type(e).__name__, e)\n")
+    child = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True,
+                           timeout=300)
+    lines = child.stdout.strip().splitlines()
+    assert lines[0] == "False", child.stderr
+    assert lines[1].startswith(f"SystemFileError system file {path}: dynamics gives"), lines
+    assert "in torch (training) but" in lines[1]

@@ -1,23 +1,30 @@
 """The check a system gets when it is loaded: its equations evaluated in every backend.
 
 A system's ``dynamics`` (both variants) and ``measurement`` are evaluated at a few probe points
-near ``x0`` (inputs from its own excitation) with numpy (simulation), torch (training) and
-CasADi (code generation); each must give one finite value per state (output), and the three
+near ``x0`` (inputs from its own excitation) with numpy (simulation), CasADi (code generation)
+and torch (training); each must give one finite value per state (output), and the backends
 must agree. A mistake that would otherwise pass ``simulate`` and ``learnest-compile`` and fail
 minutes later in training with a long traceback (``np.sin`` for ``ops.sin``, a wrong number of
-values, a branch on a state) is then one line naming the function and what was wrong. The
-evaluation costs milliseconds; importing torch for it costs about two seconds of CPU once per
-process (skipped when torch is not installed: a deployed runtime never trains).
+values, a branch on a state) is then one line naming the function and what was wrong.
+
+The numpy and CasADi evaluations cost milliseconds and run at once. So does the torch one when
+torch is already imported (training, the API in a session that uses it); otherwise it runs
+when a system is first evaluated on torch tensors in the process, so that a command that
+never trains does not pay for importing torch (about 2.4 s of CPU per command, measured on
+``learnest simulate``). ``np.sin`` on a state is caught at once either way: CasADi warns when
+a numpy function is applied to its symbols, and the check makes that warning an error.
 """
 
 from __future__ import annotations
 
+import sys
 import warnings
 from typing import Callable
 
 import numpy as np
 
 from ..errors import ShapeError, SystemFileError
+from .backends import on_first_torch_use
 from .base import System
 
 #: numpy, torch and CasADi must agree to this (relative to the largest value, at least 1).
@@ -27,16 +34,36 @@ _HINT = ("write the equations with ops.* (ops.sin, ops.cos, ops.sqrt, ...) and a
          "numpy, math or Python branches on a state")
 
 
+_PENDING: list[tuple[System, str]] = []
+
+
 def check_system(system: System, where: str) -> None:
     """Raise :class:`SystemFileError` (one line starting with ``where``) unless the system's
-    equations evaluate to finite values of the right length that agree in every backend."""
+    equations evaluate to finite values of the right length that agree in every backend (torch
+    now if it is imported, else at the first evaluation on torch tensors)."""
+    if "torch" in sys.modules:
+        _check(system, where, torch=True)
+        return
+    _check(system, where, torch=False)
+    _PENDING.append((system, where))
+    on_first_torch_use(_check_pending)
+
+
+def _check_pending() -> None:
+    while _PENDING:
+        system, where = _PENDING.pop(0)
+        _check(system, where, torch=True)
+
+
+def _check(system: System, where: str, *, torch: bool) -> None:
     x, u = _probe(system, where)
     functions = [("prior", system.label("prior"), system.nx), ("true", system.label("true"), system.nx),
                  ("h", "measurement", system.ny)]
+    backends = [("CasADi (code generation)", _casadi)] + ([("torch (training)", _torch)] if torch else [])
     for variant, label, n in functions:
         evaluate = _evaluator(system, variant)
         reference = _numpy(evaluate, x, u, n, where, label)
-        for backend, run in (("torch (training)", _torch), ("CasADi (code generation)", _casadi)):
+        for backend, run in backends:
             got = run(system, variant, x, u, f"{where}: {label} in {backend}")
             if got is None:
                 continue
@@ -133,6 +160,8 @@ def _text(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     if "numpy() on Tensor" in text:  # torch's words for np.sin(tensor) suggest the wrong fix
         text = "a numpy function was applied to the torch tensor of a state or input"
+    if "a numpy function was called on a casadi value" in text:
+        text = "a numpy function was applied to the CasADi symbol of a state or input"
     text = text if len(text) <= 160 else text[:157] + "..."
     return f"{type(exc).__name__}: {text}"
 
