@@ -18,8 +18,10 @@ API. Each ends in one outcome:
 
 The battery covers the cases of issue 28 (options, names, shapes, files, CSVs, libraries,
 threads, float32, wrong inputs ``u``) and a set of controls that already held. Each case names
-the branch of the work that owns its fix (``owner``); cases of other owners may fail until
-their work is merged. Fixtures (a cartpole run, compiled nominal estimators) are built once.
+the part of the package whose checks own its fix (``owner``): ``boundaries`` (system files,
+simulation, options, output files, builds, the bindings), ``c-api`` (the generated C) and
+``data`` (run-CSV reading, the estimators' checks of their inputs). Fixtures (a cartpole run,
+compiled nominal estimators) are built once.
 
 Usage::
 
@@ -53,7 +55,7 @@ class Case:
     """One hostile input: its snippet, what it should end in, and who owns the fix."""
 
     id: str
-    owner: str  # harden, streams, ckit
+    owner: str  # boundaries, data, c-api: the part of the package whose checks own the fix
     expect: frozenset
     what: str
     code: str
@@ -306,10 +308,10 @@ def system_cases() -> list[Case]:
         ("names/system-name", "a system named 'my pendulum' (not a C identifier)",
          'path = system_file(name="my pendulum")\n' + sim, ("my pendulum",)),
     ]
-    out = [_case(i, "harden", ERROR, what, code, needles=needles, timeout=90)
+    out = [_case(i, "boundaries", ERROR, what, code, needles=needles, timeout=90)
            for i, what, code, needles in cases]
     out += [
-        _case("shapes/np-sin-train", "harden", ERROR,
+        _case("shapes/np-sin-train", "boundaries", ERROR,
               "dynamics call np.sin: train (a 60-line traceback before)", '''
               good = system_file("good.py")
               must(["simulate", "--system", good, "--out", CASE / "run.csv"])
@@ -317,13 +319,13 @@ def system_cases() -> list[Case]:
               final(["train", "--system", path, "--data", CASE / "run.csv", "--out", CASE / "m",
                      "--epochs", 2, "--refine", 0, "--validation-fraction", 0])
               ''', needles=("dynamics",), timeout=180),
-        _case("shapes/dynamics-3-values-compile", "harden", ERROR,
+        _case("shapes/dynamics-3-values-compile", "boundaries", ERROR,
               "dynamics return 3 values for 2 states: learnest-compile", '''
               path = system_file(dyn="[qdot, -9 * ops.sin(q), qdot]")
               final(["--nominal", "--system", path, "--estimator", "ukf", "--out", CASE / "gen"],
                     compile=True)
               ''', needles=("dynamics",), timeout=180),
-        _case("shapes/readme-pendulum", "harden", RESULT,
+        _case("shapes/readme-pendulum", "boundaries", RESULT,
               "control: the README's pendulum simulates, compiles and estimates", '''
               path = system_file(duration=1.0)
               must(["simulate", "--system", path, "--out", CASE / "run.csv"])
@@ -337,7 +339,7 @@ def system_cases() -> list[Case]:
                      "--compiled", CASE / "gen" / "my_pendulum_nominal_ukf", "--out", CASE / "est.csv"],
                     check=check)
               ''', timeout=240),
-        _case("shapes/builtin-systems", "harden", RESULT,
+        _case("shapes/builtin-systems", "boundaries", RESULT,
               "control: every built-in system loads and simulates 20 samples", '''
               from learnest_codegen.systems import SYSTEMS, get_system
               from learnest_codegen.simulation import simulate
@@ -358,20 +360,20 @@ def simulate_cases() -> list[Case]:
     sim = 'final(["simulate", "--system", path, "--out", CASE / "run.csv"])'
     cases = []
     for value in ("-1", "0", "nan", "inf", "1e12"):
-        cases.append(_case(f"simulate/duration-{value}", "harden", ERROR,
+        cases.append(_case(f"simulate/duration-{value}", "boundaries", ERROR,
                            f"simulate --duration {value}",
                            f'final(["simulate", "--duration", "{value}", "--out", CASE / "r.csv"])',
                            needles=("duration",), timeout=90))
     cases += [
-        _case("simulate/nan-later", "harden", ERROR,
+        _case("simulate/nan-later", "boundaries", ERROR,
               "dynamics finite at x0 that turn NaN after 1 s (sqrt of 1.5 - q, q = t + 0.5): "
               "hung before", 'path = system_file(dyn="[1.0 + 0 * qdot, ops.sqrt(1.5 - q) + u[0]]", '
               'duration=3.0)\n' + sim, needles=("t =",), timeout=90),
-        _case("simulate/blow-up", "harden", ERROR,
+        _case("simulate/blow-up", "boundaries", ERROR,
               "dynamics with a finite-time blow-up (qdot' = q^2, x0 = 1: infinite at t = 1 s)",
               'path = system_file(dyn="[q * q + 0 * qdot, 0 * q + u[0]]", x0=(1.0, 0.0), '
               'duration=3.0)\n' + sim, needles=("t =",), timeout=90),
-        _case("simulate/stiff", "harden", ERROR,
+        _case("simulate/stiff", "boundaries", ERROR,
               "a spring of stiffness 1e14 (explicit RK45 needs ~1e6 steps per sample)",
               'path = system_file(dyn="[qdot, -1e14 * q + u[0]]", duration=1.0)\n' + sim,
               needles=("steps",), timeout=90),
@@ -383,24 +385,24 @@ def option_cases() -> list[Case]:
     """Options of the commands and of the settings classes: out of range is one clear line."""
     est_ukf = ('final(cartpole_estimate(LIB / "cartpole_nominal_ukf", RUN, CASE / "e.csv", {}))')
     cases = [
-        _case("options/gate-recover-after-wrap", "harden", ERROR,
+        _case("options/gate-recover-after-wrap", "boundaries", ERROR,
               "--gate-recover-after 4294967306 (reached C as 10)",
               est_ukf.format('"--gate-recover-after", "4294967306"'), needles=("recover",)),
-        _case("options/gate-recover-after-2^31", "harden", ERROR, "--gate-recover-after 2147483648",
+        _case("options/gate-recover-after-2^31", "boundaries", ERROR, "--gate-recover-after 2147483648",
               est_ukf.format('"--gate-recover-after", "2147483648"'), needles=("recover",)),
-        _case("options/gate-inflation-1e300", "harden", ERROR,
+        _case("options/gate-inflation-1e300", "boundaries", ERROR,
               "--gate-inflation 1e300 (above the cap: the recovery never inflates)",
               est_ukf.format('"--gate-inflation", "1e300"'), needles=("inflation",)),
-        _case("options/gate-inflation-nan", "harden", ERROR, "--gate-inflation nan",
+        _case("options/gate-inflation-nan", "boundaries", ERROR, "--gate-inflation nan",
               est_ukf.format('"--gate-inflation", "nan"'), needles=("inflation",)),
-        _case("options/gate-threshold-nan", "harden", ERROR, "--gate-threshold nan",
+        _case("options/gate-threshold-nan", "boundaries", ERROR, "--gate-threshold nan",
               est_ukf.format('"--gate-threshold", "nan"'), needles=("threshold",)),
-        _case("options/gate-threshold-1e-300", "harden", ERROR,
+        _case("options/gate-threshold-1e-300", "boundaries", ERROR,
               "--gate-threshold 1e-300 (rejects every output)",
               est_ukf.format('"--gate-threshold", "1e-300"'), needles=("threshold",)),
-        _case("options/gate-threshold-negative", "harden", ERROR, "--gate-threshold -1",
+        _case("options/gate-threshold-negative", "boundaries", ERROR, "--gate-threshold -1",
               est_ukf.format('"--gate-threshold", "-1"'), needles=("threshold",)),
-        _case("options/gate-threshold-1e300", "harden", ERROR,
+        _case("options/gate-threshold-1e300", "boundaries", ERROR,
               "--gate-threshold 1e300 (an 'off' that is not 0)",
               est_ukf.format('"--gate-threshold", "1e300"'), needles=("threshold",)),
     ]
@@ -444,9 +446,9 @@ def option_cases() -> list[Case]:
             "from learnest_codegen.estimators.gate import GateSettings\n"
             "from learnest_codegen.estimators.mhe_problem import MHESettings\n"
             "from learnest_codegen.estimators.ukf import UKFSettings\n")
-    cases += [_case(i, "harden", ERROR, what, head, expr, needles=n) for i, what, expr, n in api]
+    cases += [_case(i, "boundaries", ERROR, what, head, expr, needles=n) for i, what, expr, n in api]
     cases += [
-        _case("options/gn-max-iterations-wrap", "harden", ERROR,
+        _case("options/gn-max-iterations-wrap", "boundaries", ERROR,
               "GaussNewtonSettings(max_iterations=2**32 + 3) on a compiled mhe_gn (C int)", '''
               from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
               from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
@@ -454,7 +456,7 @@ def option_cases() -> list[Case]:
                                         solver=GaussNewtonSettings(max_iterations=2**32 + 3))
               est.reset(np.array([0, 0, 0.3, 0.0]))
               ''', needles=("max_iterations",)),
-        _case("options/gn-unreachable-hang", "harden", ERROR,
+        _case("options/gn-unreachable-hang", "boundaries", ERROR,
               "mhe_gn with max_iterations 1e9 and tolerance 1e-300 from Python (hours per step)", '''
               from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
               from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
@@ -465,24 +467,24 @@ def option_cases() -> list[Case]:
                   solver=GaussNewtonSettings(max_iterations=10**9, tolerance=1e-300))
               est.run(run.u, run.y, np.array([0, 0, 0.3, 0.0]))
               ''', timeout=60, needles=("max_iterations",)),
-        _case("options/c-set-options-tol-inf", "ckit", ERROR,
+        _case("options/c-set-options-tol-inf", "c-api", ERROR,
               "C <prefix>_set_options(tol = inf): BAD_ARGUMENT expected",
               _raw_set_options("float('inf')", 30)),
-        _case("options/c-set-options-tol-1e300", "ckit", ERROR,
+        _case("options/c-set-options-tol-1e300", "c-api", ERROR,
               "C <prefix>_set_options(tol = 1e300): no step taken", _raw_set_options("1e300", 30)),
-        _case("options/c-set-options-max-iter-int-max", "ckit", ERROR,
+        _case("options/c-set-options-max-iter-int-max", "c-api", ERROR,
               "C <prefix>_set_options(max_iter = INT_MAX, tol = 1e-300): a step runs for hours",
               _raw_set_options("1e-300", 2**31 - 1), timeout=60),
-        _case("options/train-epochs-0", "harden", ERROR, "train --epochs 0",
+        _case("options/train-epochs-0", "boundaries", ERROR, "train --epochs 0",
               'final(["train", "--data", RUN, "--out", CASE / "m", "--epochs", 0])',
               needles=("epochs",), timeout=120),
-        _case("options/train-hidden-0", "harden", ERROR, "train --hidden 0",
+        _case("options/train-hidden-0", "boundaries", ERROR, "train --hidden 0",
               'final(["train", "--data", RUN, "--out", CASE / "m", "--hidden", 0])',
               needles=("hidden",), timeout=120),
-        _case("options/train-lr-nan", "harden", ERROR, "train --lr nan",
+        _case("options/train-lr-nan", "boundaries", ERROR, "train --lr nan",
               'final(["train", "--data", RUN, "--out", CASE / "m", "--lr", "nan", "--epochs", 2])',
               needles=("learning_rate",), timeout=120),
-        _case("options/train-validation-fraction-1.5", "harden", ERROR,
+        _case("options/train-validation-fraction-1.5", "boundaries", ERROR,
               "train --validation-fraction 1.5",
               'final(["train", "--data", RUN, "--out", CASE / "m", "--validation-fraction", 1.5])',
               needles=("validation_fraction",), timeout=120),
@@ -524,7 +526,7 @@ def file_cases() -> list[Case]:
         for force in ((True, False) if kind == "fifo" else (True,)):
             flag = ', "--force"' if force else ""
             cases.append(_case(
-                f"files/out-{kind}{'-force' if force else ''}", "harden", ERROR,
+                f"files/out-{kind}{'-force' if force else ''}", "boundaries", ERROR,
                 f"simulate --out <{kind}>{' --force' if force else ''} (replaced by a regular file)",
                 f'''
                 target = CASE / "special"
@@ -537,21 +539,21 @@ def file_cases() -> list[Case]:
                 final(["simulate", "--duration", 0.1, "--out", target{flag}], check=check)
                 ''', needles=("special",)))
     cases += [
-        _case("files/estimate-out-fifo", "harden", ERROR, "estimate --out <fifo> --force", '''
+        _case("files/estimate-out-fifo", "boundaries", ERROR, "estimate --out <fifo> --force", '''
               target = CASE / "special"
               os.mkfifo(target)
               def check(out):
                   return stat.S_ISFIFO(os.lstat(target).st_mode), "fifo replaced"
               final(cartpole_estimate(LIB / "cartpole_nominal_ukf", RUN, target, "--force"), check=check)
               ''', needles=("special",)),
-        _case("files/train-out-file", "harden", ERROR, "control: train --out <a file>", '''
+        _case("files/train-out-file", "boundaries", ERROR, "control: train --out <a file>", '''
               (CASE / "f").write_text("x")
               final(["train", "--data", RUN, "--out", CASE / "f", "--epochs", 1])
               ''', needles=("is a file",)),
-        _case("files/estimate-out-is-data", "harden", ERROR, "control: estimate --out <its --data>",
+        _case("files/estimate-out-is-data", "boundaries", ERROR, "control: estimate --out <its --data>",
               'final(cartpole_estimate(LIB / "cartpole_nominal_ukf", RUN, RUN, "--force"))',
               needles=("input",)),
-        _case("files/compile-existing-folder", "harden", ERROR,
+        _case("files/compile-existing-folder", "boundaries", ERROR,
               "learnest-compile over an existing folder (a hand edit inside) without --force", '''
               must(["--nominal", "--estimator", "ukf", "--out", CASE / "gen"], compile=True)
               folder = CASE / "gen" / "cartpole_nominal_ukf"
@@ -559,7 +561,7 @@ def file_cases() -> list[Case]:
               api.write_text(api.read_text() + "\\n/* my hand edit */\\n")
               final(["--nominal", "--estimator", "ukf", "--out", CASE / "gen"], compile=True)
               ''', needles=("--force",), timeout=180),
-        _case("files/compile-existing-folder-force", "harden", RESULT,
+        _case("files/compile-existing-folder-force", "boundaries", RESULT,
               "learnest-compile --force over an existing folder: rebuilt whole, loads", '''
               must(["--nominal", "--estimator", "ukf", "--out", CASE / "gen"], compile=True)
               (CASE / "gen" / "cartpole_nominal_ukf" / "stray.txt").write_text("x")
@@ -572,7 +574,7 @@ def file_cases() -> list[Case]:
               must(cartpole_estimate(LIB / "cartpole_nominal_ukf", RUN, CASE / "ref.csv"))
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"), check=check)
               ''', timeout=180),
-        _case("files/compile-interrupted", "harden", RESULT,
+        _case("files/compile-interrupted", "boundaries", RESULT,
               "Ctrl-C during learnest-compile (ukf done, mhe being written): no empty or partial folder",
               '''
               # SIGINT as a terminal's Ctrl-C delivers it (a background job inherits it ignored)
@@ -617,7 +619,7 @@ def library_cases() -> list[Case]:
         return diff == 0, f"max difference to the fixture's estimates {diff:.3g}"
     '''
     return [
-        _case("libraries/truncated-recompile", "harden", RESULT,
+        _case("libraries/truncated-recompile", "boundaries", RESULT,
               "library cut to a third, then the same learnest-compile again, then estimate (SIGBUS)",
               same_as_fixture, '''
               must(["--nominal", "--estimator", "ukf", "--out", CASE / "gen"], compile=True)
@@ -628,7 +630,7 @@ def library_cases() -> list[Case]:
               compile_force(["--nominal", "--estimator", "ukf", "--out", CASE / "gen"])
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"), check=check)
               ''', timeout=240),
-        _case("libraries/swapped-recompile", "harden", RESULT,
+        _case("libraries/swapped-recompile", "boundaries", RESULT,
               "library replaced by another build of the same prefix (pole 0.6 m), re-compiled, "
               "estimate (ran the wrong model)", same_as_fixture, f'''
               (CASE / "cartpole.py").write_text({variant!r})
@@ -641,7 +643,7 @@ def library_cases() -> list[Case]:
               compile_force(["--nominal", "--estimator", "ukf", "--out", CASE / "a"])
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"), check=check)
               ''', timeout=300),
-        _case("libraries/swapped-load", "harden", ERROR,
+        _case("libraries/swapped-load", "boundaries", ERROR,
               "control: library replaced by another build, loaded without re-compiling", f'''
               (CASE / "cartpole.py").write_text({variant!r})
               must(["--nominal", "--system", CASE / "cartpole.py", "--estimator", "ukf",
@@ -651,13 +653,13 @@ def library_cases() -> list[Case]:
               shutil.copyfile(CASE / "b" / "cartpole_nominal_ukf" / lib.name, lib)
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"))
               ''', needles=("SHA-256",), timeout=180),
-        _case("libraries/truncated-load", "harden", ERROR, "control: library cut short, loaded", '''
+        _case("libraries/truncated-load", "boundaries", ERROR, "control: library cut short, loaded", '''
               folder = copy_folder("cartpole_nominal_ukf")
               lib = next(folder.glob("lib*.so"))
               lib.write_bytes(lib.read_bytes()[:5000])
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"))
               ''', needles=("bytes",)),
-        _case("libraries/manifest-precision-mhe_gn", "harden", ERROR,
+        _case("libraries/manifest-precision-mhe_gn", "boundaries", ERROR,
               "manifest.json of a float64 mhe_gn edited to say float32", '''
               folder = copy_folder("cartpole_nominal_mhe_gn")
               m = json.loads((folder / "manifest.json").read_text())
@@ -666,7 +668,7 @@ def library_cases() -> list[Case]:
               from learnest_codegen.pipeline import load_estimator
               load_estimator(folder)
               ''', needles=("float32", "float64")),
-        _case("libraries/manifest-precision-ukf", "harden", ERROR,
+        _case("libraries/manifest-precision-ukf", "boundaries", ERROR,
               "manifest.json of a float64 UKF edited to say float32", '''
               folder = copy_folder("cartpole_nominal_ukf")
               m = json.loads((folder / "manifest.json").read_text())
@@ -675,7 +677,7 @@ def library_cases() -> list[Case]:
               from learnest_codegen.pipeline import load_estimator
               load_estimator(folder)
               ''', needles=("float32", "float64")),
-        _case("libraries/manifest-nx", "harden", ERROR, "control: manifest nx edited to 5", '''
+        _case("libraries/manifest-nx", "boundaries", ERROR, "control: manifest nx edited to 5", '''
               folder = copy_folder("cartpole_nominal_mhe_rti")
               m = json.loads((folder / "manifest.json").read_text())
               m["nx"] = 5
@@ -683,12 +685,12 @@ def library_cases() -> list[Case]:
               from learnest_codegen.pipeline import load_estimator
               load_estimator(folder)
               ''', needles=("5",)),
-        _case("libraries/library-deleted", "harden", ERROR, "control: library file deleted", '''
+        _case("libraries/library-deleted", "boundaries", ERROR, "control: library file deleted", '''
               folder = copy_folder("cartpole_nominal_ukf")
               next(folder.glob("lib*.so")).unlink()
               final(cartpole_estimate(folder, RUN, CASE / "e.csv"))
               ''', needles=("does not exist",)),
-        _case("libraries/failed-init-keeps-live", "ckit", RESULT,
+        _case("libraries/failed-init-keeps-live", "c-api", RESULT,
               "a failed init (NaN x0) on the workspace of a live UKF leaves it as it was", '''
               import ctypes
               from learnest_codegen.pipeline import load_estimator
@@ -738,14 +740,14 @@ def thread_cases() -> list[Case]:
     '''
     ipopt2 = ["cartpole_nominal_mhe", "cartpole_nominal_mhe"]
     return [
-        _case("threads/ipopt-mhe-one-library", "harden", RESULT,
+        _case("threads/ipopt-mhe-one-library", "boundaries", RESULT,
               "two Ipopt-MHE handles of one library in two threads (NO_MEMORY before)",
               body.format(T=150, folders=ipopt2, rounds=6), timeout=240),
-        _case("threads/ipopt-mhe-two-libraries", "harden", RESULT,
+        _case("threads/ipopt-mhe-two-libraries", "boundaries", RESULT,
               "Ipopt MHEs of two libraries (nominal, true) in two threads",
               body.format(T=150, folders=["cartpole_nominal_mhe", "cartpole_true_mhe"], rounds=6),
               timeout=240),
-        _case("threads/ukf-and-mhe_gn", "harden", RESULT,
+        _case("threads/ukf-and-mhe_gn", "boundaries", RESULT,
               "control: two UKF and two mhe_gn handles in four threads",
               body.format(T=300, folders=["cartpole_nominal_ukf", "cartpole_nominal_ukf",
                                           "cartpole_nominal_mhe_gn", "cartpole_nominal_mhe_gn"],
@@ -762,9 +764,9 @@ def csv_cases() -> list[Case]:
         return ok, out.strip().splitlines()[-1][-80:] if out.strip() else "no output"
     '''
     big = []
-    for folder, owner in (("cartpole_nominal_ukf", "harden"), ("cartpole_nominal_ukf_float32", "harden"),
-                          ("cartpole_nominal_mhe_gn_float32", "harden"),
-                          ("cartpole_nominal_mhe_rti_float32", "harden")):
+    for folder, owner in (("cartpole_nominal_ukf", "boundaries"), ("cartpole_nominal_ukf_float32", "boundaries"),
+                          ("cartpole_nominal_mhe_gn_float32", "boundaries"),
+                          ("cartpole_nominal_mhe_rti_float32", "boundaries")):
         big.append(_case(f"float32/csv-1e39-{folder.replace('cartpole_nominal_', '')}", owner, RESULT,
                          f"a y value of 1e39 (beyond float32) in the run, {folder}: gated as in float64",
                          rejected, f'''
@@ -772,58 +774,58 @@ def csv_cases() -> list[Case]:
                          final({est(folder)}, check=check)
                          '''))
     cases = big + [
-        _case("csv/duplicate-column", "streams", ERROR, "a run with y_p twice (the last one won)", '''
+        _case("csv/duplicate-column", "data", ERROR, "a run with y_p twice (the last one won)", '''
               def dup(lines):
                   return [l + "," + l.split(",")[lines[0].split(",").index("y_p")] if i == 0 else
                           l + ",5.0" for i, l in enumerate(lines)]
               edit_csv(RUN, CASE / "bad.csv", transform=dup)
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("y_p",)),
-        _case("csv/complex", "streams", ERROR, "a complex value '1+2j' in y_p", '''
+        _case("csv/complex", "data", ERROR, "a complex value '1+2j' in y_p", '''
               edit_csv(RUN, CASE / "bad.csv", row=10, column="y_p", value="1+2j")
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("y_p",)),
-        _case("csv/bom", "streams", ERROR | RESULT, "a UTF-8 BOM before the header", '''
+        _case("csv/bom", "data", ERROR | RESULT, "a UTF-8 BOM before the header", '''
               (CASE / "bad.csv").write_bytes(b"\\xef\\xbb\\xbf" + RUN.read_bytes())
               final(''' + est("cartpole_nominal_ukf") + ")\n", avoid=("\\ufeff", "missing columns")),
-        _case("csv/non-utf8-header", "streams", ERROR, "a Latin-1 byte in the header", '''
+        _case("csv/non-utf8-header", "data", ERROR, "a Latin-1 byte in the header", '''
               (CASE / "bad.csv").write_bytes(RUN.read_bytes().replace(b"y_p", b"y_p\\xe9", 1))
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("bad.csv",)),
-        _case("csv/dev-zero", "streams", ERROR, "--data /dev/zero",
+        _case("csv/dev-zero", "data", ERROR, "--data /dev/zero",
               'final(cartpole_estimate(LIB / "cartpole_nominal_ukf", "/dev/zero", CASE / "e.csv"))',
               avoid=("not found",)),
-        _case("csv/nan", "streams", ERROR, "control: a NaN in y_p", '''
+        _case("csv/nan", "data", ERROR, "control: a NaN in y_p", '''
               edit_csv(RUN, CASE / "bad.csv", row=10, column="y_p", value="nan")
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("y_p",)),
-        _case("csv/time-back", "streams", ERROR, "control: time goes back", '''
+        _case("csv/time-back", "data", ERROR, "control: time goes back", '''
               edit_csv(RUN, CASE / "bad.csv", row=10, column="t", value="0")
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("time",)),
-        _case("csv/semicolons", "streams", ERROR, "control: ';' as the delimiter", '''
+        _case("csv/semicolons", "data", ERROR, "control: ';' as the delimiter", '''
               (CASE / "bad.csv").write_text(RUN.read_text().replace(",", ";"))
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("missing columns",)),
-        _case("csv/header-only", "streams", ERROR, "control: a header and no rows", '''
+        _case("csv/header-only", "data", ERROR, "control: a header and no rows", '''
               (CASE / "bad.csv").write_text(RUN.read_text().splitlines()[0] + "\\n")
               final(''' + est("cartpole_nominal_ukf") + ")\n", needles=("samples",)),
-        _case("csv/1e308", "streams", RESULT, "control: y_p = 1e308 (float64): gated",
+        _case("csv/1e308", "data", RESULT, "control: y_p = 1e308 (float64): gated",
               rejected, '''
               edit_csv(RUN, CASE / "bad.csv", row=100, column="y_p", value="1e308")
               final(''' + est("cartpole_nominal_ukf") + ", check=check)\n"),
-        _case("api/complex-y", "harden", ERROR, "est.step(u, y) with a complex y", '''
+        _case("api/complex-y", "boundaries", ERROR, "est.step(u, y) with a complex y", '''
               from learnest_codegen.pipeline import load_estimator
               est = load_estimator(LIB / "cartpole_nominal_ukf")
               est.reset(np.array([0, 0, 0.3, 0.0]))
               est.step(np.zeros(1), np.array([0.0, 0.3 + 1j]))
               ''', needles=("complex",)),
-        _case("api/object-y", "harden", ERROR, "est.step(u, [None, 0.3])", '''
+        _case("api/object-y", "boundaries", ERROR, "est.step(u, [None, 0.3])", '''
               from learnest_codegen.pipeline import load_estimator
               est = load_estimator(LIB / "cartpole_nominal_ukf")
               est.reset(np.array([0, 0, 0.3, 0.0]))
               est.step(np.zeros(1), [None, 0.3])
               ''', needles=("y",)),
-        _case("api/run-complex-U", "harden", ERROR, "est.run(U, Y, x0) with a complex U", '''
+        _case("api/run-complex-U", "boundaries", ERROR, "est.run(U, Y, x0) with a complex U", '''
               from learnest_codegen.pipeline import load_estimator
               est = load_estimator(LIB / "cartpole_nominal_mhe_rti")
               est.run(np.zeros((10, 1)) + 1j, np.zeros((10, 2)), np.array([0, 0, 0.3, 0.0]))
               ''', needles=("complex",)),
-        _case("api/step-wrong-shape", "harden", ERROR, "control: y of 3 values for 2 outputs", '''
+        _case("api/step-wrong-shape", "boundaries", ERROR, "control: y of 3 values for 2 outputs", '''
               from learnest_codegen.pipeline import load_estimator
               est = load_estimator(LIB / "cartpole_nominal_mhe_gn")
               est.reset(np.array([0, 0, 0.3, 0.0]))
@@ -855,12 +857,12 @@ def input_cases() -> list[Case]:
     c = 'from learnest_codegen.pipeline import load_estimator\nest = load_estimator(LIB / "{}")'
     py = ('from learnest_codegen.pipeline import reference_estimator\n'
           'est = reference_estimator("nominal", "{}", system="cartpole")')
-    rows = [("mhe", "python", 3, 1e3, "streams"), ("ukf", "python", 1, 1e6, "streams"),
-            ("cartpole_nominal_mhe", "c", 3, 1e3, "ckit"), ("cartpole_nominal_mhe_gn", "c", 3, 1e3, "ckit"),
-            ("cartpole_nominal_mhe_rti", "c", 3, 1e3, "ckit"),
-            ("cartpole_nominal_mhe_gn_float32", "c", 3, 1e3, "ckit"),
-            ("cartpole_nominal_ukf", "c", 1, 1e6, "ckit"),
-            ("cartpole_nominal_ukf_float32", "c", 1, 1e6, "ckit")]
+    rows = [("mhe", "python", 3, 1e3, "data"), ("ukf", "python", 1, 1e6, "data"),
+            ("cartpole_nominal_mhe", "c", 3, 1e3, "c-api"), ("cartpole_nominal_mhe_gn", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_rti", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_gn_float32", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_ukf", "c", 1, 1e6, "c-api"),
+            ("cartpole_nominal_ukf_float32", "c", 1, 1e6, "c-api")]
     out = []
     for name, backend, length, size, owner in rows:
         label = name.replace("cartpole_nominal_", "")

@@ -77,9 +77,9 @@ def _number(v: float) -> str:
 
 
 _TOLERANCE_WHY = ("the converged Gauss-Newton step stops when its largest component is at most "
-                  "the tolerance, so above 1e-3 it stops before any step that matters (1e300 took "
-                  "none: MSE 36-47x worse), and below about 10 rounding units of O(1) states it "
-                  "cannot be met")
+                  "the tolerance, so above 1e-3 it stops before any step that matters (at 1e300 "
+                  "it takes none: 12.8 times the MSE on a cartpole run), and below about 10 "
+                  "rounding units of O(1) states it cannot be met")
 
 #: Every option's range; a key with ``[precision]`` depends on the C real type.
 LIMITS: dict[str, Limit] = {limit.name: limit for limit in (
