@@ -140,6 +140,8 @@ def test_atomic_writes_leave_the_old_content_on_failure(tmp_path):
     assert (folder / "a").read_text() == "old"
     with atomic_dir(folder) as tmp:
         (tmp / "b").write_text("new")
+        # CasADi will not write "<name>.c" under a path holding "<name>.c": never "<name>." here
+        assert f"{folder.name}." not in tmp.name and tmp.name.startswith(f".{folder.name}-")
     assert sorted(p.name for p in folder.iterdir()) == ["b"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "result.csv"]
 
