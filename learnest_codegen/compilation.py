@@ -1,19 +1,24 @@
 """The compile stage: a model (nominal, true or trained KNODE) to compiled estimator directories.
 
 ``compile_estimators`` generates and builds each requested estimator into
-``out/<system>_<kind>_<estimator>/`` (C sources, header, shared library, ``manifest.json``).
-Generation is deterministic and the toolchain reuses a library whose inputs did not change, so
-compiling the same model twice costs only the code generation.
+``out/<system>_<kind>_<estimator>/`` (C sources, header, shared library, ``manifest.json``),
+each folder whole or not at all: it is written beside its place under a temporary name and
+renamed into place when complete. Generation is deterministic and the toolchain reuses a
+library whose inputs did not change and which is still the file it built, so compiling the same
+model twice costs only the code generation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import os
+import shutil
+from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from .errors import UnknownNameError
 from .export import DiscreteModel, hybrid_model, prior_model, true_model
+from .outputs import atomic_dir
 from .systems import System
 
 
@@ -140,7 +145,47 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
         if gate is not None:
             chosen = replace(chosen, gate=gate)
         directory = estimator_dir(Path(out), model, name, precision)
-        directory.mkdir(parents=True, exist_ok=True)
         extra = {} if precision == "float64" else {"precision": precision}
-        results[name] = kind.generate(model, chosen, directory, model_hash=model_hash, **extra)
+        with atomic_dir(directory) as tmp:
+            _reusable(directory, tmp)
+            result = kind.generate(model, chosen, tmp, model_hash=model_hash, **extra)
+        results[name] = _moved(result, tmp, directory)
     return results
+
+
+def _reusable(old: Path, new: Path) -> None:
+    """Link the library, its build stamp and a sound manifest of ``old`` into ``new``, so the
+    toolchain reuses an unchanged library (it rebuilds one that no longer matches its stamp)."""
+    from .runtime.manifest import MANIFEST, read_manifest
+
+    if not old.is_dir():
+        return
+    for path in [*old.glob("lib*.so"), *old.glob("lib*.so.stamp")]:
+        _link(path, new / path.name)
+    try:
+        read_manifest(old)  # only a manifest that still describes its library
+    except (OSError, ValueError):
+        return
+    shutil.copy2(old / MANIFEST, new / MANIFEST)
+
+
+def _link(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)  # the toolchain renames a new build over it: the old inode is untouched
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _moved(value: Any, tmp: Path, final: Path) -> Any:
+    """``value`` (a generation result) with every path inside ``tmp`` moved to ``final``."""
+    if isinstance(value, Path):
+        try:
+            return final / value.relative_to(tmp)
+        except ValueError:
+            return value
+    if isinstance(value, tuple):
+        return tuple(_moved(v, tmp, final) for v in value)
+    if is_dataclass(value) and not isinstance(value, type):
+        return replace(value, **{f.name: _moved(getattr(value, f.name), tmp, final) for f in fields(value)
+                                 if f.init})
+    return value

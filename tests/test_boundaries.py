@@ -140,6 +140,8 @@ def test_atomic_writes_leave_the_old_content_on_failure(tmp_path):
     assert (folder / "a").read_text() == "old"
     with atomic_dir(folder) as tmp:
         (tmp / "b").write_text("new")
+        # CasADi will not write "<name>.c" under a path holding "<name>.c": never "<name>." here
+        assert f"{folder.name}." not in tmp.name and tmp.name.startswith(f".{folder.name}-")
     assert sorted(p.name for p in folder.iterdir()) == ["b"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "result.csv"]
 
@@ -279,3 +281,175 @@ def test_another_system_of_the_same_name_is_refused(tmp_path, short_run):
     code, out = run_cli("estimate", "--system", "cartpole", "--data", short_run, "--estimator", "ukf",
                         "--compiled", folder, "--out", tmp_path / "est.csv")
     assert_one_line_error(code, out, "system_fingerprint")
+
+
+# --- special files, folders of compiled estimators, re-compiles (issue 28) ---------------------------
+
+
+def test_force_replaces_only_regular_files_and_folders(tmp_path):
+    """As root, `--out /dev/full --force` turned the device into a 487 kB regular file."""
+    import os
+    import socket
+    import stat
+
+    made = {"fifo": lambda p: os.mkfifo(p),
+            "socket": lambda p: socket.socket(socket.AF_UNIX).bind(str(p)),
+            "link": lambda p: os.symlink(tmp_path / "target.csv", p)}
+    if os.geteuid() == 0:  # a copy of /dev/full, made where it harms nothing
+        made["device"] = lambda p: os.mknod(p, 0o666 | stat.S_IFCHR, os.makedev(1, 7))
+    for name, make in made.items():
+        target = tmp_path / name
+        make(target)
+        before = os.lstat(target).st_mode
+        for force in (False, True):
+            with pytest.raises(OutputError, match="not a regular file or folder"):
+                claim_output(target, force=force)
+            with pytest.raises(OutputError, match="not a regular file or folder"):
+                claim_output(target, force=force, kind="dir")
+        code, out = run_cli("simulate", "--duration", 0.1, "--out", target, "--force")
+        assert_one_line_error(code, out, "refusing to write")
+        assert os.lstat(target).st_mode == before, name
+
+
+def _nominal_ukf(out):
+    from learnest_codegen.compilation import compile_estimators
+    from learnest_codegen.pipeline import resolve
+
+    return compile_estimators(resolve("nominal", "cartpole").model, out, model_hash="nominal",
+                              estimators=("ukf",))["ukf"]
+
+
+def test_learnest_compile_needs_force_to_replace_a_folder(tmp_path):
+    """The README's promise now holds for learnest-compile too: a hand edit is not written over
+    unasked; with --force the folder is replaced whole (an unchanged library is reused)."""
+    from learnest_codegen.cli import compile_standalone
+
+    args = ["--nominal", "--estimator", "ukf", "--out", str(tmp_path)]
+    assert CliRunner().invoke(compile_standalone, args).exit_code == 0
+    folder = tmp_path / "cartpole_nominal_ukf"
+    (folder / "notes.txt").write_text("my notes")
+    result = CliRunner().invoke(compile_standalone, args)
+    assert result.exit_code == 1 and "exists and is not empty; pass --force" in result.output
+    assert (folder / "notes.txt").read_text() == "my notes"
+    result = CliRunner().invoke(compile_standalone, [*args, "--force"])
+    assert result.exit_code == 0 and "reused" in result.output, result.output
+    assert not (folder / "notes.txt").exists() and (folder / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cartpole_nominal_ukf"]
+
+
+def test_an_interrupted_compile_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """Ctrl-C while an estimator's folder is written: no empty or partial folder, no temporary
+    one, and an existing folder unchanged."""
+    from learnest_codegen import compilation
+
+    real = compilation._registry
+
+    def interrupted():
+        kinds = real()
+
+        def generate(model, settings, directory, **kw):
+            (directory / "half.c").write_text("/* half */")
+            raise KeyboardInterrupt
+        kinds["ukf"] = replace_kind(kinds["ukf"], generate)
+        return kinds
+
+    def replace_kind(kind, generate):
+        import dataclasses
+
+        return dataclasses.replace(kind, generate=generate)
+
+    monkeypatch.setattr(compilation, "_registry", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _nominal_ukf(tmp_path / "new")
+    assert list((tmp_path / "new").iterdir()) == []
+    monkeypatch.setattr(compilation, "_registry", real)
+    _nominal_ukf(tmp_path / "old")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "old" / "cartpole_nominal_ukf").iterdir()}
+    monkeypatch.setattr(compilation, "_registry", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _nominal_ukf(tmp_path / "old")
+    after = {p.name: p.read_bytes() for p in (tmp_path / "old" / "cartpole_nominal_ukf").iterdir()}
+    assert after == before and [p.name for p in (tmp_path / "old").iterdir()] == ["cartpole_nominal_ukf"]
+
+
+def _load_in_child(folder):
+    """Load the folder and run it in a child process: (exit code, output). A crash stays there."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; from learnest_codegen.pipeline import load_estimator\n"
+            "e = load_estimator(sys.argv[1]); e.reset(np.array([0, 0, 0.3, 0.0]))\n"
+            "print(repr(e.step(np.zeros(1), np.array([0.01, 0.31])).tolist()))")
+    child = subprocess.run([sys.executable, "-c", code, str(folder)], capture_output=True, text=True,
+                           timeout=120)
+    return child.returncode, child.stdout.strip() or child.stderr.strip()[-300:]
+
+
+def test_a_recompile_rebuilds_a_damaged_or_foreign_library(tmp_path):
+    """Issue 28: after a library was cut short, the same compile "reused" it and blessed it in a
+    new manifest (the next load died of SIGBUS); a library swapped for another build of the same
+    prefix was blessed and ran the wrong model. The stamp now records what was built."""
+    import dataclasses
+
+    from learnest_codegen.compilation import compile_estimators
+    from learnest_codegen.export import prior_model
+
+    first = _nominal_ukf(tmp_path / "a")
+    folder, library = first.directory, first.library
+    good = library.read_bytes()
+    code, expected = _load_in_child(folder)
+    assert code == 0, expected
+
+    library.write_bytes(good[: len(good) // 3])  # cut short
+    again = _nominal_ukf(tmp_path / "a")
+    assert not again.build.reused and library.read_bytes() == good
+    assert _load_in_child(folder) == (0, expected)
+
+    cartpole = get_system("cartpole")
+    longer = dataclasses.replace(cartpole, params={**cartpole.params, "l": 0.6})
+    other = compile_estimators(prior_model(longer), tmp_path / "b", model_hash="nominal",
+                               estimators=("ukf",))["ukf"]
+    assert other.library.name == library.name and other.library.read_bytes() != good
+    library.write_bytes(other.library.read_bytes())  # the same prefix, another model
+    again = _nominal_ukf(tmp_path / "a")
+    assert not again.build.reused and library.read_bytes() == good
+    assert _load_in_child(folder) == (0, expected)
+    assert _nominal_ukf(tmp_path / "a").build.reused  # and an intact one is still reused
+
+
+def test_no_manifest_is_written_for_a_library_that_was_not_built(tmp_path):
+    from learnest_codegen.errors import ModelMismatchError
+    from learnest_codegen.runtime.manifest import write_manifest
+
+    result = _nominal_ukf(tmp_path)
+    folder = result.directory
+    content = json.loads((folder / "manifest.json").read_text())
+    content = {k: v for k, v in content.items() if k not in ("library_bytes", "library_sha256")}
+    write_manifest(folder, content)  # the built library: fine
+    good = result.library.read_bytes()
+    result.library.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    with pytest.raises(ModelMismatchError, match="not the library the toolchain built"):
+        write_manifest(folder, content)
+    (folder / (result.library.name + ".stamp")).unlink()
+    with pytest.raises(ModelMismatchError, match="no build stamp"):
+        write_manifest(folder, content)
+
+
+def test_an_edited_precision_is_named(tmp_path):
+    """It said "library sizes (4, 1, 2, 20), manifest says (4, 1, 2, 20)"."""
+    from learnest_codegen.compilation import compile_estimators
+    from learnest_codegen.errors import ModelMismatchError
+    from learnest_codegen.pipeline import load_estimator, resolve
+
+    compile_estimators(resolve("nominal", "cartpole").model, tmp_path, model_hash="nominal",
+                       estimators=("ukf", "mhe_rti"))
+    for name in ("cartpole_nominal_ukf", "cartpole_nominal_mhe_rti"):
+        path = tmp_path / name / "manifest.json"
+        manifest = json.loads(path.read_text())
+        path.write_text(json.dumps({**manifest, "precision": "float32"}))
+        with pytest.raises(ModelMismatchError, match="computes in float64, the manifest says "
+                                                     "precision 'float32'"):
+            load_estimator(tmp_path / name)
+        path.write_text(json.dumps({**manifest, "precision": "float16"}))
+        with pytest.raises(ModelMismatchError, match="precision 'float16' is not one of"):
+            load_estimator(tmp_path / name)

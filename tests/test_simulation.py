@@ -84,3 +84,64 @@ def test_bad_csv_fails_clearly(cartpole, tmp_path, mutate, message):
 def test_missing_file(cartpole, tmp_path):
     with pytest.raises(FileNotFoundError):
         read_run(tmp_path / "nope.csv", cartpole)
+
+
+# --- what simulate refuses -------------------------------------------------------------------------
+
+def _pendulum(dyn, x0=(0.5, 0.0)):
+    import dataclasses
+
+    from learnest_codegen import get_system
+
+    base = get_system("cartpole")
+    from learnest_codegen.systems import NoiseModel, Signal
+
+    return dataclasses.replace(
+        base, name="pend", states=(Signal("q", "rad"), Signal("qdot", "rad/s")),
+        inputs=(Signal("tau", "N m"),), outputs=(Signal("q", "rad"),), params={}, true_params={},
+        dynamics=dyn, measurement=lambda ops, x, u, p: [x[0]], true_dynamics=None,
+        noise=NoiseModel((0.01,), (0.01, 0.01), (1e-3, 1e-2), (0.1, 0.1)), dt=0.01, duration=3.0,
+        x0=x0, excitation=lambda t, rng: np.sin(2 * t)[:, None], periodic_states=(),
+        kinematic_chains=(), residual=dataclasses.replace(base.residual, inputs=None, via=None,
+                                                          prior_features=(), prior_gains=False,
+                                                          reflection=None))
+
+
+def test_simulate_stops_with_the_time_where_the_dynamics_went_nan():
+    """The state q is a clock (q = t + 0.5); qdot' = sqrt(1.5 - q) is NaN after t = 1 s. Before,
+    `learnest simulate` never returned."""
+    from learnest_codegen.errors import SolverError
+
+    system = _pendulum(lambda ops, x, u, p: [1.0 + 0 * x[1], ops.sqrt(1.5 - x[0]) + u[0]])
+    with pytest.raises(SolverError, match=r"returned \[1.0, nan\] at t = 1.0\d* s"):
+        simulate(system, 0)
+
+
+def test_simulate_has_a_step_limit_per_sample():
+    """A spring of 1e14 N/m needs about a million explicit steps per 10 ms sample."""
+    from learnest_codegen.errors import SolverError
+    from learnest_codegen.simulation import MAX_STEPS_PER_SAMPLE
+
+    system = _pendulum(lambda ops, x, u, p: [x[1], -1e14 * x[0] + u[0]])
+    with pytest.raises(SolverError, match=f"more than {MAX_STEPS_PER_SAMPLE} integrator steps in "
+                                          r"the sample at t = 0 s"):
+        simulate(system, 0)
+    blow_up = _pendulum(lambda ops, x, u, p: [x[0] * x[0] + 0 * x[1], 0 * x[0] + u[0]], x0=(1.0, 0.0))
+    with pytest.raises(SolverError, match="failed at t = 1 s"):  # q' = q^2 from 1: infinite at 1 s
+        simulate(blow_up, 0)
+
+
+@pytest.mark.parametrize("duration", [-1.0, 0.0, 0.002, float("nan"), float("inf"), 1e12])
+def test_simulate_refuses_durations_out_of_range(cartpole, duration):
+    with pytest.raises(DataError, match="duration"):
+        simulate(cartpole, 0, duration=duration)
+
+
+def test_the_stepping_is_solve_ivp_s(cartpole):
+    """The integrator loop (RK45 with a step limit) gives solve_ivp's numbers bit for bit."""
+    run = simulate(cartpole, 3, duration=0.1)
+    x = run.x[0]
+    for k in range(len(run) - 1):
+        x = solve_ivp(lambda _t, s, u=run.u[k]: cartpole.f(s, u, variant="true"), (0.0, run.dt), x,
+                      method="RK45", rtol=1e-10, atol=1e-12).y[:, -1]
+        np.testing.assert_array_equal(run.x[k + 1], x)

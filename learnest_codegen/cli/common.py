@@ -72,21 +72,48 @@ PRECISION_HELP = ("C real type: float32 for single-precision FPUs (ukf, mhe_gn a
                   "float32 UKF uses sigma-point spread alpha = 0.5)")
 
 
+class InRange(click.ParamType):
+    """A number checked against its range in :data:`~learnest_codegen.runtime.limits.LIMITS`, so
+    an option out of range fails naming the option (and a C ``int`` never wraps)."""
+
+    def __init__(self, name: str):
+        from ..runtime.limits import LIMITS
+
+        self.limit = LIMITS[name]
+        self.name = "integer" if self.limit.integer else "float"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            number = value
+        else:
+            try:
+                number = int(value) if self.limit.integer else float(value)
+            except (TypeError, ValueError):
+                self.fail(f"{value!r} is not {self.limit.describe()}", param, ctx)
+        if not self.limit.contains(number):
+            self.fail(f"{value!r} is not {self.limit.describe()}", param, ctx)
+        return number
+
+
 #: The innovation gate's options (``learnest compile`` and ``learnest estimate``); the defaults
 #: are :class:`~learnest_codegen.estimators.gate.GateSettings`' (written out here so that
-#: ``--help`` loads no estimator module; a test checks they agree).
+#: ``--help`` loads no estimator module; a test checks they agree), the ranges those of
+#: ``runtime/limits.py``.
 GATE_OPTIONS = [
-    click.option("--gate-threshold", type=click.FloatRange(min=0.0), default=50.844127911818155,
+    click.option("--gate-threshold", type=InRange("gate_threshold"), default=50.844127911818155,
                  show_default="50.84",
                  help="innovation gate: reject an output whose normalised innovation d^2 exceeds "
-                      "this chi-square(1) quantile (default: 1e-12 false rejections, 7.1 sigma); "
-                      "0 disables the gate and the recovery"),
-    click.option("--gate-recover-after", type=click.IntRange(min=1), default=10, show_default=True,
-                 help="after this many consecutive samples with a rejected output, widen the "
-                      "gate until measurements are accepted again (recovery from a lost track)"),
-    click.option("--gate-inflation", type=click.FloatRange(min=1.0, min_open=True), default=2.0,
+                      "this chi-square(1) quantile (default: 1e-12 false rejections, 7.1 sigma; "
+                      "1 to 1e12); 0 disables the gate and the recovery"),
+    click.option("--gate-recover-after", type=InRange("gate_recover_after"), default=10,
                  show_default=True,
-                 help="factor by which each further rejecting sample inflates the uncertainty"),
+                 help="after this many consecutive samples with a rejected output (1 to 1e6), "
+                      "widen the gate until measurements are accepted again (recovery from a "
+                      "lost track)"),
+    click.option("--gate-inflation", type=InRange("gate_inflation"), default=2.0,
+                 show_default=True,
+                 help="factor (1 < f <= 100) by which each further rejecting sample inflates "
+                      "the uncertainty"),
 ]
 
 

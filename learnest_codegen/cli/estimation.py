@@ -26,8 +26,10 @@ from .common import (
 
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
-             estimators: tuple[str, ...], precision: str = "float64", gate=None) -> dict:
-    from ..compilation import compile_estimators, precision_problem, resolve_model
+             estimators: tuple[str, ...], precision: str = "float64", gate=None,
+             force: bool = False) -> dict:
+    from ..compilation import compile_estimators, estimator_dir, precision_problem, resolve_model
+    from ..outputs import claim_output
 
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
@@ -41,6 +43,9 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         if system_name is None and meta_path.is_file():
             system_name = json.loads(meta_path.read_text()).get("system")
         model, model_hash = resolve_model(system_named(system_name or "cartpole"), model_dir)
+    for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
+        claim_output(estimator_dir(Path(out), model, name, precision), inputs=(model_dir,),
+                     force=force, kind="dir")
     results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators,
                                  precision=precision, gate=gate)
     for name, res in results.items():
@@ -59,6 +64,8 @@ COMPILE_OPTIONS = [
                  default=("mhe", "ukf"), show_default=True, help=ESTIMATOR_HELP),
     click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
                  show_default=True, help=PRECISION_HELP),
+    click.option("--force", is_flag=True,
+                 help="replace existing estimator folders (an unchanged library is reused)"),
 ]
 
 
@@ -71,21 +78,27 @@ def _with_compile_options(fn):
 @click.command("compile")
 @_with_compile_options
 @friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, force, gate_threshold,
                 gate_recover_after, gate_inflation) -> None:
-    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
+    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
+
+    Each estimator gets its own folder under --out, written whole or not at all; an existing
+    folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
-                       gate_recover_after, gate_inflation) -> None:
-    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, force,
+                       gate_threshold, gate_recover_after, gate_inflation) -> None:
+    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
+
+    Each estimator gets its own folder under --out, written whole or not at all; an existing
+    folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force)
 
 
 @click.command()

@@ -42,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..runtime.limits import check_option
+
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
 #: model with model error (the nominal prior) has innovations larger than its ``S``, and at
 #: the textbook 15.14 (1e-4) the nominal cartpole UKF rejected 4 % of a clean test run's
@@ -59,10 +61,15 @@ class GateSettings:
     Attributes
     ----------
     threshold : reject output ``j`` when ``d_j^2`` exceeds it (a chi-square(1) quantile;
-        default 50.8, false rejections 1e-12, see :data:`DEFAULT_THRESHOLD`). ``0`` or
-        ``inf``: no gate, no recovery.
-    recover_after : K, consecutive steps with rejections before the uncertainty is inflated.
-    inflation : factor (> 1) applied to the uncertainty at each further rejecting step.
+        default 50.8, false rejections 1e-12, see :data:`DEFAULT_THRESHOLD`), 1 to 1e12.
+        ``0`` or ``inf``: no gate, no recovery.
+    recover_after : K, consecutive steps with rejections before the uncertainty is inflated,
+        1 to 1e6.
+    inflation : factor (1 < inflation <= 100) applied to the uncertainty at each further
+        rejecting step.
+
+    The ranges are :mod:`~learnest_codegen.runtime.limits`' (the C's ``set_gate`` checks the
+    same); outside them :class:`~learnest_codegen.errors.SettingsError`.
     """
 
     threshold: float = DEFAULT_THRESHOLD
@@ -70,18 +77,12 @@ class GateSettings:
     inflation: float = 2.0
 
     def __post_init__(self) -> None:
-        t = float(self.threshold)
-        if math.isnan(t) or t < 0:
-            raise ValueError(f"GateSettings.threshold must be >= 0 (0 or inf: no gate), got {t}")
+        t = check_option("gate_threshold", self.threshold, "GateSettings.threshold")
         object.__setattr__(self, "threshold", math.inf if t == 0 else t)
-        k = self.recover_after
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ValueError(f"GateSettings.recover_after must be an integer >= 1, got {k!r}")
-        object.__setattr__(self, "recover_after", int(self.recover_after))
-        g = float(self.inflation)
-        if not (math.isfinite(g) and g > 1):
-            raise ValueError(f"GateSettings.inflation must be a finite number > 1, got {g}")
-        object.__setattr__(self, "inflation", g)
+        object.__setattr__(self, "recover_after", check_option(
+            "gate_recover_after", self.recover_after, "GateSettings.recover_after"))
+        object.__setattr__(self, "inflation", check_option(
+            "gate_inflation", self.inflation, "GateSettings.inflation"))
 
     @property
     def enabled(self) -> bool:

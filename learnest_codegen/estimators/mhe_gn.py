@@ -13,9 +13,9 @@ generated solver (:mod:`..codegen.mhe_gn`) iterates on it:
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
+from ..runtime.limits import check_option
 from .precision import check_precision
 
 MODES = ("converged", "rti")
@@ -30,9 +30,11 @@ class GaussNewtonSettings:
     Attributes
     ----------
     mode : ``"converged"`` or ``"rti"`` (see the module docstring).
-    max_iterations : iteration limit of the converged mode (reaching it is an error).
+    max_iterations : iteration limit of the converged mode (reaching it is an error), 1 to
+        1000.
     tolerance : converged mode stops when ``max |step| <= tolerance``; ``None``: the
-        precision's default (1e-10 in float64, 1e-4 in float32).
+        precision's default (1e-10 in float64, 1e-4 in float32). 1e-14 to 1e-3 in float64,
+        1e-6 to 1e-3 in float32 (``runtime/limits.py`` says why).
     precision : ``"float64"`` or ``"float32"``, the C real type of the generated solver.
     """
 
@@ -45,14 +47,12 @@ class GaussNewtonSettings:
         if self.mode not in MODES:
             raise ValueError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
         check_precision(self.precision, "GaussNewtonSettings")
-        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) \
-                or self.max_iterations < 1:
-            raise ValueError(f"GaussNewtonSettings.max_iterations must be an integer >= 1, "
-                             f"got {self.max_iterations!r}")
+        object.__setattr__(self, "max_iterations", check_option(
+            "max_iterations", self.max_iterations, "GaussNewtonSettings.max_iterations"))
         tol = DEFAULT_TOLERANCE[self.precision] if self.tolerance is None else self.tolerance
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-            raise ValueError(f"GaussNewtonSettings.tolerance must be a positive number, got {tol!r}")
-        object.__setattr__(self, "tolerance", float(tol))
+        object.__setattr__(self, "tolerance", check_option(
+            "tolerance", tol, f"GaussNewtonSettings.tolerance ({self.precision})",
+            precision=self.precision))
 
     @property
     def estimator(self) -> str:

@@ -52,6 +52,7 @@ import casadi as cs
 import numpy as np
 
 from ..errors import ShapeError
+from ..runtime.limits import check_option
 from .gate import GateSettings
 
 if TYPE_CHECKING:  # for annotations only
@@ -85,7 +86,7 @@ class MHESettings:
 
     Attributes
     ----------
-    horizon : N, the number of transitions in the window (N+1 states).
+    horizon : N, the number of transitions in the window (N+1 states), 1 to 1000.
     process_std : (nx,) std of the process noise ``w`` (Q = diag(1/process_std**2)).
     measurement_std : (ny,) std of the measurement noise ``v`` (R).
     arrival_std : (nx,) std of the arrival prior ``x_{k-N} - xbar`` (P).
@@ -103,15 +104,13 @@ class MHESettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
-        if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) \
-                or self.horizon < 1:
-            raise ValueError(f"MHESettings.horizon must be an integer >= 1, got {self.horizon!r}")
-        object.__setattr__(self, "horizon", int(self.horizon))
+        object.__setattr__(self, "horizon", check_option("horizon", self.horizon, "MHESettings.horizon"))
         for name in ("process_std", "measurement_std", "arrival_std"):
             values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
                 raise ValueError(f"MHESettings.{name} must be finite positive numbers, got {values}")
-            object.__setattr__(self, name, values)
+            object.__setattr__(self, name, tuple(check_option("std", v, f"MHESettings.{name}")
+                                                 for v in values))
         if self.arrival_covariance is not None:
             cov = np.asarray(self.arrival_covariance, dtype=float)
             n = len(self.arrival_std)

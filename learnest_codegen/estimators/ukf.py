@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import DataError, ShapeError, SolverError
 from ..export import DiscreteModel
+from ..runtime.limits import check_option
 from ..systems import System
 from . import validation
 from .gate import GateReport, GateSettings, GateState
@@ -28,11 +29,12 @@ class UKFSettings:
 
     Attributes
     ----------
-    alpha, beta, kappa : sigma-point spread, prior-distribution and secondary scaling
-        parameters of :class:`filterpy.kalman.MerweScaledSigmaPoints`.
+    alpha, beta, kappa : sigma-point spread (0 < alpha <= 1), prior-distribution and
+        secondary scaling parameters of :class:`filterpy.kalman.MerweScaledSigmaPoints`.
     process_std : (nx,) stds of the assumed process noise, ``Q = diag(process_std**2)``.
     measurement_std : (ny,) stds of the measurement noise, ``R = diag(measurement_std**2)``.
     initial_std : (nx,) stds of the initial uncertainty, ``P0 = diag(initial_std**2)``.
+        Every std is in ``[1e-100, 1e100]`` (``runtime/limits.py``).
     gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
     """
 
@@ -51,14 +53,14 @@ class UKFSettings:
             if not math.isfinite(value):
                 raise ValueError(f"UKFSettings.{name} must be finite, got {value}")
             object.__setattr__(self, name, value)
-        if not self.alpha > 0:
-            raise ValueError(f"UKFSettings.alpha must be > 0, got {self.alpha}")
+        check_option("ukf_alpha", self.alpha, "UKFSettings.alpha")
         for name in _STD_FIELDS:
             values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
                 raise ValueError(f"UKFSettings.{name} must be a non-empty sequence of positive "
                                  f"finite stds, got {values}")
-            object.__setattr__(self, name, values)
+            object.__setattr__(self, name, tuple(check_option("std", v, f"UKFSettings.{name}")
+                                                 for v in values))
 
     @classmethod
     def from_system(cls, system: System, **overrides) -> "UKFSettings":

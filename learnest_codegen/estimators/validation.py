@@ -16,9 +16,21 @@ from ..errors import DataError, ShapeError
 COVARIANCE_RTOL = 1e-9
 
 
+def real(where: str, value) -> np.ndarray:
+    """``value`` as a float64 array; complex or non-numeric values raise :class:`DataError`
+    (numpy would drop an imaginary part with a warning, or fail with a TypeError)."""
+    a = np.asarray(value)
+    if np.iscomplexobj(a):
+        raise DataError(f"{where}: complex values are not accepted (got {a.dtype})")
+    try:
+        return np.ascontiguousarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{where}: expected real numbers, got {a.dtype} values ({exc})") from exc
+
+
 def vector(where: str, value, n: int) -> np.ndarray:
     """``value`` as a finite float64 ``(n,)`` array."""
-    v = np.ascontiguousarray(value, dtype=float)
+    v = real(where, value)
     if v.shape != (n,):
         raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
     if not np.all(np.isfinite(v)):
@@ -28,7 +40,7 @@ def vector(where: str, value, n: int) -> np.ndarray:
 
 def matrix(where: str, value, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape``; the rows holding non-finite values are named."""
-    a = np.ascontiguousarray(value, dtype=float)
+    a = real(where, value)
     if a.shape != tuple(shape):
         raise ShapeError(f"{where}: expected shape {tuple(shape)}, got {a.shape}")
     finite = np.isfinite(a)
@@ -58,7 +70,7 @@ def covariance(where: str, value, n: int, *, definite: bool = False) -> np.ndarr
 
 def run_arrays(where: str, U, Y, nu: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
     """``U (T, nu)``, ``Y (T, ny)`` as finite float64 arrays with the same ``T >= 1``."""
-    U, Y = np.asarray(U, dtype=float), np.asarray(Y, dtype=float)
+    U, Y = real(f"{where}: U", U), real(f"{where}: Y", Y)
     if U.ndim != 2 or Y.ndim != 2 or U.shape[1] != nu or Y.shape[1] != ny \
             or len(U) != len(Y) or len(Y) < 1:
         raise ShapeError(f"{where}: expected U (T, {nu}) and Y (T, {ny}) with T >= 1, "

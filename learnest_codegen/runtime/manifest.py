@@ -36,15 +36,36 @@ def library_digest(path: Path) -> dict:
 
 def write_manifest(directory: Path, content: Mapping[str, Any]) -> Path:
     """Write ``directory/manifest.json`` (adds ``format_version`` and, when ``content`` names a
-    built ``library``, its size and SHA-256)."""
+    ``library``, its size and SHA-256).
+
+    The library must be the file the toolchain built: its build stamp (``<library>.stamp``,
+    written by :func:`~learnest_codegen.toolchain.build_shared`) records the size and SHA-256
+    of what the compiler produced, and a library that differs from it (cut short, altered,
+    swapped for another build) raises :class:`ModelMismatchError` instead of being described.
+    """
     directory = Path(directory)
     content = dict(content)
     library = directory / str(content.get("library", ""))
     if "library" in content and library.is_file():
-        content.update(library_digest(library))
+        digest = library_digest(library)
+        built = _built_digest(library)
+        if built != digest:
+            raise ModelMismatchError(f"refusing to write {directory / MANIFEST}: {library} is not the "
+                                     "library the toolchain built (no build stamp, or its size or "
+                                     "SHA-256 differs from the stamp's); rebuild it")
+        content.update(digest)
     path = directory / MANIFEST
     path.write_text(json.dumps({"format_version": FORMAT_VERSION, **content}, indent=2, sort_keys=True))
     return path
+
+
+def _built_digest(library: Path) -> dict | None:
+    """Size and SHA-256 the build stamp beside ``library`` recorded, or None without one."""
+    try:
+        stamp = json.loads(library.with_suffix(library.suffix + ".stamp").read_text())
+        return {k: stamp[k] for k in ("library_bytes", "library_sha256")}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def verify_library(directory: Path, manifest: Mapping[str, Any]) -> Path:

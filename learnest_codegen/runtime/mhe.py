@@ -11,6 +11,9 @@ loaded: ``dlopen`` would hand back the old one.
 from __future__ import annotations
 
 import ctypes
+import os
+import threading
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -23,6 +26,15 @@ from ..estimators.mhe_problem import MHESettings
 from .base import CompiledEstimator
 
 _INT, _HANDLE = ctypes.c_int, ctypes.c_void_p
+_LOCKS: dict[str, threading.Lock] = {}
+_LOCKS_LOCK = threading.Lock()
+
+
+def library_lock(library: Path) -> threading.Lock:
+    """The process-wide lock of one library file (one per real path, made on first use)."""
+    key = os.path.realpath(library)
+    with _LOCKS_LOCK:
+        return _LOCKS.setdefault(key, threading.Lock())
 
 
 class CompiledMHE(CompiledEstimator):
@@ -44,6 +56,11 @@ class CompiledMHE(CompiledEstimator):
     """
 
     ESTIMATORS = ("mhe",)
+    #: The Ipopt solver's C keeps its memories in one static pool per library (CasADi's
+    #: checkout/release), so two handles of one library must not solve at the same time
+    #: (two threads failed with NO_MEMORY in 1 of 4 runs): ``init``, ``reset``, ``step`` and
+    #: ``run`` hold :func:`library_lock`. The embedded MHE keeps everything in its workspace.
+    SERIALISE = True
 
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,
                  settings: MHESettings | None = None):
@@ -56,6 +73,7 @@ class CompiledMHE(CompiledEstimator):
                                      f"the library was generated for {self.horizon}")
         self.settings.check(self.nx, self.ny, self.where)
         self._check_sizes()
+        self._serial = library_lock(self.directory / m["library"]) if self.SERIALISE else nullcontext()
         self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
         self._handle: int | None = None
         self._P: np.ndarray | None = None
@@ -107,15 +125,19 @@ class CompiledMHE(CompiledEstimator):
         Q, R, P = self.settings.weights()
         if P0 is not None:
             P = arrival_weight_from_covariance(P0, self.nx)
-        args = [self.real_array(a) for a in (x0, Q, R, P)]
+        args = [self.real_array(a, exact=True) for a in (x0, Q, R, P)]
         if self._handle is None:
             handle = _HANDLE()
-            self.check_status("reset", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
-                                                       *args, ctypes.byref(handle)))
+            with self._serial:
+                code = self._c["init"](self._memory.ctypes.data, self._memory.nbytes, *args,
+                                       ctypes.byref(handle))
+            self.check_status("reset", code)
             self._handle = handle.value
             self._configure(self._handle)
         else:
-            self.check_status("reset", self._c["reset"](self._handle, *args))
+            with self._serial:
+                code = self._c["reset"](self._handle, *args)
+            self.check_status("reset", code)
         gate = self.settings.gate
         self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
                                                        gate.recover_after, gate.inflation))
@@ -143,7 +165,9 @@ class CompiledMHE(CompiledEstimator):
         name = type(self).__name__
         u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
         y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
-        self.last_status = self.check_status("step", self._c["step"](handle, u, y), self._sample())
+        with self._serial:
+            code = self._c["step"](handle, u, y)
+        self.last_status = self.check_status("step", code, self._sample())
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
@@ -155,8 +179,11 @@ class CompiledMHE(CompiledEstimator):
         U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
-        self.last_status = self.check_status("run", self._c["run"](
-            self._handle, len(Y), self.real_array(U), self.real_array(Y), X_hat), self._sample())
+        T = self.c_int(len(Y), "run_length", f"{type(self).__name__}.run: T")
+        U, Y = self.real_array(U), self.real_array(Y)
+        with self._serial:
+            code = self._c["run"](self._handle, T, U, Y, X_hat)
+        self.last_status = self.check_status("run", code, self._sample())
         return X_hat.astype(float)
 
     def _sample(self) -> str:
@@ -171,7 +198,7 @@ class CompiledMHE(CompiledEstimator):
         sizes = [_INT() for _ in range(4)]
         self._c["sizes"](*(ctypes.byref(s) for s in sizes))
         got = tuple(s.value for s in sizes)
-        real_size = self._c["real_size"]() if "real_size" in self._c else np.dtype(self.dtype).itemsize
-        if got != (self.nx, self.nu, self.ny, self.horizon) or real_size != np.dtype(self.dtype).itemsize:
+        self.check_real_size(self._c["real_size"]() if "real_size" in self._c else 8)  # Ipopt: double
+        if got != (self.nx, self.nu, self.ny, self.horizon):
             raise ModelMismatchError(f"{self.where}: library sizes (nx, nu, ny, N) = {got}, manifest "
                                      f"says {(self.nx, self.nu, self.ny, self.horizon)}")

@@ -39,6 +39,7 @@ class CompiledEmbeddedMHE(CompiledMHE):
     """
 
     ESTIMATORS = ("mhe_gn", "mhe_rti")
+    SERIALISE = False  # no static memory: handles of one library run in parallel
 
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,
                  settings: MHESettings | None = None, solver: GaussNewtonSettings | None = None):
@@ -60,5 +61,6 @@ class CompiledEmbeddedMHE(CompiledMHE):
 
     def _configure(self, handle: int) -> None:
         s = self.solver
-        self.check_status("reset", self._c["set_options"](handle, MODES[s.mode], s.max_iterations,
+        max_iterations = self.c_int(s.max_iterations, "max_iterations", "GaussNewtonSettings.max_iterations")
+        self.check_status("reset", self._c["set_options"](handle, MODES[s.mode], max_iterations,
                                                           s.tolerance))

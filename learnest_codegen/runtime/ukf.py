@@ -87,7 +87,8 @@ class CompiledUKF(CompiledEstimator):
         c = self._c
         in_library = (c["nx"](), c["nu"](), c["ny"](), c["dt"]())
         in_manifest = (self.sizes.nx, self.sizes.nu, self.sizes.ny, float(self.manifest["dt"]))
-        if in_library != in_manifest or c["real_size"]() != np.dtype(self.dtype).itemsize:
+        self.check_real_size(c["real_size"]())
+        if in_library != in_manifest:
             raise ModelMismatchError(f"{self.where}: library (nx, nu, ny, dt) = {in_library} differ from "
                                      f"the manifest's {in_manifest}")
 
@@ -97,7 +98,7 @@ class CompiledUKF(CompiledEstimator):
         x0 = validation.vector("CompiledUKF.reset x0", x0, nx)
         P0 = self.settings.P0() if P0 is None else P0
         P0 = validation.covariance("CompiledUKF.reset P0", P0, nx)
-        args = [self.real_array(a) for a in (x0, P0, self.settings.Q(), self.settings.R())]
+        args = [self.real_array(a, exact=True) for a in (x0, P0, self.settings.Q(), self.settings.R())]
         if self._handle is None:
             handle = _HANDLE()
             self.check_status("reset", self._c["init"](self._memory.ctypes.data, self._memory.nbytes,
@@ -150,7 +151,8 @@ class CompiledUKF(CompiledEstimator):
         U, Y = validation.run_arrays("CompiledUKF.run", U, Y, self.sizes.nu, self.sizes.ny)
         self.reset(x0, P0)
         X_hat = np.full((len(Y), self.sizes.nx), np.nan, dtype=self.dtype)
-        code = self._c["run"](self._handle, len(Y), self.real_array(U), self.real_array(Y), X_hat)
+        T = self.c_int(len(Y), "run_length", "CompiledUKF.run: T")
+        code = self._c["run"](self._handle, T, self.real_array(U), self.real_array(Y), X_hat)
         if code < 0:
             failed = int(np.flatnonzero(np.isnan(X_hat[:, 0]))[0])
             self.check_status("run", code, f", at sample {failed}")

@@ -14,6 +14,7 @@ from .base import ResidualStructure as ResidualStructure
 from .base import Signal as Signal
 from .base import System as System
 from .cartpole import CARTPOLE
+from .check import check_system
 from .ground_robot import GROUND_ROBOT
 from .quadrotor import QUADROTOR, QUADROTOR_STATE
 from .rc_car import RC_CAR
@@ -24,7 +25,8 @@ SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND
 
 
 def register(system: System) -> System:
-    """Add a system to the registry (by its name) and return it."""
+    """Add a system to the registry (by its name) and return it, after :func:`check_system`."""
+    check_system(system, f"system {system.name!r}")
     SYSTEMS[system.name] = system
     return system
 
@@ -32,7 +34,9 @@ def register(system: System) -> System:
 def get_system(name_or_path: str | System) -> System:
     """Resolve a built-in name (``"cartpole"``) or a path to a Python file defining ``SYSTEM``.
 
-    A user file must define a module-level ``SYSTEM = System(...)``; see the README.
+    A user file must define a module-level ``SYSTEM = System(...)``; see the README. Its
+    equations are checked when it is loaded (:func:`~.check.check_system`: numpy, torch and
+    CasADi agree on a few points near ``x0``); a mistake is one :class:`SystemFileError` line.
     """
     if isinstance(name_or_path, System):
         return name_or_path
@@ -54,9 +58,12 @@ def _load_system_file(path: Path) -> System:
     try:
         spec.loader.exec_module(module)
     except Exception as exc:  # a user file can fail in any way; say which file
-        raise SystemFileError(f"system file {path} failed to import: {exc!r}") from exc
+        message = " ".join(str(exc).split())
+        raise SystemFileError(f"system file {path} failed to import: {type(exc).__name__}: {message}") \
+            from exc
     system = getattr(module, "SYSTEM", None)
     if not isinstance(system, System):
         raise SystemFileError(f"system file {path} must define SYSTEM = learnest_codegen.System(...), "
                               f"found {type(system).__name__}")
+    check_system(system, f"system file {path}")
     return system

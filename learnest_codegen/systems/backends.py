@@ -11,7 +11,7 @@ vectors are columns ``(n, 1)``.
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import casadi as cs
 import numpy as np
@@ -89,6 +89,16 @@ class CasadiOps:
 
 
 _TORCH_OPS: TorchOps | None = None
+_FIRST_TORCH_HOOKS: list[Callable[[], None]] = []
+
+
+def on_first_torch_use(hook: Callable[[], None]) -> None:
+    """Call ``hook()`` when a system is first evaluated on torch tensors in this process (the
+    deferred torch part of the load check, :mod:`.check`); now if that already happened."""
+    if _TORCH_OPS is not None:
+        hook()
+    elif hook not in _FIRST_TORCH_HOOKS:
+        _FIRST_TORCH_HOOKS.append(hook)
 
 
 def ops_for(value) -> Any:
@@ -101,5 +111,7 @@ def ops_for(value) -> Any:
     if type(value).__module__.startswith("torch"):
         if _TORCH_OPS is None:
             _TORCH_OPS = TorchOps()
+            while _FIRST_TORCH_HOOKS:
+                _FIRST_TORCH_HOOKS.pop(0)()
         return _TORCH_OPS
     raise TypeError(f"no backend for values of type {type(value).__name__}")

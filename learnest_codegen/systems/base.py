@@ -5,6 +5,10 @@ prior model and of the true system used for simulation, and gives the continuous
 measurement as backend-generic functions ``fn(ops, x, u, p) -> list`` where ``x`` and ``u`` are
 lists of scalar components and ``p`` a parameter mapping. See ``systems/cartpole.py`` for a
 complete example and the README for writing one in your own file.
+
+Length: over 400 lines because a :class:`System` is one definition that states, validates and
+evaluates itself (names, sizes, the residual structure and its documentation, every backend);
+the cross-backend check run when a system is loaded lives apart, in :mod:`.check`.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Callable, Mapping, Sequence
@@ -25,13 +30,33 @@ from .backends import ops_for
 DynamicsFn = Callable[..., Sequence]  # fn(ops, x: list, u: list, p: Mapping) -> list of n terms
 
 
+#: Signal names: they become CSV columns (``y_<name>``) and identifiers, so a letter followed
+#: by letters, digits and underscores (a comma or a newline wrote CSVs that could not be read).
+NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+#: System names: they start the C symbol prefix ``<system>_<kind>_<estimator>``.
+SYSTEM_NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*")
+
+
 @dataclass(frozen=True)
 class Signal:
-    """A named scalar signal with its unit, e.g. ``Signal("p", "m", "cart position")``."""
+    """A named scalar signal with its unit, e.g. ``Signal("p", "m", "cart position")``.
+
+    ``name`` is a letter followed by letters, digits and underscores (:data:`NAME_PATTERN`);
+    ``unit`` and ``description`` are one line of text.
+    """
 
     name: str
     unit: str
     description: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not NAME_PATTERN.fullmatch(self.name):
+            raise ValueError(f"signal name {self.name!r} must be a letter followed by letters, digits "
+                             "and underscores (it names CSV columns such as y_<name>)")
+        for what in ("unit", "description"):
+            text = getattr(self, what)
+            if not isinstance(text, str) or not text.isprintable():
+                raise ValueError(f"signal {self.name!r}: {what} {text!r} must be one line of printable text")
 
 
 @dataclass(frozen=True)
@@ -147,6 +172,14 @@ class System:
     description: str = ""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not SYSTEM_NAME_PATTERN.fullmatch(self.name):
+            raise ValueError(f"system name {self.name!r} must be letters and digits in words joined by "
+                             "single underscores (it starts the C symbol prefix), e.g. 'my_pendulum'")
+        for group in ("states", "inputs", "outputs"):
+            names = [s.name for s in getattr(self, group)]
+            twice = sorted({n for n in names if names.count(n) > 1})
+            if twice:
+                raise ValueError(f"system {self.name!r}: {group} {twice} are named twice")
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
         object.__setattr__(self, "true_params", MappingProxyType(dict(self.true_params)))
         noise = self.noise
@@ -298,13 +331,34 @@ class System:
         ops = ops_for(x)
         fn, p = self._variant(variant)
         xs, us = ops.unpack(x, self.nx), ops.unpack(u, self.nu)
-        return ops.stack(fn(ops, xs, us, {**p, **(params or {})}))
+        return ops.stack(self._values(fn(ops, xs, us, {**p, **(params or {})}), self.label(variant)))
 
     def h(self, x, u):
         """Measurement ``y = h(x, u)`` (noise-free)."""
         ops = ops_for(x)
         xs, us = ops.unpack(x, self.nx), ops.unpack(u, self.nu)
-        return ops.stack(self.measurement(ops, xs, us, self.params))
+        return ops.stack(self._values(self.measurement(ops, xs, us, self.params), "measurement"))
+
+    def label(self, variant: str) -> str:
+        """How messages name a function: ``"dynamics"``, ``"true_dynamics"``, ``"measurement"``."""
+        if variant == "h":
+            return "measurement"
+        if variant == "true":
+            return "true_dynamics" if self.true_dynamics is not None else "dynamics (with true_params)"
+        return "dynamics"
+
+    def _values(self, values, label: str):
+        """``values`` if it holds one value per state (per output for the measurement)."""
+        names = self.output_names if label == "measurement" else self.state_names
+        try:
+            count = len(values)
+        except TypeError:  # a single array or symbol: ops.stack and the shapes downstream judge it
+            return values
+        if count != len(names):
+            kind = "outputs" if label == "measurement" else "states"
+            raise ShapeError(f"system {self.name!r}: {label} returned {count} value"
+                             f"{'' if count == 1 else 's'}, the system has {len(names)} {kind} {names}")
+        return values
 
     def _variant(self, variant: str):
         if variant == "prior":
