@@ -28,7 +28,7 @@ STAGES = [
     ("observers", 3),
     ("learning", 4),
     ("export", 5), ("toolchain", 5),  # the compiler driver: codegen builds what it generates
-    ("estimators", 6), ("runtime.manifest", 6), ("runtime.status", 6), ("codegen", 7),
+    ("estimators", 6), ("runtime.manifest", 6), ("runtime.status", 6), ("runtime.limits", 6), ("codegen", 7),
     ("runtime", 8), ("compilation", 8),  # the registry of estimators: generate, reference, load
     ("evaluation", 9), ("plotting", 9), ("pipeline", 9),
     ("diagnosis", 10),

@@ -28,7 +28,8 @@ gate (and a restart of the window once the measurements pass, see :mod:`.mhe`). 
 inflation compounds, so a persistent offset of any size is accepted after about
 ``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
 prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
-1; the UKF's ``P`` shrinks by its own updates). ``rho`` is
+1; the UKF's ``P`` shrinks by its own updates); a step without any valid output (every output
+missing) leaves both as they were. ``rho`` is
 capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
@@ -41,6 +42,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..runtime.limits import check as check_limit
 
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
 #: model with model error (the nominal prior) has innovations larger than its ``S``, and at
@@ -71,17 +74,16 @@ class GateSettings:
 
     def __post_init__(self) -> None:
         t = float(self.threshold)
-        if math.isnan(t) or t < 0:
-            raise ValueError(f"GateSettings.threshold must be >= 0 (0 or inf: no gate), got {t}")
+        if not (t == 0 or t == math.inf):  # the ranges the C API takes (runtime/limits.py)
+            check_limit("THRESHOLD", t, "GateSettings.threshold (0 or inf: no gate)")
         object.__setattr__(self, "threshold", math.inf if t == 0 else t)
         k = self.recover_after
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ValueError(f"GateSettings.recover_after must be an integer >= 1, got {k!r}")
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+            raise ValueError(f"GateSettings.recover_after must be an integer, got {k!r}")
+        check_limit("RECOVER_AFTER", k, "GateSettings.recover_after")
         object.__setattr__(self, "recover_after", int(self.recover_after))
-        g = float(self.inflation)
-        if not (math.isfinite(g) and g > 1):
-            raise ValueError(f"GateSettings.inflation must be a finite number > 1, got {g}")
-        object.__setattr__(self, "inflation", g)
+        check_limit("INFLATION", self.inflation, "GateSettings.inflation")
+        object.__setattr__(self, "inflation", float(self.inflation))
 
     @property
     def enabled(self) -> bool:
@@ -97,8 +99,8 @@ class GateSettings:
         return cls(threshold=float(chi2.isf(probability, 1)), **overrides)
 
     def c_threshold(self) -> float:
-        """The threshold as the C code takes it: a negative number disables the gate."""
-        return self.threshold if self.enabled else -1.0
+        """The threshold as the C code takes it: 0 disables the gate."""
+        return self.threshold if self.enabled else 0.0
 
     def to_json(self) -> dict:
         data = dataclasses.asdict(self)
@@ -135,15 +137,20 @@ class GateState:
         self.streak = 0
         self.inflation = 1.0
 
-    def test(self, d2: np.ndarray) -> np.ndarray:
-        """The rejected mask of normalised innovations ``d2 (ny,)`` (not stored)."""
+    def test(self, d2: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """The rejected mask of normalised innovations ``d2 (ny,)`` of the valid outputs
+        (``valid`` None: all; a missing output is never rejected); not stored."""
         if not self.settings.enabled:
             return np.zeros(self.ny, dtype=bool)
-        return ~(np.asarray(d2) <= self.settings.threshold)  # NaN d2 is rejected
+        rejected = ~(np.asarray(d2) <= self.settings.threshold)  # NaN d2 is rejected
+        return rejected if valid is None else rejected & np.asarray(valid, dtype=bool)
 
-    def record(self, rejected: np.ndarray) -> float:
-        """Store the step's mask, update the streak; return the factor to inflate by now (>= 1)."""
+    def record(self, rejected: np.ndarray, any_valid: bool = True) -> float:
+        """Store the step's mask, update the streak; return the factor to inflate by now (>= 1).
+        A step without any valid output leaves the streak and the inflation as they were."""
         self.rejected = np.asarray(rejected, dtype=bool).copy()
+        if not any_valid:
+            return 1.0
         if not self.rejected.any():
             self.streak = 0
             self.inflation = max(1.0, self.inflation / self.settings.inflation)

@@ -13,9 +13,9 @@ generated solver (:mod:`..codegen.mhe_gn`) iterates on it:
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
+from ..runtime.limits import check as check_limit
 from .precision import check_precision
 
 MODES = ("converged", "rti")
@@ -45,13 +45,14 @@ class GaussNewtonSettings:
         if self.mode not in MODES:
             raise ValueError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
         check_precision(self.precision, "GaussNewtonSettings")
-        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) \
-                or self.max_iterations < 1:
-            raise ValueError(f"GaussNewtonSettings.max_iterations must be an integer >= 1, "
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int):
+            raise ValueError(f"GaussNewtonSettings.max_iterations must be an integer, "
                              f"got {self.max_iterations!r}")
+        check_limit("MAX_ITER", self.max_iterations, "GaussNewtonSettings.max_iterations")
         tol = DEFAULT_TOLERANCE[self.precision] if self.tolerance is None else self.tolerance
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-            raise ValueError(f"GaussNewtonSettings.tolerance must be a positive number, got {tol!r}")
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)):
+            raise ValueError(f"GaussNewtonSettings.tolerance must be a number, got {tol!r}")
+        check_limit("TOL", tol, "GaussNewtonSettings.tolerance")
         object.__setattr__(self, "tolerance", float(tol))
 
     @property
