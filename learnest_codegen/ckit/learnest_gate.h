@@ -38,12 +38,14 @@ LEARNEST_KIT void learnest_gate_defaults(struct learnest_gate* g, learnest_real 
  * LEARNEST_BAD_ARGUMENT otherwise. */
 LEARNEST_KIT int learnest_gate_check(learnest_real threshold, int recover_after,
                                      learnest_real inflation) {
+  /* The bounds in the real type: a float build takes the float nearest to each. */
+  const learnest_real t_min = (learnest_real)LEARNEST_THRESHOLD_MIN;
+  const learnest_real t_max = (learnest_real)LEARNEST_THRESHOLD_MAX;
+  const learnest_real i_max = (learnest_real)LEARNEST_INFLATION_MAX;
   int off = threshold == 0 || (isinf(threshold) && threshold > 0);
-  if (!off && !(threshold >= LEARNEST_THRESHOLD_MIN && threshold <= LEARNEST_THRESHOLD_MAX)) {
-    return LEARNEST_BAD_ARGUMENT;
-  }
+  if (!off && !(threshold >= t_min && threshold <= t_max)) return LEARNEST_BAD_ARGUMENT;
   if (recover_after < 1 || recover_after > LEARNEST_RECOVER_AFTER_MAX) return LEARNEST_BAD_ARGUMENT;
-  if (!(inflation > 1 && inflation <= LEARNEST_INFLATION_MAX)) return LEARNEST_BAD_ARGUMENT;
+  if (!(inflation > 1 && inflation <= i_max)) return LEARNEST_BAD_ARGUMENT;
   return LEARNEST_OK;
 }
 

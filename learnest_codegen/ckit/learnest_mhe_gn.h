@@ -73,8 +73,10 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
 
 int LEARNEST_API(set_options)(LEARNEST_HANDLE* h, int mode, int max_iter, learnest_real tol) {
   if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
+  /* the bounds in the real type: a float build takes the float nearest to each */
   if ((mode != LEARNEST_GN_CONVERGED && mode != LEARNEST_GN_RTI) || max_iter < 1
-      || max_iter > LEARNEST_MAX_ITER_MAX || !(tol >= LEARNEST_TOL_MIN && tol <= LEARNEST_TOL_MAX)) {
+      || max_iter > LEARNEST_MAX_ITER_MAX || !(tol >= (learnest_real)LEARNEST_TOL_MIN
+                                               && tol <= (learnest_real)LEARNEST_TOL_MAX)) {
     return LEARNEST_BAD_ARGUMENT;
   }
   h->gn.mode = mode;
