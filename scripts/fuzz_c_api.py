@@ -100,6 +100,7 @@ class Target:
     matrices: dict[str, np.ndarray]
     U: np.ndarray
     Y: np.ndarray
+    library: str = ""  # the shared library's file name (the manifest's)
 
     @property
     def api(self) -> Api:
@@ -145,7 +146,7 @@ def build_targets(root: Path, systems=SYSTEMS, estimators=ESTIMATORS,
                 targets.append(Target(
                     directory.name, estimator, directory, m["prefix"], m["nx"], m["nu"], m["ny"],
                     int(m["horizon"] or 0), m["precision"], np.asarray(system.x0, float),
-                    {k: np.asarray(v, float) for k, v in mats.items()}, run.u, run.y))
+                    {k: np.asarray(v, float) for k, v in mats.items()}, run.u, run.y, m["library"]))
     return targets
 
 
@@ -354,7 +355,7 @@ class Executor:
     def __init__(self, target: Target, chunk: int = 0):
         self.t, self.chunk, api = target, chunk, target.api
         check_table(target)
-        self.lib = ctypes.CDLL(str(target.directory / f"lib{target.prefix}.so"))
+        self.lib = ctypes.CDLL(str(target.directory / target.library))
         self.dtype = np.float32 if target.precision == "float32" else np.float64
         self.c_real = ctypes.c_float if target.precision == "float32" else ctypes.c_double
         self.fn = {s: getattr(self.lib, f"{target.prefix}_{s}") for s in api.symbols()}

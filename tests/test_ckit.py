@@ -2,7 +2,7 @@
 
 ``tests/ckit/*.c`` wrap the kit (``learnest_codegen/ckit``) in plain functions (``kit_core.c``:
 dense algebra, the block-tridiagonal solve, the gate, the MHE window) or instantiate its
-estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``). Each is compiled
+estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``). Each is compiled
 under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float,
 and as C++ with g++; the results are compared with numpy.linalg, a dense solve, the Python
 gate (``estimators/gate.py``), the Python MHE's window bookkeeping (``estimators/mhe.py``,
@@ -101,7 +101,7 @@ def tolerance(dtype) -> float:
 # -- builds ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cc", COMPILERS)
-@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf"])
+@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
 def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
     """Every test source (so every kit header) under -Werror with gcc and clang in double and
     float (the library fixture), and as C++11 with g++."""
@@ -342,17 +342,20 @@ def start(k, prefix, model_matrices, x0, P0, Q, R):
 
 
 @pytest.mark.parametrize("cc", COMPILERS)
-def test_ukf_host_logic_equals_a_kalman_filter_skipping_missing_updates(libraries, linear, cc):
-    """The kit's UKF logic over the Kalman filter's predict and masked update: equal to
-    FilterPy's KalmanFilter that predicts every sample after the first and updates on the
-    outputs present only (none: no update), to 1e-12."""
+@pytest.mark.parametrize("prefix, source", [("tukf", "kit_ukf"), ("tekf", "kit_ekf")])
+def test_kalman_filters_equal_a_kalman_filter_skipping_missing_updates(libraries, linear, cc,
+                                                                      prefix, source):
+    """The kit's UKF logic over the Kalman filter's predict and masked update, and the kit's
+    EKF (docs/c_kit.md's worked example) over the linear model: both equal FilterPy's
+    KalmanFilter that predicts every sample after the first and updates on the outputs present
+    only (none: no update), to 1e-12."""
     from filterpy.kalman import KalmanFilter
 
-    k = libraries("kit_ukf", cc, "double")
+    k = libraries(source, cc, "double")
     system, model, matrices, run, valid = linear
     Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
     P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
-    memory, h = start(k, "tukf", matrices, x0, P0, Q, R)
+    memory, h = start(k, prefix, matrices, x0, P0, Q, R)
     kf = KalmanFilter(dim_x=2, dim_z=2)
     kf.F, kf.B, kf.Q, kf.x, kf.P = matrices[0], matrices[1], Q, x0.copy(), P0.copy()
     x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
@@ -364,13 +367,13 @@ def test_ukf_host_logic_equals_a_kalman_filter_skipping_missing_updates(librarie
         if keep.any():
             kf.update(run.y[i][keep], R=R[np.ix_(keep, keep)], H=np.eye(2)[keep])
         y = np.where(keep, run.y[i], np.nan)  # a missing output may hold NaN
-        code = k("tukf_step", h, k.a(u), k.a(y), keep.astype(np.uint8))
+        code = k(f"{prefix}_step", h, k.a(u), k.a(y), keep.astype(np.uint8))
         assert code == 0
-        k("tukf_get_state", h, x)
-        k("tukf_get_covariance", h, P)
+        k(f"{prefix}_get_state", h, x)
+        k(f"{prefix}_get_covariance", h, P)
         np.testing.assert_allclose(x, kf.x, rtol=0, atol=1e-12 * np.abs(kf.x).max())
         np.testing.assert_allclose(P, kf.P, rtol=0, atol=1e-12 * np.abs(kf.P).max())
-    assert k("tukf_samples", h) == len(run.y)
+    assert k(f"{prefix}_samples", h) == len(run.y)
 
 
 @pytest.mark.parametrize("cc", COMPILERS)
@@ -406,7 +409,7 @@ def test_embedded_mhe_equals_the_ipopt_mhe_with_missing_outputs(libraries, linea
         np.testing.assert_allclose(window[i + 1], predicted, rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("prefix, source", [("tukf", "kit_ukf"), ("tgn", "kit_gn")])
+@pytest.mark.parametrize("prefix, source", [("tukf", "kit_ukf"), ("tgn", "kit_gn"), ("tekf", "kit_ekf")])
 def test_failed_init_leaves_a_live_estimator_as_it_was(libraries, linear, prefix, source):
     """init on a workspace that holds a running estimator, with arguments it refuses, returns
     the error, sets the handle to NULL and leaves the estimator stepping as before."""

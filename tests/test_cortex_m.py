@@ -124,36 +124,13 @@ def test_quadrotor_knode_on_the_m4f(estimator, precision, tmp_path):
     check_footprint(gen, paths, fw, ram_bytes=256 * 1024)
 
 
-def test_command_line_with_a_system_file(tmp_path):
-    """``--system path/to/file.py`` (docs/own_system.md's pendulum): the whole example runs and
-    reports QEMU equal to the host."""
-    system_file = tmp_path / "my_pendulum.py"
-    system_file.write_text(OWN_SYSTEM)
-    assert bc.main(["--system", str(system_file), "--steps", "100", "--estimator", "mhe_rti",
+def test_command_line_with_a_system_file(user_system_file, tmp_path):
+    """``--system path/to/file.py`` (the README's pendulum): the whole example runs and reports
+    QEMU equal to the host."""
+    assert bc.main(["--system", str(user_system_file), "--steps", "100", "--estimator", "mhe_rti",
                     "--out", str(tmp_path / "out")]) == 0
     (report,) = (tmp_path / "out").glob("report_my_pendulum_*.json")
     assert json.loads(report.read_text())["max_relative_difference"] <= PARITY_RTOL
-
-
-OWN_SYSTEM = """
-import numpy as np
-from learnest_codegen import NoiseModel, Signal, System
-
-def dynamics(ops, x, u, p):
-    q, qdot = x
-    return [qdot, -p["k"] * ops.sin(q) - p["c"] * qdot + u[0]]
-
-SYSTEM = System(
-    name="my_pendulum", states=(Signal("q", "rad"), Signal("qdot", "rad/s")),
-    inputs=(Signal("tau", "N m"),), outputs=(Signal("q", "rad"),),
-    params={"k": 9.0, "c": 0.0}, true_params={"k": 9.0, "c": 0.3}, dynamics=dynamics,
-    measurement=lambda ops, x, u, p: [x[0]],
-    noise=NoiseModel(measurement_std=(0.01,), state_std=(0.01, 0.01),
-                     process_std=(1e-3, 1e-2), initial_std=(0.1, 0.1)),
-    dt=0.01, duration=5.0, x0=(0.5, 0.0), excitation=lambda t, rng: np.sin(2 * t)[:, None],
-    periodic_states=("q",),
-)
-"""
 
 
 def _expect_failure(paths, code: int, steps: int) -> None:

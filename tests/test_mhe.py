@@ -302,7 +302,7 @@ def test_manifest_mismatch_raises(built, cartpole, tmp_path):
     with pytest.raises(FileNotFoundError, match="missing does not exist"):
         CompiledMHE(directory / "missing")
     shutil.copy(directory / "manifest.json", tmp_path / "manifest.json")
-    with pytest.raises(FileNotFoundError, match="libcartpole_nominal_mhe.so does not exist"):
+    with pytest.raises(FileNotFoundError, match=r"libcartpole_nominal_mhe-\w+\.so does not exist"):
         CompiledMHE(tmp_path)
 
 

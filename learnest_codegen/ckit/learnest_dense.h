@@ -147,6 +147,43 @@ LEARNEST_KIT int learnest_covariance_ok(const learnest_real* A, int n, learnest_
   return 1;
 }
 
+/* C (m x n) = A (m x k) B (k x n); all column-major. */
+LEARNEST_KIT void learnest_mat_mul(const learnest_real* A, const learnest_real* B, int m, int k,
+                                   int n, learnest_real* C) {
+  int i, j, l;
+  for (j = 0; j < n; ++j) {
+    for (i = 0; i < m; ++i) {
+      learnest_real v = 0;
+      for (l = 0; l < k; ++l) v += A[i + l * m] * B[l + j * k];
+      C[i + j * m] = v;
+    }
+  }
+}
+
+/* C (m x n) = A (m x k) B^T (B: n x k); all column-major. */
+LEARNEST_KIT void learnest_mat_mul_t(const learnest_real* A, const learnest_real* B, int m, int k,
+                                     int n, learnest_real* C) {
+  int i, j, l;
+  for (j = 0; j < n; ++j) {
+    for (i = 0; i < m; ++i) {
+      learnest_real v = 0;
+      for (l = 0; l < k; ++l) v += A[i + l * m] * B[j + l * n];
+      C[i + j * m] = v;
+    }
+  }
+}
+
+/* A covariance as an API call gives it (n x n, row-major) checked: finite (else
+ * LEARNEST_NONFINITE_INPUT), symmetric and positive semidefinite to rounding (else
+ * LEARNEST_NOT_POSITIVE_DEFINITE); dst = its column-major copy; work holds n * n. */
+LEARNEST_KIT int learnest_covariance_in(const learnest_real* A, int n, learnest_real* dst,
+                                        learnest_real* work) {
+  if (!learnest_all_finite(A, n * n)) return LEARNEST_NONFINITE_INPUT;
+  if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  learnest_transpose(dst, A, n);
+  return LEARNEST_OK;
+}
+
 /* A <- (A + A^T) / 2 for the n x n A. */
 LEARNEST_KIT void learnest_symmetrise(learnest_real* A, int n) {
   int i, j;

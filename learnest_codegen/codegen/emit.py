@@ -162,8 +162,10 @@ def emit(model: DiscreteModel, design: Design, out: Path, *, prefix: str, model_
     generate_seconds = time.perf_counter() - start
     sources = (glue, model_c)
     build = toolchain.build_shared(
-        sources, out / f"lib{prefix}.so", include_dirs=[out, *design.link.get("include_dirs", ())],
+        sources, out / library_name(prefix, fingerprint),
+        include_dirs=[out, *design.link.get("include_dirs", ())],
         lib_dirs=design.link.get("lib_dirs", ()), libs=design.link.get("libs", ()), force=force)
+    _remove_other_libraries(out, prefix, build.library)
     files = (*sources, header, model_h, *kit)
     result = GeneratedEstimator(
         directory=out, estimator=design.estimator, prefix=prefix, system=model.system.name,
@@ -179,6 +181,21 @@ def emit(model: DiscreteModel, design: Design, out: Path, *, prefix: str, model_
         build_reused=build.reused, code_bytes=sum(p.stat().st_size for p in files),
         extra=dict(design.extra))
     return result.write()
+
+
+def library_name(prefix: str, fingerprint: str) -> str:
+    """``lib<prefix>-<12 hex>.so``, named by the build's fingerprint: a build of other inputs is
+    another file, so a process that loaded one build and rebuilt the folder loads the new one
+    (``dlopen`` hands back a library already loaded from the same path)."""
+    return f"lib{prefix}-{hashlib.sha256(fingerprint.encode()).hexdigest()[:12]}.so"
+
+
+def _remove_other_libraries(out: Path, prefix: str, keep: Path) -> None:
+    """Delete the folder's libraries of other builds (a process that mapped one keeps it)."""
+    for old in (*out.glob(f"lib{prefix}-*.so"), *out.glob(f"lib{prefix}.so")):
+        if old.name != keep.name:
+            old.unlink()
+            old.with_suffix(old.suffix + ".stamp").unlink(missing_ok=True)
 
 
 def _values(model: DiscreteModel, design: Design, prefix: str, model_header: Path) -> dict:

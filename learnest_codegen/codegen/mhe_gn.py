@@ -25,17 +25,9 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
                           model_hash: str = "", force: bool = False) -> GeneratedEstimator:
     """Generate, compile and describe the embedded (Gauss-Newton) MHE of ``model``.
 
-    Parameters
-    ----------
-    model : the discrete model the estimator uses.
-    settings : horizon and default tuning (the tuning stays settable at run time);
-        default ``MHESettings.from_system(model.system)``.
-    out_dir : the folder for this estimator (created).
-    solver : mode, iteration limit, tolerance and precision; default converged, float64.
-    prefix : C symbol prefix, default ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32``
-        appended in float32).
-    model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
-    force : rebuild the library even when nothing changed.
+    The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
+    tolerance and precision (default converged, float64). The default prefix is
+    ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32`` appended in float32).
     """
     settings = settings or MHESettings.from_system(model.system)
     solver = solver or GaussNewtonSettings()

@@ -2,8 +2,7 @@
 
 :class:`CompiledMHE` has the interface of the Python reference
 :class:`~learnest_codegen.estimators.mhe.MHE` (``reset``, ``step``, ``x``, ``window``, ``run``,
-``arrival_weight``) over the C kit's API (``runtime/base.py``). Rebuild into a new directory
-rather than over a library this process has loaded: ``dlopen`` would hand back the old one.
+``arrival_weight``) over the C kit's API (``runtime/base.py``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 /* kit_linear.h -- a linear model x+ = A x + B u, y = C x behind the kit's model hooks, and the
  * glue an estimator's generated file would hold, for tests/test_ckit.py. The matrices are set
- * at run time (kt_set_model); the sizes are the test system's (2 states, 1 input, 2 outputs).
+ * at run time (kt_set_model, defined by KIT_LINEAR_SET_MODEL after the estimator); the sizes are
+ * the test system's (2 states, 1 input, 2 outputs).
  */
 #ifndef KIT_LINEAR_H
 #define KIT_LINEAR_H
@@ -52,5 +53,35 @@ static void learnest_model_F(struct learnest_model* m, const real* x, const real
   kt_matvec(m->B, NX, NU, u, Bu);
   for (i = 0; i < NX; ++i) F[i] += Bu[i];
 }
+
+/* The Gauss-Newton core's and the EKF's hooks: F and A = dF/dx, h and C = dh/dx. */
+LEARNEST_KIT void learnest_model_stage(struct learnest_model* m, const real* x, const real* u,
+                                       real* F, real* A) {
+  learnest_model_F(m, x, u, F);
+  memcpy(A, m->A, sizeof m->A);
+}
+
+LEARNEST_KIT void learnest_model_node(struct learnest_model* m, const real* x, const real* u,
+                                      real* h, real* C) {
+  (void)u;
+  kt_matvec(m->C, NY, NX, x, h);
+  memcpy(C, m->C, sizeof m->C);
+}
+
+#ifdef __cplusplus
+#define KIT_EXTERN extern "C"
+#else
+#define KIT_EXTERN
+#endif
+
+/* After the estimator's kit file: the model's matrices (column-major) into a handle. */
+#define KIT_LINEAR_SET_MODEL                                                                   \
+  KIT_EXTERN int kt_set_model(LEARNEST_HANDLE* h, const real* A, const real* B, const real* C) {           \
+    if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;                                 \
+    memcpy(h->model.A, A, sizeof h->model.A);                                                    \
+    memcpy(h->model.B, B, sizeof h->model.B);                                                    \
+    memcpy(h->model.C, C, sizeof h->model.C);                                                    \
+    return LEARNEST_OK;                                                                          \
+  }
 
 #endif /* KIT_LINEAR_H */

@@ -77,18 +77,4 @@ static int learnest_model_update(struct learnest_model* m, const real* x, const 
 
 #include "learnest_ukf.h"
 
-#ifdef __cplusplus
-extern "C" {
-#endif
-
-int kt_set_model(LEARNEST_HANDLE* h, const real* A, const real* B, const real* C) {
-  if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
-  memcpy(h->model.A, A, sizeof h->model.A);
-  memcpy(h->model.B, B, sizeof h->model.B);
-  memcpy(h->model.C, C, sizeof h->model.C);
-  return LEARNEST_OK;
-}
-
-#ifdef __cplusplus
-}
-#endif
+KIT_LINEAR_SET_MODEL
