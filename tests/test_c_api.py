@@ -75,8 +75,11 @@ def test_missing_outputs_equal_the_masked_reference(folders, model, run, cartpol
     X_ref = reference(name, model, est.settings).run(data.u, Y, cartpole.x0, valid=valid)
     atol = REFERENCE_ATOL[name] if precision == "float64" else 5e-3
     np.testing.assert_allclose(X_c, X_ref, rtol=0, atol=atol)
+    np.testing.assert_array_equal(est.run(data.u, Y, cartpole.x0), X_c)  # NaN alone marks missing
     with pytest.raises(DataError, match="non-finite"):  # NaN in a valid output is still an error
-        est.run(data.u, Y, cartpole.x0)
+        est.run(data.u, Y, cartpole.x0, valid=np.ones_like(valid))
+    with pytest.raises(DataError, match="non-finite"):  # infinity is never a missing output
+        est.run(data.u, np.where(valid, data.y, np.inf), cartpole.x0)
 
 
 @pytest.mark.parametrize("name, precision", BUILDS, ids=lambda v: str(v))
@@ -91,7 +94,7 @@ def test_predict_is_a_step_without_outputs(folders, run, cartpole, name, precisi
             est.step(data.u[max(k - 1, 0)], data.y[k])
     for k in range(30, 40):
         xa = a.predict(data.u[k - 1])
-        xb = b.step(data.u[k - 1], np.full(2, np.nan), valid=[False, False])
+        xb = b.step(data.u[k - 1], np.full(2, np.nan))  # NaN: missing (the run format's convention)
         np.testing.assert_array_equal(xa, xb)
     assert a.samples == b.samples == 40 and a.last_status == 0
 
@@ -169,8 +172,8 @@ def test_set_arrival_on_a_running_mhe(folders, model, run, cartpole):
             e.step(data.u[max(k - 1, 0)], data.y[k])
     window = est.window
     P0 = np.diag(np.square(cartpole.noise.initial_std))
-    est.set_arrival(P0)
-    ref.set_arrival(P0)
+    est.set_noise(P_arrival=P0)
+    ref.set_noise(P_arrival=P0)
     np.testing.assert_array_equal(est.window, window)
     np.testing.assert_allclose(est.arrival_covariance, P0, rtol=1e-15)
     for k in range(40, 70):

@@ -228,7 +228,7 @@ def test_errors_leave_the_estimator_unchanged(builds, parity_run, cartpole):
     with pytest.raises(ShapeError):
         gn.step(np.zeros(2), parity_run.y[30])
     with pytest.raises(DataError):
-        gn.step(np.zeros(1), np.array([np.nan, 0.0]))
+        gn.step(np.zeros(1), np.array([np.inf, 0.0]))
     # a converged solve that cannot reach its tolerance in one iteration: MAX_ITERATIONS (the
     # first sample's problem is linear and takes one step; the second has the nonlinear F)
     tight = CompiledEmbeddedMHE(builds["nominal", "mhe_gn"],

@@ -245,7 +245,7 @@ def test_plain_c_program_uses_library(built, reference, data, cartpole, tmp_path
     (tmp_path / "main.c").write_text(main)
     exe, lib_dir = tmp_path / "main", gen.directory
     proc = subprocess.run(["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                           str(tmp_path / "main.c"), f"-I{lib_dir}", f"-L{lib_dir}", f"-l{p}",
+                           str(tmp_path / "main.c"), f"-I{lib_dir}", str(gen.library_path),
                            f"-Wl,-rpath,{lib_dir}", "-lm", "-o", str(exe)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -330,7 +330,7 @@ def test_bad_shapes_and_nan_raise(any_mhe, cartpole, data):
     with pytest.raises(ShapeError, match=r"u: expected shape \(1,\), got \(2,\)"):
         any_mhe.step(np.zeros(2), np.zeros(2))
     with pytest.raises(DataError, match="y: non-finite"):
-        any_mhe.step(np.zeros(1), np.array([0.0, np.nan]))
+        any_mhe.step(np.zeros(1), np.array([0.0, np.inf]))
     with pytest.raises(ShapeError, match=r"U \(T, 1\) and Y \(T, 2\).*got \(9, 1\) and \(10, 2\)"):
         any_mhe.run(data["U"][:9], data["Y"][:10], cartpole.x0)
     Y = data["Y"][:10].copy()

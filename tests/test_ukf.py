@@ -247,7 +247,7 @@ def test_plain_c_program_uses_library(built, data, cartpole, tmp_path):
     (tmp_path / "main.c").write_text(main)
     exe, lib_dir = tmp_path / "main", gen.directory
     proc = subprocess.run(["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                           str(tmp_path / "main.c"), f"-I{lib_dir}", f"-L{lib_dir}", f"-l{p}",
+                           str(tmp_path / "main.c"), f"-I{lib_dir}", str(gen.library_path),
                            f"-Wl,-rpath,{lib_dir}", "-lm", "-o", str(exe)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -361,7 +361,7 @@ def test_bad_shapes_and_nan_raise(any_ukf, cartpole, data):
     with pytest.raises(ShapeError, match=r"u: expected shape \(1,\), got \(2,\)"):
         any_ukf.step(np.zeros(2), np.zeros(2))
     with pytest.raises(DataError, match="y: non-finite value"):
-        any_ukf.step(np.zeros(1), np.array([0.0, np.nan]))
+        any_ukf.step(np.zeros(1), np.array([0.0, np.inf]))
     with pytest.raises(ShapeError, match=r"expected U \(T, 1\) and Y \(T, 2\).*got \(9, 1\) and \(10, 2\)"):
         any_ukf.run(data["U"][:9], data["Y"][:10], cartpole.x0)
     Y = data["Y"][:10].copy()

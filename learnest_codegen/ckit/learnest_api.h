@@ -156,7 +156,7 @@ int LEARNEST_API(run)(LEARNEST_HANDLE* h, int T, const learnest_real* U, const l
     code = LEARNEST_API(step)(h, U + (k > 0 ? k - 1 : 0) * LEARNEST_NU, Y + k * LEARNEST_NY,
                               valid ? valid + k * LEARNEST_NY : 0);
     if (code < 0) return code;
-    if (code > status) status = code;
+    status |= code;  /* success codes are bits: 1 an output rejected, 2 an input rejected */
     memcpy(Xhat + k * LEARNEST_NX, learnest_est_state(h), LEARNEST_NX * sizeof(learnest_real));
   }
   return status;

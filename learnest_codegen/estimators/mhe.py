@@ -124,30 +124,30 @@ class MHE(GateReport):
         self._restart = False
         self.rejections = 0
 
-    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None) -> None:
-        """New process- and measurement-noise covariances (None keeps one) from the next step
-        on; the window, its solution and the gate stay (the C ``set_noise``)."""
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
+        """New covariances (None keeps one) from the next step on: process ``Q``, measurement
+        ``R`` and the arrival cost's ``P_arrival``; the window, its solution and the gate stay
+        (the C ``set_noise`` and ``set_arrival``)."""
         self._started()
         weights = list(self._weights)
         if Q is not None:
             weights[0] = arrival_weight_from_covariance(Q, self.model.nx, "MHE.set_noise: Q")
         if R is not None:
             weights[1] = arrival_weight_from_covariance(R, self.model.ny, "MHE.set_noise: R")
+        if P_arrival is not None:
+            weights[2] = arrival_weight_from_covariance(P_arrival, self.model.nx,
+                                                        "MHE.set_noise: P_arrival")
+            self._P_cov = np.array(P_arrival, dtype=float)
+        if R is not None:
             self._R_cov = np.array(R, dtype=float)
         self._weights = tuple(weights)
-
-    def set_arrival(self, P0: np.ndarray) -> None:
-        """A new arrival covariance ``P0 (nx, nx)`` from the next step on (the C ``set_arrival``)."""
-        self._started()
-        Q, R, _ = self._weights
-        self._weights = (Q, R, arrival_weight_from_covariance(P0, self.model.nx))
-        self._P_cov = np.array(P0, dtype=float)
 
     def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
         """Take the sample ``y (ny,)`` with ``u (nu,)``, the input applied since the previous one.
 
-        ``valid (ny,)`` says which outputs ``y`` holds (None: all; a missing output may be NaN
-        and contributes nothing: its weight in the window is 0). The first step after
+        NaN in ``y`` is a missing output, or ``valid (ny,)`` says which outputs ``y`` holds; a
+        missing output contributes nothing (its weight in the window is 0). The first step after
         :meth:`reset` takes sample 0: there is no transition and ``u`` only enters ``h``.
         Returns the estimate ``x (nx,)``.
         """

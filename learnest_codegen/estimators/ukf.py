@@ -155,9 +155,9 @@ class UKF(GateReport):
         """Filter one sample and return the posterior mean ``x (nx,)``.
 
         Predicts with ``u (nu,)``, the input applied since the previous sample (no predict on
-        the first call after :meth:`reset`), then updates with the outputs of ``y (ny,)`` that
-        ``valid (ny,)`` marks (None: all; a missing output may be NaN and contributes nothing;
-        none: the prediction stands), evaluating ``h`` at the same ``u``. Raises
+        the first call after :meth:`reset`), then updates with the outputs ``y (ny,)`` holds
+        (NaN: missing; or those ``valid (ny,)`` marks): a missing output contributes nothing,
+        none leaves the prediction, evaluating ``h`` at the same ``u``. Raises
         :class:`SolverError` (state unchanged) if the covariance stops being positive definite.
         An output the gate rejects is not an error (see the class).
         """
@@ -219,10 +219,14 @@ class UKF(GateReport):
         """A sample without measurement: ``step(u, y, valid=all False)``."""
         return self.step(u, np.zeros(self.model.ny), np.zeros(self.model.ny, dtype=bool))
 
-    def set_noise(self, Q=None, R=None) -> None:
+    def set_noise(self, Q=None, R=None, P_arrival=None) -> None:
         """New process- and measurement-noise covariances (None keeps one) from the next step
-        on; the state and its covariance stay (the C ``set_noise``)."""
+        on; the state and its covariance stay (the C ``set_noise``). The UKF has no arrival
+        cost: ``P_arrival`` is refused."""
         self._require_reset("set_noise")
+        if P_arrival is not None:
+            raise ValueError("UKF.set_noise: P_arrival is the MHEs' arrival covariance; the UKF has "
+                             "no arrival cost")
         if Q is not None:
             self._kf.Q = validation.covariance("UKF.set_noise Q", Q, self.model.nx).copy()
         if R is not None:
@@ -252,7 +256,7 @@ class UKF(GateReport):
         U : (T, nu) inputs; ``U[k]`` is applied from sample k to sample k+1.
         Y : (T, ny) measurements.
         x0, P0 : initial mean ``(nx,)`` and covariance ``(nx, nx)``.
-        valid : (T, ny) which outputs each sample holds (None: all).
+        valid : (T, ny) which outputs each sample holds (None: those that are not NaN).
 
         Returns
         -------

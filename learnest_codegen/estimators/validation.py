@@ -84,19 +84,26 @@ def flags(where: str, valid, shape: tuple[int, ...]) -> np.ndarray | None:
 
 
 def measurements(where: str, Y, valid, ny: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """``Y (ny,)`` or ``(T, ny)`` and its validity: finite where valid (a missing output may
-    hold anything, NaN included, and is returned as 0)."""
+    """``Y (ny,)`` or ``(T, ny)`` and its validity (True: the output holds a measurement).
+
+    Without ``valid``, NaN marks a missing output (the run format's empty cell); with it, a
+    missing output may hold anything. Missing outputs are returned as 0 (the compiled
+    estimators never read them), the validity as None when every output is present. An
+    infinite value, or a NaN marked valid, raises :class:`DataError`.
+    """
     Y = np.array(Y, dtype=float)
     if Y.ndim not in (1, 2) or Y.shape[-1] != ny:
         raise ShapeError(f"{where}: expected shape ({ny},) or (T, {ny}), got {Y.shape}")
     mask = flags(f"{where} valid", valid, Y.shape)
-    if mask is not None:
-        Y[~mask] = 0.0
+    if mask is None:
+        mask = ~np.isnan(Y)
+    Y[~mask] = 0.0
     bad = ~np.isfinite(Y)
     if bad.any():
         if Y.ndim == 1:
-            raise DataError(f"{where}: non-finite value in {Y} (mark a missing output invalid)")
+            raise DataError(f"{where}: non-finite value in {Y} (NaN marks a missing output; "
+                            "infinity, or NaN marked valid, is an error)")
         row = int(np.argwhere(bad)[0, 0])
-        raise DataError(f"{where}: Y has a non-finite value at sample {row} (mark a missing "
-                        "output invalid)")
-    return Y, mask
+        raise DataError(f"{where}: Y has a non-finite value at sample {row} (NaN marks a "
+                        "missing output; infinity, or NaN marked valid, is an error)")
+    return Y, (None if mask.all() else mask)

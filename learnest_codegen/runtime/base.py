@@ -155,8 +155,9 @@ class CompiledEstimator:
 
     def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
         """One sample: ``u (nu,)`` the input applied since the previous sample, ``y (ny,)`` the
-        measurement, ``valid (ny,)`` which outputs it holds (None: all; a missing one may be
-        NaN). Returns the estimate ``x (nx,)``."""
+        measurement (NaN: a missing output), or ``valid (ny,)`` saying which outputs it holds
+        (then a missing one may hold anything). The C call takes the validity as flags.
+        Returns the estimate ``x (nx,)``."""
         handle = self._started("step")
         name = type(self).__name__
         u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
@@ -177,8 +178,9 @@ class CompiledEstimator:
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray, P0: np.ndarray | None = None,
             valid=None) -> np.ndarray:
-        """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)``, ``valid (T, ny)`` or None ->
-        ``X_hat (T, nx)``; sample 0 is ``step(U[0], Y[0])``, sample ``k`` ``step(U[k-1], Y[k])``."""
+        """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` (NaN: missing), ``valid (T, ny)``
+        or None -> ``X_hat (T, nx)``; sample 0 is ``step(U[0], Y[0])``, sample ``k``
+        ``step(U[k-1], Y[k])``."""
         name = type(self).__name__
         Y, mask = validation.measurements(f"{name}.run", Y, valid, self.ny)
         U, Y = validation.run_arrays(f"{name}.run", U, Y, self.nu, self.ny)
@@ -190,10 +192,15 @@ class CompiledEstimator:
         self.last_status = self.check_status("run", code, self._sample())
         return X_hat.astype(float)
 
-    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None) -> None:
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
         """New process- and measurement-noise covariances (None keeps one) on the running
-        estimator: its state, covariance or window stay."""
+        estimator: its state, covariance or window stay. ``P_arrival``: the MHEs' arrival
+        covariance (an estimator without an arrival cost refuses it)."""
         name = type(self).__name__
+        if P_arrival is not None:
+            raise ValueError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
+                             f"this estimator has no arrival cost")
         Q = None if Q is None else self.real_array(validation.covariance(f"{name}.set_noise: Q", Q, self.nx))
         R = None if R is None else self.real_array(validation.covariance(f"{name}.set_noise: R", R, self.ny))
         self.check_status("set_noise", self._c["set_noise"](

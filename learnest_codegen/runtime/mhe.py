@@ -85,8 +85,14 @@ class CompiledMHE(CompiledEstimator):
         """(nx, nx) the weight of the arrival cost in use (the inverse of its covariance)."""
         return np.linalg.inv(self.arrival_covariance)
 
-    def set_arrival(self, P0: np.ndarray) -> None:
-        """A new arrival covariance ``P0 (nx, nx)`` for the running estimator (its window stays)."""
-        P0 = self.real_array(validation.covariance(f"{type(self).__name__}.set_arrival: P0", P0,
-                                                   self.nx, definite=True))
-        self.check_status("set_arrival", self._c["set_arrival"](self._started("set_arrival"), P0))
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
+        """New covariances (None keeps one) on the running estimator, its window kept: process
+        ``Q``, measurement ``R`` and the arrival cost's ``P_arrival`` (C: ``set_noise`` and
+        ``set_arrival``)."""
+        if P_arrival is not None:
+            P = self.real_array(validation.covariance(f"{type(self).__name__}.set_noise: P_arrival",
+                                                      P_arrival, self.nx, definite=True))
+            self.check_status("set_noise", self._c["set_arrival"](self._started("set_noise"), P))
+        if Q is not None or R is not None:
+            super().set_noise(Q, R)

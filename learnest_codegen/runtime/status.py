@@ -3,7 +3,8 @@
 Each code is a name, a meaning and how the caller recovers. :mod:`..codegen.status` renders
 the table into the C header every estimator includes, and the ctypes bindings read names from
 it here, so C and Python cannot disagree. Zero and positive codes are not errors; negative
-codes are, and a step that returns one leaves the estimator as it was. Torch-free.
+codes are, and a step that returns one leaves the estimator as it was. The positive codes are
+bits (1 an output rejected, 2 an input rejected; a step that did both returns 3). Torch-free.
 """
 
 from __future__ import annotations
