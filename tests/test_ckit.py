@@ -203,26 +203,31 @@ def test_block_tridiagonal_solve_equals_a_dense_solve(libraries, cc, real):
 @pytest.mark.parametrize("cc", COMPILERS)
 def test_gate_equals_the_python_gate(libraries, cc):
     """Random normalised innovations and validity: the C gate rejects the same outputs, keeps
-    the same streak and inflation and returns the same factors as estimators/gate.py."""
+    the same per-output streaks and inflation, ends the same episodes and returns the same
+    factors as estimators/gate.py."""
     k = libraries("kit_core", cc, "double")
     settings = GateSettings(threshold=9.0, recover_after=3, inflation=2.0)
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
     k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e12, restype=None)
     py = GateState(settings, 2)
     rng = np.random.default_rng(2)
-    rho, streak = ctypes.c_double(), ctypes.c_int()
-    for step in range(400):
-        d2 = rng.choice([0.5, 3.0, 20.0, 1e6, np.nan], size=2)
-        valid = (rng.random(2) < 0.8).astype(np.uint8)
+    rho, streaks, episodes = ctypes.c_double(), np.zeros(2, dtype=np.intc), 0
+    for step in range(600):
+        d2 = rng.choice([0.5, 3.0, 20.0, 1e6, np.nan], size=2, p=[0.3, 0.2, 0.2, 0.2, 0.1])
+        valid = (rng.random(2) < [0.9, 0.3]).astype(np.uint8)  # a fast and a slow output
         rejected = np.zeros(2, dtype=np.intc)
         any_c = k("kt_gate_test", g, k.a(d2), valid, rejected)
         expected = py.test(d2, valid.astype(bool))
         np.testing.assert_array_equal(rejected.astype(bool), expected, err_msg=f"step {step}")
         assert any_c == int(expected.any())
-        factor = k("kt_gate_record", g, any_c, int(valid.any()), restype=ctypes.c_double)
-        assert factor == py.record(expected, bool(valid.any()))
-        k("kt_gate_state", g, ctypes.byref(rho), ctypes.byref(streak), restype=None)
-        assert (rho.value, streak.value) == (py.inflation, py.streak)
+        ends = k("kt_gate_ends_episode", g, rejected, valid)
+        assert ends == int(py.ends_episode(expected, valid.astype(bool)))
+        episodes += ends
+        factor = k("kt_gate_record", g, rejected, valid, restype=ctypes.c_double)
+        assert factor == py.record(expected, valid.astype(bool))
+        k("kt_gate_state", g, ctypes.byref(rho), streaks, restype=None)
+        assert rho.value == py.inflation and streaks.tolist() == py.streaks.tolist()
+    assert episodes > 0 and py.inflation >= 1
     # out of range: refused, nothing changed
     for bad in ((0.5, 3, 2.0), (-1.0, 3, 2.0), (np.nan, 3, 2.0), (9.0, 0, 2.0), (9.0, 10**7, 2.0),
                 (9.0, 3, 1.0), (9.0, 3, 1e4), (9.0, 3, np.inf)):
@@ -290,9 +295,9 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         X = guess + 1e-3 * rng.normal(size=guess.shape)  # a stand-in solution, the same for both
         k("kt_mhe_commit", m, k.a(X.ravel()), restype=None)
         mhe._now, mhe._window, mhe._count = window, X, mhe._count + 1
-        mhe._gate.record(rejected, valid.any())
+        mhe._gate.record(rejected, valid)
         mhe._restart = False
-        k("kt_gate_record", g, any_c, int(valid.any()), restype=ctypes.c_double)
+        k("kt_gate_record", g, rej, valid.astype(np.uint8), restype=ctypes.c_double)
         rejections += int(rejected.sum())
     assert restarts >= 3 and rejections >= 6  # the recovery and the failures were exercised
 

@@ -22,7 +22,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   learnest_real S[LEARNEST_KF_NYY], Si[LEARNEST_KF_NYY], z[LEARNEST_NY], d2[LEARNEST_NY];
   learnest_real K[LEARNEST_NX * LEARNEST_NY];
   learnest_real work[LEARNEST_KF_NYY];
-  int i, j, k, any, any_valid = learnest_any_valid(valid, LEARNEST_NY), keep[LEARNEST_NY];
+  int i, j, k, keep[LEARNEST_NY];
   memcpy(x, h->x, sizeof x);
   memcpy(P, h->P, sizeof P);
   if (h->c.samples > 0) {
@@ -39,7 +39,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     z[j] = y[j] - hx[j];
     d2[j] = z[j] * z[j] / S[j + j * LEARNEST_NY];
   }
-  any = learnest_gate_test(&h->c.gate, d2, valid, LEARNEST_NY, rejected);
+  (void)learnest_gate_test(&h->c.gate, d2, valid, LEARNEST_NY, rejected);
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
   for (j = 0; j < LEARNEST_NY; ++j) {
     for (k = 0; k < LEARNEST_NY; ++k) {
@@ -62,7 +62,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
       AP[i + k * LEARNEST_NX] = v;
     }
   }
-  return learnest_kalman_commit(h, x, AP, any, any_valid);
+  return learnest_kalman_commit(h, x, AP, rejected, valid);
 }
 
 #endif /* LEARNEST_EKF_H */

@@ -6,10 +6,16 @@
  * innovation variance (each estimator's header says which). A rejected output is left out of
  * the update and the step returns LEARNEST_MEASUREMENT_REJECTED (1). An output the caller
  * marked missing is neither tested nor rejected.
- * Recovery: from the recover_after-th consecutive step with a rejection on, each such step
- * multiplies the inflation rho by inflation_step (up to cap) and the estimator inflates its
- * uncertainty by it; a step that accepts its valid outputs resets the streak and divides rho
- * by inflation_step, down to 1. A step without any valid output leaves the gate as it was.
+ * Recovery: the streak is kept per output and counts that output's own samples: a rejection
+ * lengthens it, an acceptance ends it, a missing sample does neither (so the accepted samples
+ * of a fast output do not end the streak of a slow one that keeps being rejected). A step that
+ * rejects an output whose streak has reached recover_after multiplies the inflation rho by
+ * inflation_step (up to cap) and the estimator inflates its uncertainty by it; a step that
+ * accepts its valid outputs divides rho by inflation_step, down to 1; a step without any valid
+ * output leaves the gate as it was. With every output sampled every step this is the
+ * single-rate rule of docs/reliability.md.
+ *
+ * Include after learnest_kit.h with LEARNEST_NY.
  */
 #ifndef LEARNEST_GATE_H
 #define LEARNEST_GATE_H
@@ -18,7 +24,7 @@
 
 struct learnest_gate {
   learnest_real threshold, inflation_step, rho, cap;  /* threshold < 0: no gate */
-  int recover_after, streak;
+  int recover_after, streaks[LEARNEST_NY];  /* per output: its rejected samples in a row */
 };
 
 LEARNEST_KIT void learnest_gate_defaults(struct learnest_gate* g, learnest_real threshold,
@@ -29,7 +35,7 @@ LEARNEST_KIT void learnest_gate_defaults(struct learnest_gate* g, learnest_real 
   g->inflation_step = inflation;
   g->cap = cap;
   g->rho = 1;
-  g->streak = 0;
+  memset(g->streaks, 0, sizeof g->streaks);
 }
 
 /* LEARNEST_OK when the settings are in their documented ranges (learnest_status.h):
@@ -55,13 +61,22 @@ LEARNEST_KIT int learnest_gate_set(struct learnest_gate* g, learnest_real thresh
                                    int recover_after, learnest_real inflation) {
   int code = learnest_gate_check(threshold, recover_after, inflation);
   if (code != LEARNEST_OK) return code;
-  learnest_gate_defaults(g, threshold, recover_after, inflation, g->cap);
+  g->threshold = (threshold == 0 || isinf(threshold)) ? -1 : threshold;
+  g->recover_after = recover_after;
+  g->inflation_step = inflation;
   return LEARNEST_OK;
 }
 
 LEARNEST_KIT void learnest_gate_restart(struct learnest_gate* g) {
   g->rho = 1;
-  g->streak = 0;
+  memset(g->streaks, 0, sizeof g->streaks);
+}
+
+/* The longest streak of the outputs. */
+LEARNEST_KIT int learnest_gate_streak(const struct learnest_gate* g) {
+  int j, longest = 0;
+  for (j = 0; j < LEARNEST_NY; ++j) longest = g->streaks[j] > longest ? g->streaks[j] : longest;
+  return longest;
 }
 
 /* rejected[j] = output j is valid (valid NULL: all are) and the gate rejects d2[j]; returns 1
@@ -85,17 +100,36 @@ LEARNEST_KIT int learnest_any_valid(const unsigned char* valid, int ny) {
   return 0;
 }
 
-/* Book a committed step: any = an output was rejected, any_valid = some output was valid.
- * Returns the factor to inflate the uncertainty by now (1: none). */
-LEARNEST_KIT learnest_real learnest_gate_record(struct learnest_gate* g, int any, int any_valid) {
-  if (!any_valid) return 1;
+/* 1 when this step (before learnest_gate_record) ends a recovery episode: it rejects nothing
+ * and accepts a sample of an output whose streak had reached recover_after (the MHEs then
+ * restart their window). */
+LEARNEST_KIT int learnest_gate_ends_episode(const struct learnest_gate* g, const int* rejected,
+                                            const unsigned char* valid) {
+  int j, ends = 0;
+  for (j = 0; j < LEARNEST_NY; ++j) {
+    if (rejected[j]) return 0;
+    ends |= (!valid || valid[j]) && g->streaks[j] >= g->recover_after;
+  }
+  return ends;
+}
+
+/* Book a committed step: rejected (NY) the outputs rejected, valid (NY; NULL: all) those the
+ * step had. Returns the factor to inflate the uncertainty by now (1: none). */
+LEARNEST_KIT learnest_real learnest_gate_record(struct learnest_gate* g, const int* rejected,
+                                                const unsigned char* valid) {
+  int j, any = 0, due = 0;
+  if (!learnest_any_valid(valid, LEARNEST_NY)) return 1;
+  for (j = 0; j < LEARNEST_NY; ++j) {
+    if (valid && !valid[j]) continue;  /* a missing sample neither lengthens nor ends it */
+    g->streaks[j] = rejected[j] ? g->streaks[j] + 1 : 0;
+    any |= rejected[j];
+    due |= rejected[j] && g->streaks[j] >= g->recover_after;
+  }
   if (!any) {
-    g->streak = 0;
     g->rho = g->rho / g->inflation_step > 1 ? g->rho / g->inflation_step : 1;
     return 1;
   }
-  ++g->streak;
-  if (g->streak < g->recover_after || g->rho * g->inflation_step > g->cap) return 1;
+  if (!due || g->rho * g->inflation_step > g->cap) return 1;
   g->rho *= g->inflation_step;
   return g->inflation_step;
 }

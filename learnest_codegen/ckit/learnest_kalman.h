@@ -69,18 +69,21 @@ LEARNEST_KIT const learnest_real* learnest_est_state(const LEARNEST_HANDLE* h) {
 /* The end of a step: x_post and P_post (column-major, overwritten) must be finite, P_post
  * symmetric (it is symmetrised) and positive semidefinite to rounding (P - K S K^T can lose it
  * from extreme but valid covariances; such a P would poison every later step, so it is an
- * error, not an OK); then the recovery grows the variances (the covariances stay, so stale
- * correlations fade) and the step is committed. */
+ * error, not an OK); then the gate books the step (rejected, valid: NY flags each), its
+ * recovery grows the variances (the covariances stay, so stale correlations fade) and the step
+ * is committed. */
 LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real* x_post,
-                                        learnest_real* P_post, int any, int any_valid) {
+                                        learnest_real* P_post, const int* rejected,
+                                        const unsigned char* valid) {
   learnest_real work[LEARNEST_KF_NXX], factor;
-  int i;
+  int i, any = 0;
   if (!learnest_all_finite(x_post, LEARNEST_NX) || !learnest_all_finite(P_post, LEARNEST_KF_NXX)) {
     return LEARNEST_NONFINITE_RESULT;
   }
   learnest_symmetrise(P_post, LEARNEST_NX);
   if (!learnest_covariance_ok(P_post, LEARNEST_NX, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
-  factor = learnest_gate_record(&h->c.gate, any, any_valid);
+  for (i = 0; i < LEARNEST_NY; ++i) any |= rejected[i];
+  factor = learnest_gate_record(&h->c.gate, rejected, valid);
   for (i = 0; factor != 1 && i < LEARNEST_NX; ++i) P_post[i * LEARNEST_NX + i] *= factor;
   memcpy(h->x, x_post, sizeof h->x);
   memcpy(h->P, P_post, sizeof h->P);

@@ -148,9 +148,9 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
 /* The innovation gate of the new sample (u, y, valid) and the recovery's restart, after
  * learnest_mhe_advance and the prediction of Xn[N]: h and C = dh/dx (column-major) at
  * x_pred = Xn[N]; a valid output's d2 = (y - h)^2 / S_jj with
- * S_jj = rho (C P_cov C^T)_jj + R_cov_jj. A restart (after a failed step, or on the first step
- * that accepts a valid output after recover_after or more rejecting ones) empties the window
- * around learnest_restart_prior and folds the sample into it. Weighs the sample's outputs
+ * S_jj = rho (C P_cov C^T)_jj + R_cov_jj. A restart (after a failed step, or on the step that
+ * ends a recovery episode, learnest_gate_ends_episode) empties the window around
+ * learnest_restart_prior and folds the sample into it. Weighs the sample's outputs
  * (G); sets rejected (NY) and *restarted; returns 1 when an output was rejected. */
 LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest_gate* g,
                                    int has_previous, const learnest_real* u,
@@ -172,8 +172,7 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
   }
   any = learnest_gate_test(g, d2, valid, LEARNEST_NY, rejected);
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
-  *restarted = has_previous && (m->restart || (g->streak >= g->recover_after && !any
-                                               && learnest_any_valid(valid, LEARNEST_NY)));
+  *restarted = has_previous && (m->restart || learnest_gate_ends_episode(g, rejected, valid));
   if (*restarted) {
     learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, m->P_cov, g->rho, m->R_cov, nu,
                            keep, xbar);

@@ -65,7 +65,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   h->gn.iterations = steps;
   learnest_mhe_commit(m);
   h->gn.lin_valid = 1;
-  (void)learnest_gate_record(&h->c.gate, any, learnest_any_valid(valid, LEARNEST_NY));
+  (void)learnest_gate_record(&h->c.gate, rejected, valid);
   return any ? LEARNEST_MEASUREMENT_REJECTED : LEARNEST_OK;
 }
 

@@ -64,7 +64,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   }
   memcpy(m->Xn, h->solution, sizeof h->solution);
   learnest_mhe_commit(m);
-  (void)learnest_gate_record(&h->c.gate, any, learnest_any_valid(valid, LEARNEST_NY));
+  (void)learnest_gate_record(&h->c.gate, rejected, valid);
   return any ? LEARNEST_MEASUREMENT_REJECTED : LEARNEST_OK;
 }
 

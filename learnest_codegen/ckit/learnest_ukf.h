@@ -47,7 +47,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   }
   /* A failed Cholesky shows up as NaN (sqrt of a negative pivot): commit finite results only. */
   if (rc != 0) return LEARNEST_NONFINITE_RESULT;
-  return learnest_kalman_commit(h, x_post, P_post, any, any_valid);
+  return learnest_kalman_commit(h, x_post, P_post, rejected, valid);
 }
 
 #endif /* LEARNEST_UKF_H */

@@ -168,7 +168,7 @@ class MHE(GateReport):
         self.iterations = int(self.problem.solver.stats()["iter_count"])
         self._now, self._window = window, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
         self._count += 1
-        self._gate.record(rejected, valid.any())
+        self._gate.record(rejected, valid)
         self._restart = False
         self.rejections += int(rejected.sum())
         return self.x
@@ -209,8 +209,7 @@ class MHE(GateReport):
         with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
             rejected = self._gate.test(innovation ** 2 / S, valid)
         keep = valid & ~rejected
-        recovering = self._gate.streak >= self._gate.settings.recover_after
-        if has_previous and (self._restart or (recovering and not rejected.any() and valid.any())):
+        if has_previous and (self._restart or self._gate.ends_episode(rejected, valid)):
             xbar = restart_prior(guess[-1], C, rho * self._P_cov, self._R_cov, innovation, ~keep)
             window = Window.empty(self.layout, xbar)
             window.open(u)

@@ -188,7 +188,7 @@ class UKF(GateReport):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc
         # recovery: the variances grow, the covariances stay (see estimators/gate.py)
-        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, valid.any())
+        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, valid)
         self.rejections += int(rejected.sum())
         self._first = False
         return self.x

@@ -71,13 +71,17 @@ int kt_gate_test(const void* g, const real* d2, const unsigned char* valid, int*
   return learnest_gate_test((const struct learnest_gate*)g, d2, valid, LEARNEST_NY, rejected);
 }
 
-real kt_gate_record(void* g, int any, int any_valid) {
-  return learnest_gate_record((struct learnest_gate*)g, any, any_valid);
+int kt_gate_ends_episode(const void* g, const int* rejected, const unsigned char* valid) {
+  return learnest_gate_ends_episode((const struct learnest_gate*)g, rejected, valid);
 }
 
-void kt_gate_state(const void* g, real* rho, int* streak) {
+real kt_gate_record(void* g, const int* rejected, const unsigned char* valid) {
+  return learnest_gate_record((struct learnest_gate*)g, rejected, valid);
+}
+
+void kt_gate_state(const void* g, real* rho, int* streaks) {
   *rho = ((const struct learnest_gate*)g)->rho;
-  *streak = ((const struct learnest_gate*)g)->streak;
+  memcpy(streaks, ((const struct learnest_gate*)g)->streaks, LEARNEST_NY * sizeof(int));
 }
 
 /* -- the MHE window, gate and restart (learnest_mhe.h) */
