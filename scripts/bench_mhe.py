@@ -50,7 +50,7 @@ def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
                                        for i, n in enumerate(np.bincount(iterations)) if n},
         "max_abs_state_difference": float(np.max(np.abs(compiled.run(U, Y, x0) - X_ref))),
         "generate_seconds": generate_total_s - gen.build_seconds, "build_seconds": gen.build_seconds,
-        "code_bytes": gen.code_bytes, "library_bytes": gen.library.stat().st_size,
+        "code_bytes": gen.code_bytes, "library_bytes": gen.library_path.stat().st_size,
     }
 
 

@@ -60,7 +60,7 @@ class UKFRun:
         lib = ctypes.CDLL(str(Path(directory) / m["library"]))
         vp = ctypes.c_void_p
         self._run = getattr(lib, f"{m['prefix']}_run")
-        self._run.restype, self._run.argtypes = ctypes.c_int, [vp, ctypes.c_int, vp, vp, vp]
+        self._run.restype, self._run.argtypes = ctypes.c_int, [vp, ctypes.c_int, vp, vp, vp, vp]
         init = getattr(lib, f"{m['prefix']}_init")
         init.restype, init.argtypes = ctypes.c_int, [vp, ctypes.c_size_t, vp, vp, vp, vp, vp]
         size = getattr(lib, f"{m['prefix']}_workspace_size")
@@ -76,7 +76,7 @@ class UKFRun:
 
     def run_pass(self, U: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, int]:
         X = np.full((len(Y), self.binding.nx), np.nan)
-        code = self._run(self.handle, len(Y), U.ctypes.data, Y.ctypes.data, X.ctypes.data)
+        code = self._run(self.handle, len(Y), U.ctypes.data, Y.ctypes.data, None, X.ctypes.data)
         return X, int(np.isnan(X[:, 0]).sum()) if code else 0
 
 

@@ -49,8 +49,8 @@ def bench_model(model, U, Y, build_dir: Path, repeat: int) -> dict:
         "ctypes_step_us_per_step": 1e6 * ctypes_s / T,
         "speedup_c_run": python_s / c_run_s,
         "max_relative_state_difference": float(rel.max()),
-        "generate_seconds": gen.generate_seconds, "build_seconds": gen.build.seconds,
-        "code_bytes": gen.code_bytes, "library_bytes": gen.library.stat().st_size,
+        "generate_seconds": gen.generate_seconds, "build_seconds": gen.build_seconds,
+        "code_bytes": gen.code_bytes, "library_bytes": gen.library_path.stat().st_size,
     }
 
 

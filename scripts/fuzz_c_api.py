@@ -1,8 +1,10 @@
 """Fuzz the C API of the generated estimators in child processes; counts what went wrong.
 
 Each target (one compiled estimator folder) is driven through raw ctypes, not through the
-checked Python bindings, by a seeded random plan of calls: init / reset / step / run / the
-getters (and set_options where the header has it), with values from a simulated run mixed with
+checked Python bindings, by a seeded random plan of calls: init / reset / step (with validity
+flags: all, some, none, or bytes that are not flags) / predict / run / set_noise / set_gate /
+the getters (and set_options, set_arrival where the header has them), with values from a
+simulated run mixed with
 NaN, +-Inf, 1e300, 1e-310 denormals, huge negatives, and non-symmetric, indefinite, singular,
 zero or overflowing covariances; NULL where the header says the call checks it; T <= 0; calls
 before init, on a NULL handle, on a never-initialised workspace and on a handle whose workspace
@@ -11,11 +13,11 @@ be replayed. Chunks of calls run in child processes (fork): a child killed by a 
 crash, a call that does not return within ``call_timeout_s`` is a hang (the child is killed).
 
 Counted per target: calls, crashes, hangs, ``nonfinite_ok`` (a call returned a success code but
-the state, covariance, window or run output it made holds NaN/Inf), ``changed_on_error`` (a
-step/reset/run/set_options that returned an error code changed the estimate, against the
-header's "a failed call changes nothing"), ``covariance_not_psd_ok`` (UKF: a success code with a
-covariance that is not symmetric positive semi-definite; informational) and every status code
-seen per call.
+the state, covariance, window or run output it made holds NaN/Inf), ``changed_on_error`` (an
+init/step/reset/predict that returned an error code changed the estimate, against the
+header's "a failed call changes nothing": a failed init on the live workspace included),
+``covariance_not_psd_ok`` (UKF: a success code with a covariance that is not symmetric positive
+semi-definite; informational) and every status code seen per call.
 
 The estimator-specific part is the table :data:`APIS` (matrix order of init, getters, whether
 calls take a handle and how success is coded); a header that no longer declares a symbol of its
@@ -61,20 +63,23 @@ class Api:
     options: bool = False  # set_options(h, mode, max_iter, tol)
     gate: bool = True  # set_gate(h, threshold, recover_after, inflation) (learnest_gate.h)
     ok_positive: bool = True  # codes > 0 are success (learnest_status.h); else only 0 is
+    arrival: bool = False  # set_arrival(h, P0) (the MHEs)
 
     def symbols(self) -> tuple[str, ...]:
-        return ("init", "step", "run", *(() if not self.handle else ("reset", "workspace_size")),
+        return ("init", "step", "run", "predict", "set_noise",
+                *(() if not self.handle else ("reset", "workspace_size")),
                 *self.getters, *(("set_options",) if self.options else ()),
-                *(("set_gate",) if self.gate else ()))
+                *(("set_gate",) if self.gate else ()), *(("set_arrival",) if self.arrival else ()))
 
 
-_EMBEDDED = Api(True, ("Q", "R", "P"), ("get_state", "get_window", "get_arrival_weight"), options=True)
+# every estimator takes covariances x0, P0, Q, R (the C kit's one convention)
+_MHE_GETTERS = ("get_state", "get_window", "get_arrival")
 APIS = {
     "ukf": Api(True, ("P0", "Q", "R"), ("get_state", "get_covariance")),
-    "mhe_gn": _EMBEDDED,
-    "mhe_rti": _EMBEDDED,
+    "mhe_gn": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, options=True, arrival=True),
+    "mhe_rti": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, options=True, arrival=True),
     # the Ipopt MHE: the same contract, Ipopt's own memory behind the handle, no options
-    "mhe": Api(True, ("Q", "R", "P"), ("get_state", "get_window", "get_arrival_weight")),
+    "mhe": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, arrival=True),
 }
 
 
@@ -95,6 +100,7 @@ class Target:
     matrices: dict[str, np.ndarray]
     U: np.ndarray
     Y: np.ndarray
+    library: str = ""  # the shared library's file name (the manifest's)
 
     @property
     def api(self) -> Api:
@@ -105,7 +111,7 @@ class Target:
         n = {"P0": self.nx, "Q": self.nx, "P": self.nx, "R": self.ny}
         if what in n:
             return n[what] ** 2
-        return {"get_state": self.nx, "get_covariance": self.nx ** 2, "get_arrival_weight": self.nx ** 2,
+        return {"get_state": self.nx, "get_covariance": self.nx ** 2, "get_arrival": self.nx ** 2,
                 "get_window": (self.horizon + 1) * self.nx}[what]
 
 
@@ -135,11 +141,12 @@ def build_targets(root: Path, systems=SYSTEMS, estimators=ESTIMATORS,
                     s = UKFSettings(**m["settings"])
                     mats = {"P0": s.P0(), "Q": s.Q(), "R": s.R()}
                 else:
-                    mats = dict(zip(("Q", "R", "P"), MHESettings.from_json(m["settings"]).weights()))
+                    Q, R, P0 = MHESettings.from_json(m["settings"]).covariances()
+                    mats = {"P0": P0, "Q": Q, "R": R}
                 targets.append(Target(
                     directory.name, estimator, directory, m["prefix"], m["nx"], m["nu"], m["ny"],
-                    int(m.get("horizon", 0)), m.get("precision", "float64"), np.asarray(system.x0, float),
-                    {k: np.asarray(v, float) for k, v in mats.items()}, run.u, run.y))
+                    int(m["horizon"] or 0), m["precision"], np.asarray(system.x0, float),
+                    {k: np.asarray(v, float) for k, v in mats.items()}, run.u, run.y, m["library"]))
     return targets
 
 
@@ -228,6 +235,17 @@ class Planner:
             M = (A @ A.T + 1e-3 * np.eye(n)) * 10.0 ** r.uniform(-300, 300)
         return M, kind
 
+    def flags(self, n: int) -> tuple[np.ndarray | None, str]:
+        """Validity flags of a step: all valid (NULL), random 0/1, none, or non-flag bytes."""
+        kind = self._pick({"null": 70, "random": 20, "none": 6, "not_flags": 4})
+        if kind == "null":
+            return None, kind
+        if kind == "random":
+            return self.rng.integers(0, 2, size=n).astype(np.uint8), kind
+        if kind == "none":
+            return np.zeros(n, dtype=np.uint8), kind
+        return self.rng.integers(2, 256, size=n).astype(np.uint8), kind
+
     def _estimate_args(self, call: Call) -> None:
         """x0 and the matrices of init/reset."""
         self.k = 0
@@ -249,8 +267,9 @@ class Planner:
     def call(self) -> Call:
         t, r = self.t, self.rng
         api = t.api
-        table = {"init": 5, "reset": 5 if api.handle else 0, "step": 64, "run": 3,
-                 "set_options": 4 if api.options else 0, "set_gate": 3 if api.gate else 0}
+        table = {"init": 5, "reset": 5 if api.handle else 0, "step": 58, "predict": 4, "run": 3,
+                 "set_noise": 3, "set_options": 4 if api.options else 0,
+                 "set_gate": 3 if api.gate else 0, "set_arrival": 2 if api.arrival else 0}
         table.update({g: 16 / len(api.getters) for g in api.getters})
         name = self._pick(table)
         call = Call(name)
@@ -269,10 +288,26 @@ class Planner:
             u_nominal = t.U[k - 1] if k else np.zeros(t.nu)
             call.args["u"], call.kinds["u"] = self.vector(u_nominal)
             call.args["y"], call.kinds["y"] = self.vector(t.Y[k])
+            call.args["valid"], call.kinds["valid"] = self.flags(t.ny)
             for key in ("u", "y"):
                 if self._null(0.02):
                     call.args[key] = None
             self.k += 1
+        elif name == "predict":
+            k = self.k % len(t.Y)
+            call.args["u"], call.kinds["u"] = self.vector(t.U[k - 1] if k else np.zeros(t.nu))
+            if self._null(0.02):
+                call.args["u"] = None
+            self.k += 1
+        elif name == "set_noise":
+            for key in ("Q", "R"):
+                call.args[key], call.kinds[key] = self.matrix(t.matrices[key])
+                if self._null(0.2):
+                    call.args[key] = None
+        elif name == "set_arrival":
+            call.args["P0"], call.kinds["P0"] = self.matrix(t.matrices["P0"])
+            if self._null(0.05):
+                call.args["P0"] = None
         elif name == "run":
             T = int(r.choice(RUN_LENGTHS))
             call.args["T"] = T
@@ -283,13 +318,17 @@ class Planner:
             if r.random() < 0.3:
                 call.args["Y"].flat[r.integers(call.args["Y"].size)] = r.choice(self.specials)
                 call.kinds["Y"] = "special_entry"
+            if r.random() < 0.3:
+                call.args["valid"] = r.integers(0, 2, size=(rows, t.ny)).astype(np.uint8)
+                call.kinds["valid"] = "random_flags"
             for key in ("U", "Y", "Xhat"):
                 if self._null(0.05):
                     call.args[key] = None
         elif name == "set_options":
             call.args["mode"] = int(r.choice([-1, 0, 1, 2, 1 << 30]))
             call.args["max_iter"] = int(r.choice([-5, 0, 1, 3, 20, 1000]))
-            call.args["tol"] = float(r.choice([np.nan, np.inf, -1.0, 0.0, 1e-300, 1e-10, 1e-6, 1e300]))
+            call.args["tol"] = float(r.choice([np.nan, np.inf, -1.0, 0.0, 1e-300, 1e-14, 1e-10, 1e-6,
+                                               1e-3, 1e-2, 1e300]))
         elif name == "set_gate":  # a tiny threshold rejects everything: the recovery's path
             call.args["threshold"] = float(r.choice([np.nan, np.inf, -1.0, 0.0, 1e-300, 1e-3, 9.0,
                                                      50.8, 1e300]))
@@ -316,7 +355,7 @@ class Executor:
     def __init__(self, target: Target, chunk: int = 0):
         self.t, self.chunk, api = target, chunk, target.api
         check_table(target)
-        self.lib = ctypes.CDLL(str(target.directory / f"lib{target.prefix}.so"))
+        self.lib = ctypes.CDLL(str(target.directory / target.library))
         self.dtype = np.float32 if target.precision == "float32" else np.float64
         self.c_real = ctypes.c_float if target.precision == "float32" else ctypes.c_double
         self.fn = {s: getattr(self.lib, f"{target.prefix}_{s}") for s in api.symbols()}
@@ -329,8 +368,12 @@ class Executor:
             self.fn["workspace_size"].restype = ctypes.c_size_t
             self.fn["init"].argtypes = [vp, ctypes.c_size_t] + [vp] * (2 + len(api.matrices))
             self.fn["reset"].argtypes = [vp] * (2 + len(api.matrices))
-            self.fn["step"].argtypes = [vp] * 3
-            self.fn["run"].argtypes = [vp, i, vp, vp, vp]
+            self.fn["step"].argtypes = [vp] * 4
+            self.fn["predict"].argtypes = [vp] * 2
+            self.fn["set_noise"].argtypes = [vp] * 3
+            self.fn["run"].argtypes = [vp, i, vp, vp, vp, vp]
+            if api.arrival:
+                self.fn["set_arrival"].argtypes = [vp] * 2
             for g in api.getters:
                 self.fn[g].argtypes = [vp, vp]
             if api.options:
@@ -357,6 +400,8 @@ class Executor:
     def _arr(self, a):
         if a is None:
             return None, None
+        if isinstance(a, np.ndarray) and a.dtype == np.uint8:  # validity flags
+            return a, a.ctypes.data
         with np.errstate(over="ignore", invalid="ignore"):
             arr = np.ascontiguousarray(a, dtype=self.dtype)
         return arr, arr.ctypes.data
@@ -410,7 +455,8 @@ class Executor:
     def execute(self, call: Call, index: int) -> None:
         t, a = self.t, call.args
         # a failed run keeps the samples before the failing one (headers), so only these two
-        before = self.snapshot() if call.name in ("step", "reset") else None
+        before = (self.snapshot() if call.name in ("step", "reset", "predict")
+                  or (call.name == "init" and a.get("memory") in ("good", "misaligned")) else None)
         keep = []  # arrays alive until the call returns
         extra = None
 
@@ -441,13 +487,18 @@ class Executor:
         elif call.name == "reset":
             code = self.fn["reset"](self._h(a["handle"]), ptr("x0"), *mats)
         elif call.name == "step":
-            args = [ptr("u"), ptr("y")]
-            code = self.fn["step"](*([self._h(a["handle"])] if t.api.handle else []), *args)
+            code = self.fn["step"](self._h(a["handle"]), ptr("u"), ptr("y"), ptr("valid"))
+        elif call.name == "predict":
+            code = self.fn["predict"](self._h(a["handle"]), ptr("u"))
+        elif call.name == "set_noise":
+            code = self.fn["set_noise"](self._h(a["handle"]), ptr("Q"), ptr("R"))
+        elif call.name == "set_arrival":
+            code = self.fn["set_arrival"](self._h(a["handle"]), ptr("P0"))
         elif call.name == "run":
             T = a["T"]
             X = None if a.get("Xhat", "") is None else np.full((max(T, 1), t.nx), np.nan, self.dtype)
             keep.append(X)
-            args = [T, ptr("U"), ptr("Y"), None if X is None else X.ctypes.data]
+            args = [T, ptr("U"), ptr("Y"), ptr("valid"), None if X is None else X.ctypes.data]
             code = self.fn["run"](*([self._h(a["handle"])] if t.api.handle else []), *args)
             extra = X if X is not None and T > 0 else None
         elif call.name == "set_options":
@@ -467,7 +518,7 @@ class Executor:
                 self._event("nonfinite_ok", call, index)
         self.codes.setdefault(call.name, Counter())[str(code)] += 1
         self.counts["calls"] += 1
-        if call.name in ("init", "reset", "step", "run") and self._ok(code):
+        if call.name in ("init", "reset", "step", "predict", "run") and self._ok(code):
             if call.name == "init" and t.api.handle and a["memory"] not in ("good", "misaligned"):
                 return
             self._check_outputs(call, index, extra)

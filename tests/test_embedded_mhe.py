@@ -143,7 +143,7 @@ void* __wrap_realloc(void* p, size_t n) { ++calls; return __real_realloc(p, n); 
 void __wrap_free(void* p) { ++calls; __real_free(p); }
 #define NX PREFIX_UP_NX
 static double U[T_RUN][1] = UDATA, Y[T_RUN][2] = YDATA;
-static double x0[NX] = X0, Q[NX * NX] = QDATA, R[4] = RDATA, P[NX * NX] = PDATA;
+static double x0[NX] = X0, P0[NX * NX] = PDATA, Q[NX * NX] = QDATA, R[4] = RDATA;
 static unsigned char mem_a[200000], mem_b[200000];
 int main(void) {
   PREFIX_t *a, *b;
@@ -151,15 +151,15 @@ int main(void) {
   int k, i;
   if (PREFIX_workspace_size() > sizeof mem_a) return 10;
   calls = 0;
-  if (PREFIX_init(mem_a, sizeof mem_a, x0, Q, R, P, &a) != LEARNEST_OK) return 11;
-  if (PREFIX_init(mem_b, sizeof mem_b, x0, Q, R, P, &b) != LEARNEST_OK) return 12;
-  if (PREFIX_init(mem_b, 16, x0, Q, R, P, &b) != LEARNEST_NO_MEMORY || b) return 13;
-  if (PREFIX_init(mem_b, sizeof mem_b, x0, Q, R, P, &b) != LEARNEST_OK) return 14;
+  if (PREFIX_init(mem_a, sizeof mem_a, x0, P0, Q, R, &a) != LEARNEST_OK) return 11;
+  if (PREFIX_init(mem_b, sizeof mem_b, x0, P0, Q, R, &b) != LEARNEST_OK) return 12;
+  if (PREFIX_init(mem_b, 16, x0, P0, Q, R, &b) != LEARNEST_NO_MEMORY || b) return 13;
+  if (PREFIX_init(mem_b, sizeof mem_b, x0, P0, Q, R, &b) != LEARNEST_OK) return 14;
   for (k = 0; k < T_RUN; ++k) {
-    if (PREFIX_step(a, k ? U[k - 1] : zero, Y[k]) != LEARNEST_OK) return 20;
+    if (PREFIX_step(a, k ? U[k - 1] : zero, Y[k], NULL) != LEARNEST_OK) return 20;
     for (i = 0; i < 2; ++i) other[i] = 0.5 * Y[T_RUN - 1 - k][i];
     /* b's made-up samples are partly rejected by the gate: status 1, not an error */
-    if (PREFIX_step(b, zero, other) < 0) return 21;
+    if (PREFIX_step(b, zero, other, NULL) < 0) return 21;
     PREFIX_get_state(a, x);
     for (i = 0; i < NX; ++i) printf("%.17g%c", x[i], i + 1 < NX ? ' ' : '\n');
   }
@@ -167,6 +167,13 @@ int main(void) {
   return calls != 0;
 }
 """
+
+
+def gn_sources(directory):
+    """The C sources of a generated folder (its manifest's list)."""
+    from learnest_codegen.runtime.manifest import GeneratedEstimator
+
+    return GeneratedEstimator.read(directory).source_paths
 
 
 def c_array(values) -> str:
@@ -182,7 +189,7 @@ def test_plain_c_main_two_instances_and_no_allocation(builds, parity_run, cartpo
     prefix = gn.manifest["prefix"]
     T = 60
     U, Y = parity_run.u[:T], parity_run.y[:T]
-    Q, R, P = gn.settings.weights()
+    Q, R, P = gn.settings.covariances()
     flat = lambda M: c_array(M.ravel()).strip("{}")  # noqa: E731
     source = (C_MAIN.replace("PREFIX_UP", prefix.upper()).replace("PREFIX", prefix)
               .replace("UDATA", c_array(U)).replace("YDATA", c_array(Y))
@@ -191,13 +198,10 @@ def test_plain_c_main_two_instances_and_no_allocation(builds, parity_run, cartpo
               .replace("PDATA", "{" + flat(P) + "}"))
     main_c = tmp_path / "main.c"
     main_c.write_text(f"#define T_RUN {T}\n" + source)
-    exe, model_o = tmp_path / "main", tmp_path / "model.o"
+    exe = tmp_path / "main"
     wrap = "-Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc,--wrap=free"
-    # CasADi's model code is not -Wextra clean (unused parameters); the solver and main are.
-    subprocess.run(["gcc", "-O2", "-c", str(directory / f"{prefix}_model.c"), "-o", str(model_o)],
-                   check=True)
     subprocess.run(["gcc", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                    str(main_c), str(directory / f"{prefix}.c"), str(model_o), f"-I{directory}",
+                    str(main_c), *map(str, gn_sources(directory)), f"-I{directory}",
                     wrap, "-lm", "-o", str(exe)], check=True)
     proc = subprocess.run([str(exe)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -224,7 +228,7 @@ def test_errors_leave_the_estimator_unchanged(builds, parity_run, cartpole):
     with pytest.raises(ShapeError):
         gn.step(np.zeros(2), parity_run.y[30])
     with pytest.raises(DataError):
-        gn.step(np.zeros(1), np.array([np.nan, 0.0]))
+        gn.step(np.zeros(1), np.array([np.inf, 0.0]))
     # a converged solve that cannot reach its tolerance in one iteration: MAX_ITERATIONS (the
     # first sample is a linear least-squares problem, solved in one; the nonlinear ones are not)
     tight = CompiledEmbeddedMHE(builds["nominal", "mhe_gn"],

@@ -83,7 +83,7 @@ def test_bad_input_raises_and_leaves_the_state(estimators, run, cartpole, case):
         est.step(run.u[max(k - 1, 0)], run.y[k])
     before = est.x
     bad_y = run.y[20].copy()
-    bad_y[0] = np.nan
+    bad_y[0] = np.inf  # NaN would be a missing output
     for u, y, error in ((run.u[19][:0], run.y[20], ShapeError), (run.u[19], run.y[20][:1], ShapeError),
                         (run.u[19], bad_y, DataError)):
         with pytest.raises(error):

@@ -240,13 +240,13 @@ int main(void) {
 }
 """
 # per API: init, step, get_state and teardown. The handle APIs run on malloc'd workspace that is
-# freed at the end (valgrind then sees every byte the program owns); the UKF's first sample is
-# update-only with U[0], the MHEs' with a zero input (the run() conventions of the headers).
+# freed at the end (valgrind then sees every byte the program owns); the first sample takes U[0]
+# (the run() convention of the headers).
 MAIN_PARTS = {
     "handle": {
         "INIT": "size_t n = @PREFIX@_workspace_size(); void* mem = malloc(n); @PREFIX@_t* h;\n"
                 "  if (!mem || @PREFIX@_init(mem, n, x0, M1, M2, M3, &h) != 0) return 1;",
-        "STEP": "@PREFIX@_step(h, u, Y[k])", "GET_STATE": "@PREFIX@_get_state(h, x)",
+        "STEP": "@PREFIX@_step(h, u, Y[k], NULL)", "GET_STATE": "@PREFIX@_get_state(h, x)",
         "FINISH": "free(mem);",
     },
     "static": {
@@ -267,9 +267,9 @@ def c_array(values) -> str:
 def write_main(target, directory: Path, T: int) -> Path:
     """``directory/main.c`` that inits ``target``, steps ``T`` samples of its run and prints x."""
     api = target.api
-    header = f"{target.prefix}_api.h" if target.estimator in ("ukf", "mhe") else f"{target.prefix}.h"
+    header = f"{target.prefix}.h"
     parts = MAIN_PARTS["handle" if api.handle else "static"]
-    first_u = "U[0]" if target.estimator == "ukf" else "zero"
+    first_u = "U[0]"
     source = MAIN_C
     for key, value in parts.items():
         source = source.replace(f"@{key}@", value)

@@ -50,7 +50,8 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
                                  precision=precision, gate=gate)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
-                   f"built in {res.build_seconds:.2f} s{', reused' if res.build_seconds == 0 else ''})")
+                   + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused
+                      else f"built in {res.build_seconds:.2f} s)"))
     return results
 
 

@@ -1,147 +1,118 @@
-"""Generate the MHE as C: the whole Ipopt nlpsol (CasADi codegen) plus a small C API.
+"""Generate the MHE as C: the Ipopt nlpsol of eq. (2) (CasADi codegen) in the C kit's MHE.
 
 Stages, acados-style: :func:`build_problem` describes the NLP (shared with the Python
-reference), CasADi writes ``<prefix>.c/.h`` (the solver and the model ``F`` used for the warm
-start), the templates ``templates/mhe_ipopt_api.{h,c}.in`` give ``<prefix>_api.c/.h`` (window
-bookkeeping on caller-provided memory, see the header), gcc links them against the casadi
-wheel's ``libipopt.so`` into ``lib<prefix>.so``, and ``manifest.json`` records what was built.
-An unchanged build is reused (toolchain stamp).
+reference), CasADi writes the solver and the model functions the window needs (``F`` for the
+warm start, ``h`` and its Jacobian for the gate) into ``<prefix>_model.c``, and the C kit's
+``learnest_mhe_ipopt.h`` holds the estimator around them (window, gate, restart, API), its
+problem struct being the solver's parameter vector (checked at compile time against
+``ParamLayout``). gcc links them against the casadi wheel's ``libipopt.so``
+(``codegen/emit.py``). The same window and gate serve the embedded MHE (:mod:`.mhe_gn`).
 """
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as cs
+import numpy as np
 
 from .. import toolchain
-from ..estimators.gate import MAX_INFLATION
-from ..estimators.mhe_problem import (
-    IPOPT_OPTIONS,
-    MHESettings,
-    ParamLayout,
-    build_problem,
-    measurement_function,
-)
+from ..estimators.mhe_problem import IPOPT_OPTIONS, MHESettings, build_problem, measurement_function
 from ..export import DiscreteModel
-from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
-from ..runtime.status import STATUS_NAMES
-from . import templates
-
-API_CFLAGS = (*toolchain.DEFAULT_CFLAGS, "-Wall", "-Wextra")
-
-
-@dataclass(frozen=True)
-class GeneratedMHE:
-    """What :func:`generate_mhe` produced.
-
-    Attributes
-    ----------
-    directory, library, sources (generated solver .c, API .c), header (API .h), manifest.
-    build_seconds : compile time of this call (0.0 when the build was reused).
-    code_bytes : size of the C sources and headers.
-    reused : True when the library was up to date and not recompiled.
-    """
-
-    directory: Path
-    prefix: str
-    library: Path
-    sources: tuple[Path, ...]
-    header: Path
-    manifest: Path
-    build_seconds: float
-    code_bytes: int
-    reused: bool
+from ..runtime.manifest import GeneratedEstimator
+from .emit import Design, comment, emit, resolve_prefix
 
 
 def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
-                 prefix: str | None = None, model_hash: str = "") -> GeneratedMHE:
-    """Generate, compile and describe the MHE of ``model`` in ``out_dir``.
+                 prefix: str | None = None, model_hash: str = "",
+                 force: bool = False) -> GeneratedEstimator:
+    """Generate, compile and describe the Ipopt MHE of ``model`` in ``out_dir``.
 
     Parameters
     ----------
     model : the discrete model the estimator uses.
-    settings : horizon and default weights (weights stay settable at run time);
+    settings : horizon and default tuning (the tuning stays settable at run time);
         default ``MHESettings.from_system(model.system)``.
     out_dir : the folder for this estimator (created).
-    prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``; also names the CasADi solver.
-    model_hash : hash of the model's weights, recorded in the manifest.
+    prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``.
+    model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
+    force : rebuild the library even when nothing changed.
     """
     settings = settings or MHESettings.from_system(model.system)
-    prefix = prefix or f"{model.system.name}_{model.kind}_mhe"
-    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", prefix):
-        raise ValueError(f"generate_mhe: prefix {prefix!r} is not a C identifier without "
-                         "leading/trailing/double underscores (CasADi's rule for names)")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    problem = build_problem(model, settings, prefix)
-    solver_c = _generate_solver(problem.solver, (_renamed_F(model, prefix),
-                                measurement_function(model, f"{prefix}_meas")), out, prefix)
-    api_h, api_c = _write_api(out, prefix, problem.layout, settings)
-    include, lib = toolchain.casadi_dirs()
-    build = toolchain.build_shared([solver_c, api_c], out / f"lib{prefix}.so",
-                                   include_dirs=[out, include], lib_dirs=[lib], libs=["ipopt"],
-                                   cflags=API_CFLAGS)
-    files = (solver_c, solver_c.with_suffix(".h"), api_c, api_h, out / templates.STATUS_HEADER,
-             out / templates.GATE_HEADER)
-    code_bytes = sum(f.stat().st_size for f in files)
-    manifest = write_manifest(out, {
-        "estimator": "mhe", "system": model.system.name, "model_kind": model.kind,
-        "system_fingerprint": model.system.fingerprint(),
-        "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
-        "horizon": settings.horizon, "settings": settings.to_json(),
-        "settings_hash": settings_hash(settings.to_json()), "model_hash": model_hash,
-        "code_hash": toolchain.file_hash(*files), "casadi_version": cs.__version__,
-        "ipopt_options": dict(IPOPT_OPTIONS), "library": build.library.name,
-        "build_seconds": _build_seconds(out, build), "code_bytes": code_bytes,
-        "status_codes": {str(k): v for k, v in STATUS_NAMES.items()},
-    })
-    return GeneratedMHE(out, prefix, build.library, (solver_c, api_c), api_h, manifest,
-                        build.seconds, code_bytes, build.reused)
-
-
-def _renamed_F(model: DiscreteModel, prefix: str) -> cs.Function:
-    """``F`` under a prefixed name, so its exported C symbol is unique."""
+    prefix = resolve_prefix(prefix, model, "mhe", "float64")
+    problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
-    return cs.Function(f"{prefix}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
+    F = cs.Function(f"{prefix}_model_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
+    functions = (problem.solver, F, measurement_function(model, f"{prefix}_model_node"))
+    offsets = problem.layout.offsets()
+    include, lib = toolchain.casadi_dirs()
+    design = Design(
+        estimator="mhe", title="Moving horizon estimator (Ipopt)", kit="learnest_mhe_ipopt.h",
+        functions=functions,
+        hooks={"LEARNEST_MODEL_SOLVER": problem.solver.name(),
+               "LEARNEST_MODEL_SOLVER_CHECKOUT": f"{problem.solver.name()}_checkout",
+               "LEARNEST_MODEL_SOLVER_RELEASE": f"{problem.solver.name()}_release",
+               "LEARNEST_MODEL_F": F.name(), "LEARNEST_MODEL_NODE": functions[2].name()},
+        defaults=mhe_defaults(model, settings), gate=settings.gate, precision="float64",
+        settings=settings.to_json(), solver=None, horizon=settings.horizon,
+        doc=header_doc(settings, "Ipopt"), declarations=("mhe.h.in",),
+        workspace=mhe_workspace(model.nx, model.nu, model.ny, settings.horizon, solution=True),
+        glue_defines={"LEARNEST_NP": str(problem.layout.size),
+                      **{f"LEARNEST_OFF_{name.upper()}": str(off) for name, off in offsets.items()}},
+        link={"include_dirs": (include,), "lib_dirs": (lib,), "libs": ("ipopt",)},
+        extra={"ipopt_options": dict(IPOPT_OPTIONS)})
+    return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
-def _generate_solver(solver: cs.Function, helpers: tuple[cs.Function, ...], out: Path,
-                     prefix: str) -> Path:
-    cg = cs.CodeGenerator(f"{prefix}.c", {"with_header": True})
-    cg.add(solver)
-    for fn in helpers:
-        cg.add(fn)
-    cg.generate(f"{out}/")
-    return out / f"{prefix}.c"
+def mhe_defaults(model: DiscreteModel, settings: MHESettings) -> dict[str, np.ndarray]:
+    """``x0`` (the system's) and the covariances ``P0`` (arrival), ``Q``, ``R`` of ``settings``."""
+    Q, R, P = settings.covariances()
+    return {"x0": np.asarray(model.system.x0, dtype=float), "P0": P, "Q": Q, "R": R}
 
 
-def _build_seconds(out: Path, build: toolchain.BuildResult) -> float:
-    """This build's seconds, or, for a reused library, those recorded when it was built."""
-    if build.reused and (out / MANIFEST).is_file():
-        return float(read_manifest(out).get("build_seconds", 0.0))
-    return round(build.seconds, 3)
+def mhe_workspace(nx: int, nu: int, ny: int, horizon: int, *, solution: bool) -> dict[str, int]:
+    """What the MHEs' handles hold besides CasADi's work arrays (``codegen/emit.py``): the
+    common part, two problems, two windows of states, the gate's covariances."""
+    n1, nw = horizon + 1, (horizon + 1) * nx
+    problem = nx + n1 * (nu + 2 * ny + 1) + 2 * nx * nx + ny * ny
+    reals = 4 + 2 * problem + 2 * nw + nx * nx + ny * ny + (nw if solution else 0)
+    return {"reals": reals, "ints": 6 + ny, "members": 24}
 
 
-def _write_api(out: Path, prefix: str, layout: ParamLayout,
-               settings: MHESettings) -> tuple[Path, Path]:
-    offsets = layout.offsets()
-    values = {"p": prefix, "P": prefix.upper(), "nx": layout.nx, "nu": layout.nu,
-              "ny": layout.ny, "horizon": layout.horizon, "np": layout.size,
-              "off_xbar": offsets["xbar"], "off_u": offsets["U"], "off_y": offsets["Y"],
-              "off_mask": offsets["mask"], "off_g": offsets["G"], "off_q": offsets["Q"],
-              "off_r": offsets["R"], "off_pw": offsets["P"], **gate_values(settings, "float64")}
-    templates.write_status_header(out)
-    templates.write_gate_header(out)
-    return (templates.write(out, "mhe_ipopt_api.h.in", f"{prefix}_api.h", values),
-            templates.write(out, "mhe_ipopt_api.c.in", f"{prefix}_api.c", values))
-
-
-def gate_values(settings: MHESettings, precision: str) -> dict[str, str]:
-    """The gate defaults as template fields ``gate_threshold``, ... (C literals)."""
-    gate = settings.gate
-    return {"gate_threshold": repr(gate.c_threshold()), "gate_recover_after": str(gate.recover_after),
-            "gate_inflation": repr(gate.inflation), "max_inflation": repr(MAX_INFLATION[precision]),
-            "gate_header_sha256": templates.gate_header_digest()}
+def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
+    """The MHEs' paragraphs of their header (``solver``: ``"Ipopt"`` or ``"Gauss-Newton"``)."""
+    how = ("the Ipopt solver CasADi generated (<prefix>_model.c); Ipopt allocates and frees its "
+           "problem on every step, so this estimator is the reference, not allocation-free "
+           "(mhe_gn / mhe_rti are)" if solver == "Ipopt" else
+           "a structured Gauss-Newton method (the C kit's learnest_gn.h: block-tridiagonal "
+           "normal equations by a block Cholesky recursion, Armijo line search) on the model "
+           "and Jacobians CasADi generated (<prefix>_model.c), without Ipopt and without malloc")
+    return {
+        "description": comment(
+            f"The estimator solves, at every sample, the moving-horizon problem of eq. (2) "
+            f"(learnest_codegen/estimators/mhe_problem.py) over the last N+1 = "
+            f"{settings.horizon + 1} samples with {how}. The window (the C kit's "
+            "learnest_window.h, mirrored by estimators/mhe_window.py) moves by one stage per "
+            "sample; the arrival prior becomes the previous solution's estimate of the new "
+            "first state once the window is full; the solve is warm-started from the previous "
+            "solution shifted by one stage, its new last state predicted by F. Each output "
+            "of each stage carries a weight G (1: in the cost; 0: missing, rejected, or folded "
+            "into a restart), so a missing output leaves the rest of its stage in the cost."),
+        "arrival_note": ", set_arrival",
+        "reset_keeps": "" if solver == "Ipopt" else " and the solver options",
+        "init_options": "" if solver == "Ipopt" else " and the solver options",
+        "threads": ("\n *   The Ipopt MHE: use one library from one thread at a time (each solve "
+                    "checks a\n *   memory out of CasADi's static pool)." if solver == "Ipopt" else ""),
+        "covariance_rule": "each must be symmetric positive definite (the cost weighs by their "
+                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE.",
+        "set_noise_keeps": "the window, its solution and the gate",
+        "gate_doc": "before a sample enters the window, each valid output's innovation\n"
+                    " *   against h(xpred, u) at the warm start's last state xpred is normalised "
+                    "by\n *   S_jj = rho (C P0 C^T)_jj + R_jj (C = dh/dx at xpred, P0 the arrival "
+                    "covariance).",
+        "recovery_doc": "rho is multiplied by it; the first step that then\n"
+                        " *   accepts its outputs restarts the window (emptied, its prior the "
+                        "Kalman update of\n *   xpred by the sample), and rho shrinks again "
+                        "per clean step. A step that fails\n *   makes the next step restart "
+                        "the window the same way.",
+    }

@@ -1,97 +1,73 @@
 """Generate the embedded MHE as C: a structured Gauss-Newton SQP with no Ipopt and no malloc.
 
-Stages, as for the Ipopt MHE: CasADi writes ``<prefix>_model.c/.h`` (the RK4 model ``F`` and
-the measurement ``h`` with their state Jacobians, from CasADi's AD), the templates
-``templates/mhe_gn.{h,c}.in`` give the solver and its C API (``<prefix>.h/.c``, described in
-the header), gcc builds ``lib<prefix>.so`` from them alone, and ``manifest.json`` records what
-was built. An unchanged build is reused (toolchain stamp).
+CasADi writes the RK4 model ``F`` and the measurement ``h`` with their state Jacobians (from
+CasADi's AD) into ``<prefix>_model.c``; the C kit's ``learnest_mhe_gn.h`` holds the estimator
+(the Gauss-Newton core ``learnest_gn.h``, the window and gate the Ipopt MHE shares, the API),
+and ``codegen/emit.py`` writes and builds the folder (docs/embedded_mhe.md).
 """
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import casadi as cs
 
-from .. import toolchain
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
-from ..estimators.precision import PRECISIONS
 from ..export import DiscreteModel
-from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
-from ..runtime.status import STATUS_NAMES
-from . import templates
-from .mhe import GeneratedMHE, gate_values
-
-CFLAGS = (*toolchain.DEFAULT_CFLAGS, "-Wall", "-Wextra")
+from ..runtime.manifest import GeneratedEstimator
+from .emit import Design, emit, resolve_prefix
+from .mhe import header_doc, mhe_defaults, mhe_workspace
 
 
 def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                           solver: GaussNewtonSettings | None = None, prefix: str | None = None,
-                          model_hash: str = "") -> GeneratedMHE:
+                          model_hash: str = "", force: bool = False) -> GeneratedEstimator:
     """Generate, compile and describe the embedded (Gauss-Newton) MHE of ``model``.
 
-    Parameters
-    ----------
-    model : the discrete model the estimator uses.
-    settings : horizon and default weights (weights are set at run time by init/reset);
-        default ``MHESettings.from_system(model.system)``.
-    out_dir : the folder for this estimator (created).
-    solver : mode, iteration limit, tolerance and precision; default converged, float64.
-    prefix : C symbol prefix, default ``"<system>_<kind>_<mhe_gn|mhe_rti>"``.
-    model_hash : hash of the model's weights, recorded in the manifest.
+    The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
+    tolerance and precision (default converged, float64). The default prefix is
+    ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32`` appended in float32).
     """
     settings = settings or MHESettings.from_system(model.system)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
-    prefix = prefix or f"{model.system.name}_{model.kind}_{solver.estimator}"
-    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", prefix):
-        raise ValueError(f"generate_embedded_mhe: prefix {prefix!r} is not a C identifier without "
-                         "leading/trailing/double underscores")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    real = PRECISIONS[solver.precision]
-    model_c = _generate_model(model, prefix, real, out)
-    values = {"p": prefix, "P": prefix.upper(), "nx": model.nx, "nu": model.nu, "ny": model.ny,
-              "horizon": settings.horizon, "real": real, "default_mode": solver.mode,
-              "default_mode_value": int(solver.mode == "rti"),
-              "default_max_iter": solver.max_iterations, "default_tol": repr(solver.tolerance),
-              **gate_values(settings, solver.precision)}
-    status_h = templates.write_status_header(out)
-    gate_h = templates.write_gate_header(out)
-    header = templates.write(out, "mhe_gn.h.in", f"{prefix}.h", values)
-    source = templates.write(out, "mhe_gn.c.in", f"{prefix}.c", values)
-    build = toolchain.build_shared([model_c, source], out / f"lib{prefix}.so", include_dirs=[out],
-                                   cflags=CFLAGS)
-    files = (model_c, model_c.with_suffix(".h"), source, header, status_h, gate_h)
-    code_bytes = sum(f.stat().st_size for f in files)
-    manifest = write_manifest(out, {
-        "estimator": solver.estimator, "system": model.system.name, "model_kind": model.kind,
-        "system_fingerprint": model.system.fingerprint(),
-        "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
-        "horizon": settings.horizon, "settings": settings.to_json(), "solver": solver.to_json(),
-        "settings_hash": settings_hash(settings.to_json()),
-        "precision": solver.precision, "model_hash": model_hash,
-        "code_hash": toolchain.file_hash(*files), "casadi_version": cs.__version__,
-        "library": build.library.name, "build_seconds": _build_seconds(out, build),
-        "code_bytes": code_bytes, "status_codes": {str(k): v for k, v in STATUS_NAMES.items()},
-        "model_instructions": model_instructions(model),
-    })
-    return GeneratedMHE(out, prefix, build.library, (model_c, source), header, manifest,
-                                build.seconds, code_bytes, build.reused)
+    prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision)
+    functions = model_functions(model, f"{prefix}_model")
+    nx, ny, n = model.nx, model.ny, settings.horizon
+    gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
+          + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
+    counts = mhe_workspace(nx, model.nu, ny, n, solution=False)
+    counts = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 4,
+              "members": counts["members"] + 16}
+    P = prefix.upper()
+    design = Design(
+        estimator=solver.estimator,
+        title=f"Embedded moving horizon estimator ({'RTI' if solver.mode == 'rti' else 'converged'} "
+              "Gauss-Newton)", kit="learnest_mhe_gn.h", functions=functions,
+        hooks={"LEARNEST_MODEL_STAGE": functions[0].name(), "LEARNEST_MODEL_NODE": functions[1].name(),
+               "LEARNEST_MODEL_F": functions[2].name()},
+        defaults=mhe_defaults(model, settings), gate=settings.gate, precision=solver.precision,
+        settings=settings.to_json(), solver=solver.to_json(), horizon=n,
+        doc=header_doc(settings, "Gauss-Newton"), declarations=("mhe.h.in", "mhe_gn.h.in"),
+        workspace=counts,
+        options={"MODE": f"{int(solver.mode == 'rti')}  /* {P}_MODE_{solver.mode.upper()} */",
+                 "MAX_ITER": str(solver.max_iterations), "TOL": repr(solver.tolerance)},
+        glue_defines={f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
+        extra={"model_instructions": model_instructions(model)})
+    return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
-def model_functions(model: DiscreteModel, prefix: str) -> tuple[cs.Function, ...]:
-    """``<prefix>_dyn(x, u) -> (F, A)``, ``<prefix>_meas(x, u) -> (h, C)``, ``<prefix>_F``.
+def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
+    """``<name>_stage(x, u) -> (F, A)``, ``<name>_node(x, u) -> (h, C)``, ``<name>_F``.
 
-    ``A = dF/dx`` and ``C = dh/dx`` by CasADi's AD, dense (the C indexes them column-major).
+    ``A = dF/dx`` and ``C = dh/dx`` by CasADi's AD, dense (the kit indexes them column-major).
     """
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     return (
-        _with_jacobian(f"{prefix}_dyn", model.F(x, u), x, u, ("F", "A")),
-        _with_jacobian(f"{prefix}_meas", model.h(x, u), x, u, ("h", "C")),
-        cs.Function(f"{prefix}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"]),
+        _with_jacobian(f"{name}_stage", model.F(x, u), x, u, ("F", "A")),
+        _with_jacobian(f"{name}_node", model.h(x, u), x, u, ("h", "C")),
+        cs.Function(f"{name}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"]),
     )
 
 
@@ -106,20 +82,6 @@ def _with_jacobian(name: str, value: cs.SX, x: cs.SX, u: cs.SX, names: tuple[str
 
 def model_instructions(model: DiscreteModel) -> dict[str, int]:
     """Elementary operations of one evaluation of each model function (flop counts)."""
-    dyn, meas, F = model_functions(model, "m")
+    stage, node, F = model_functions(model, "m")
     return {name: max(0, int(fn.n_instructions() - fn.nnz_in() - fn.nnz_out()))
-            for name, fn in (("dyn", dyn), ("meas", meas), ("F", F))}
-
-
-def _generate_model(model: DiscreteModel, prefix: str, real: str, out: Path) -> Path:
-    cg = cs.CodeGenerator(f"{prefix}_model.c", {"with_header": True, "casadi_real": real})
-    for fn in model_functions(model, prefix):
-        cg.add(fn)
-    cg.generate(f"{out}/")
-    return out / f"{prefix}_model.c"
-
-
-def _build_seconds(out: Path, build: toolchain.BuildResult) -> float:
-    if build.reused and (out / MANIFEST).is_file():
-        return float(read_manifest(out).get("build_seconds", 0.0))
-    return round(build.seconds, 3)
+            for name, fn in (("dyn", stage), ("meas", node), ("F", F))}

@@ -1,25 +1,31 @@
-"""The C text of the generated APIs: template files in ``templates/`` filled with ``string.Template``.
+"""The text of a generated folder: the C kit's files, and the templates filled for a build.
 
-Each ``*.h.in`` / ``*.c.in`` is C with ``${name}`` fields (C has no ``$``), so the C API
-reads and diffs as C, not as Python strings.
+The kit (``learnest_codegen/ckit/learnest_*.h``) is copied as it is into every generated folder,
+so the folder builds without Python; ``learnest_status.h`` is rendered from the one status table
+(``runtime/status.py``) and the option ranges (``runtime/limits.py``). The templates in
+``templates/`` (``*.in``: C, make and CMake text with ``${name}`` fields, filled with
+``string.Template``) give the public header, the glue naming the generated model, and the build
+fragments.
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from string import Template
 from typing import Mapping
 
+from ..runtime.limits import c_macros
 from ..runtime.status import STATUSES
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
+KIT = Path(__file__).resolve().parents[1] / "ckit"
 STATUS_HEADER = "learnest_status.h"
-GATE_HEADER = "learnest_gate.h"
 
 
-def render(name: str, values: Mapping[str, object]) -> str:
-    """Template ``templates/<name>`` with ``values`` substituted (every field must be given)."""
-    return Template((TEMPLATES / name).read_text()).substitute(values)
+def render(name: str, values: Mapping[str, object], directory: Path = TEMPLATES) -> str:
+    """Template ``directory/<name>`` with ``values`` substituted (every field must be given)."""
+    return Template((directory / name).read_text()).substitute(values)
 
 
 def write(out: Path, template: str, filename: str, values: Mapping[str, object]) -> Path:
@@ -29,23 +35,26 @@ def write(out: Path, template: str, filename: str, values: Mapping[str, object])
     return path
 
 
-def write_status_header(out: Path) -> Path:
-    """``out/learnest_status.h``: the shared status codes (``runtime/status.py``) as C."""
+def status_header_text() -> str:
+    """``learnest_status.h``: the status codes and the option ranges as C."""
     lines = []
     for s in STATUSES:
         lines.append(f"/* {s.meaning}.\n * Recovery: {s.recovery}. */")
         lines.append(f"#define LEARNEST_{s.name} ({s.code})")
-    return write(out, f"{STATUS_HEADER}.in", STATUS_HEADER, {"codes": "\n".join(lines)})
+    return render(f"{STATUS_HEADER}.in", {"codes": "\n".join(lines), "limits": c_macros()}, KIT)
 
 
-def gate_header_digest() -> str:
-    """SHA-256 of ``learnest_gate.h``: the sources that include it quote it, so a change of the
-    header changes them and the toolchain (which hashes the .c files) rebuilds."""
-    import hashlib
-
-    return hashlib.sha256((TEMPLATES / f"{GATE_HEADER}.in").read_bytes()).hexdigest()
+def kit_files() -> tuple[Path, ...]:
+    """The kit's headers (every ``learnest_*.h`` of ``ckit/``), sorted by name."""
+    return tuple(sorted(KIT.glob("learnest_*.h")))
 
 
-def write_gate_header(out: Path) -> Path:
-    """``out/learnest_gate.h``: the innovation gate's C, shared by every estimator."""
-    return write(out, f"{GATE_HEADER}.in", GATE_HEADER, {})
+def write_kit(out: Path) -> tuple[Path, ...]:
+    """Copy the kit into ``out`` and render its status header there; returns the paths."""
+    paths = []
+    for source in kit_files():
+        paths.append(Path(out) / source.name)
+        shutil.copyfile(source, paths[-1])
+    status = Path(out) / STATUS_HEADER
+    status.write_text(status_header_text())
+    return (*paths, status)

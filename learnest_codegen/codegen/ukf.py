@@ -4,29 +4,23 @@
 for operation (Merwe sigma points from the upper Cholesky factor of ``(lambda + n) P``, the
 unscented transform, re-drawing the sigma points from the prior, an explicit ``S^-1`` and
 ``P - K S K^T``), so the compiled filter matches the reference to rounding.
-:func:`generate_ukf` writes the C of both functions plus ``<prefix>_api.{c,h}`` (from the
-templates ``templates/ukf_api.{h,c}.in``: a handle-based API on caller-provided memory) into one
-folder, compiles it and writes the folder's ``manifest.json``.
+:func:`generate_ukf` has CasADi write the C of FilterPy's predict and of a masked update into
+an estimator folder whose algorithm around them (samples, missing outputs, gate, covariance
+guards, API) is the C kit's ``learnest_ukf.h`` (``codegen/emit.py``, docs/c_kit.md).
 """
 
 from __future__ import annotations
 
-import re
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as cs
 import numpy as np
 
-from ..estimators.gate import MAX_INFLATION
-from ..estimators.precision import PRECISIONS, check_precision
+from ..estimators.precision import check_precision
 from ..estimators.ukf import UKFSettings
 from ..export import DiscreteModel
-from ..runtime.manifest import settings_hash, write_manifest
-from ..runtime.status import STATUS_NAMES
-from ..toolchain import BuildResult, build_shared, file_hash
-from . import templates
+from ..runtime.manifest import GeneratedEstimator
+from .emit import Design, comment, emit, resolve_prefix
 
 # The smallest sigma-point spread a float32 UKF accepts (docs/embedded_mhe.md, float32 table).
 FLOAT32_MIN_ALPHA = 0.5
@@ -34,13 +28,10 @@ ARG_NAMES = ["x", "P", "u", "y", "Q", "R"]
 RES_NAMES = ["x_post", "P_post"]
 PREDICT_ARGS, PREDICT_RES = ["x", "P", "u", "Q"], ["x_prior", "P_prior"]
 UPDATE_ARGS, UPDATE_RES = ["x", "P", "u", "y", "R", "mask"], ["x_post", "P_post", "d2"]
-_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-# -Wall -Wextra keep the hand-written API honest; CasADi's own code may still warn.
-CFLAGS = ("-O2", "-fPIC", "-fno-math-errno", "-std=c99", "-Wall", "-Wextra")
 
 
 def default_prefix(model: DiscreteModel) -> str:
-    """``<system>_<kind>_ukf``: the prefix of every exported C symbol and file."""
+    """``<system>_<kind>_ukf``: the default name of the generated functions."""
     return f"{model.system.name}_{model.kind}_ukf"
 
 
@@ -187,45 +178,14 @@ def ukf_update_function(model: DiscreteModel, settings: UKFSettings, *,
                        ARG_NAMES, RES_NAMES)
 
 
-@dataclass(frozen=True)
-class GeneratedUKF:
-    """A generated and compiled UKF folder.
-
-    Attributes
-    ----------
-    directory, library, manifest : the folder, its shared library and ``manifest.json``.
-    sources : the C and header files written (CasADi's and the API).
-    prefix : prefix of every exported C symbol.
-    generate_seconds : time to build the SX graphs and write the C.
-    build : the compiler call (its ``seconds``; ``reused`` when nothing changed).
-    code_bytes : total size of ``sources``.
-    """
-
-    directory: Path
-    library: Path
-    manifest: Path
-    sources: tuple[Path, ...]
-    prefix: str
-    generate_seconds: float
-    build: BuildResult
-    code_bytes: int
-
-    @property
-    def build_seconds(self) -> float:
-        """Compile time [s]; 0 when the library was reused."""
-        return self.build.seconds
-
-
 def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False, precision: str = "float64") -> GeneratedUKF:
-    """Write, compile and describe a C UKF for ``model`` in ``out_dir``.
+                 force: bool = False, precision: str = "float64") -> GeneratedEstimator:
+    """Write, compile and describe a C UKF for ``model`` in ``out_dir`` (``codegen/emit.py``).
 
-    Writes ``<prefix>_casadi.{c,h}`` (CasADi), ``<prefix>_api.{c,h}`` (the C API documented in
-    the header, from ``templates/ukf_api.*.in``), ``learnest_status.h``, ``lib<prefix>.so`` and
-    ``manifest.json``. ``precision`` (``"float64"`` or ``"float32"``) is the C real type.
-    Unchanged inputs reuse the library unless ``force``. Raises :class:`BuildError` with the
-    compiler's stderr on failure.
+    ``precision`` (``"float64"`` or ``"float32"``) is the C real type. Unchanged inputs reuse
+    the library unless ``force``. Raises :class:`BuildError` with the compiler's stderr on
+    failure.
     """
     check_precision(precision, "generate_ukf")
     if precision == "float32" and settings.alpha < FLOAT32_MIN_ALPHA:
@@ -233,62 +193,37 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                          f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
                          "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
                          "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
-    prefix = prefix or default_prefix(model)
-    if not _C_IDENTIFIER.fullmatch(prefix):
-        raise ValueError(f"generate_ukf: prefix must be a C identifier, got {prefix!r}")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    functions = (ukf_predict_function(model, settings, name=f"{prefix}_predict"),
-                 ukf_gated_update_function(model, settings, name=f"{prefix}_update"))
-    sources = _write_sources(model, settings, functions, out_dir, prefix, PRECISIONS[precision])
-    generate_seconds = time.perf_counter() - start
-    library = out_dir / f"lib{prefix}.so"
-    build = build_shared([p for p in sources if p.suffix == ".c"], library,
-                         include_dirs=[out_dir], cflags=CFLAGS, force=force)
-    code_bytes = sum(p.stat().st_size for p in sources)
-    manifest = write_manifest(out_dir, {
-        "estimator": "ukf", "system": model.system.name, "model_kind": model.kind,
-        "system_fingerprint": model.system.fingerprint(),
-        "prefix": prefix, "nx": model.nx, "nu": model.nu, "ny": model.ny, "dt": model.dt,
-        "settings": settings.to_json(), "settings_hash": settings_hash(settings.to_json()),
-        "model_hash": model_hash,
-        "code_hash": file_hash(*sources), "casadi_version": cs.__version__,
-        "library": library.name, "generate_seconds": generate_seconds,
-        "build_seconds": build.seconds, "build_reused": build.reused, "code_bytes": code_bytes,
-        "matrix_layout": "row-major", "precision": precision,
-        "status_codes": {str(k): v for k, v in STATUS_NAMES.items()},
-    })
-    return GeneratedUKF(out_dir, library, manifest, sources, prefix, generate_seconds, build,
-                        code_bytes)
+    prefix = resolve_prefix(prefix, model, "ukf", precision)
+    functions = (ukf_predict_function(model, settings, name=f"{prefix}_model_predict"),
+                 ukf_gated_update_function(model, settings, name=f"{prefix}_model_update"))
+    nx, ny = model.nx, model.ny
+    design = Design(
+        estimator="ukf", title="Unscented Kalman Filter", kit="learnest_ukf.h",
+        functions=functions,
+        hooks={"LEARNEST_MODEL_PREDICT": functions[0].name(), "LEARNEST_MODEL_UPDATE": functions[1].name()},
+        defaults={"x0": np.asarray(model.system.x0, dtype=float), "P0": settings.P0(),
+                  "Q": settings.Q(), "R": settings.R()},
+        gate=settings.gate, precision=precision, settings=settings.to_json(), solver=None,
+        horizon=None, doc=header_doc(settings), declarations=("ukf.h.in",),
+        workspace={"reals": 4 + nx + 2 * nx * nx + ny * ny, "ints": 5 + ny, "members": 16})
+    return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
-def _write_sources(model: DiscreteModel, settings: UKFSettings, functions, out_dir: Path, prefix: str,
-                   real: str) -> tuple[Path, ...]:
-    """CasADi's C for ``functions`` and the API around them; returns the file paths."""
-    casadi_c = f"{prefix}_casadi.c"
-    gen = cs.CodeGenerator(casadi_c, {"with_header": True, "casadi_real": real})
-    for fn in functions:
-        gen.add(fn)
-    gen.generate(str(out_dir) + "/")
-    # Work arrays in the filter's struct, sized for whichever function needs more; C forbids
-    # size-0 arrays.
-    work = {key: max(1, *(int(getattr(fn, f"sz_{key}")()) for fn in functions))
-            for key in ("arg", "res", "iw", "w")}
-    real_bytes = 4 if real == "float" else 8
-    bound = (128 + 8 * (work["arg"] + work["res"] + work["iw"]) + 4 * model.ny
-             + real_bytes * (model.nx + 2 * model.nx**2 + model.ny**2 + work["w"] + 4))
-    gate = settings.gate
-    values = dict(prefix=prefix, PREFIX=prefix.upper(), casadi_header=f"{prefix}_casadi.h",
-                  predict_fn=functions[0].name(), update_fn=functions[1].name(), nx=model.nx,
-                  nu=model.nu, ny=model.ny, dt=repr(float(model.dt)), real=real,
-                  gate_threshold=repr(gate.c_threshold()), gate_recover_after=gate.recover_after,
-                  gate_inflation=repr(gate.inflation),
-                  max_inflation=repr(MAX_INFLATION["float32" if real == "float" else "float64"]),
-                  gate_header_sha256=templates.gate_header_digest(),
-                  workspace_bound=bound, **{f"sz_{k}": v for k, v in work.items()})
-    status_h = templates.write_status_header(out_dir)
-    gate_h = templates.write_gate_header(out_dir)
-    api_h = templates.write(out_dir, "ukf_api.h.in", f"{prefix}_api.h", values)
-    api_c = templates.write(out_dir, "ukf_api.c.in", f"{prefix}_api.c", values)
-    return (out_dir / casadi_c, out_dir / f"{prefix}_casadi.h", api_c, api_h, status_h, gate_h)
+def header_doc(settings: UKFSettings) -> dict[str, str]:
+    """The UKF's paragraphs of its header."""
+    return {
+        "description": comment(
+            "The filter: FilterPy 2.0.0's predict and update on Merwe scaled sigma points "
+            f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), generated "
+            "as CasADi code (<prefix>_model.c) operation for operation, so it equals FilterPy "
+            "to rounding (tests/test_ukf.py); the C kit (learnest_ukf.h) runs the samples, the "
+            "gate and the covariance guards around it."),
+        "arrival_note": "", "reset_keeps": "", "init_options": "", "threads": "",
+        "covariance_rule": "each must be symmetric positive semidefinite (to rounding), else "
+                           "LEARNEST_NOT_POSITIVE_DEFINITE.",
+        "set_noise_keeps": "the state, its covariance and the gate",
+        "gate_doc": "each step computes, per valid output j, d2_j = (y_j - zp_j)^2 / S_jj with\n"
+                    " *   zp and S = P_zz + R the predicted output and its covariance.",
+        "recovery_doc": "the variances (the diagonal of P; the covariances\n"
+                        " *   stay, so stale correlations fade) are multiplied by it.",
+    }

@@ -28,7 +28,10 @@ gate (and a restart of the window once the measurements pass, see :mod:`.mhe`). 
 inflation compounds, so a persistent offset of any size is accepted after about
 ``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
 prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
-1; the UKF's ``P`` shrinks by its own updates). ``rho`` is
+1; the UKF's ``P`` shrinks by its own updates). The streak is kept per output and counts that
+output's own samples: a missing sample neither lengthens nor ends it, and the accepted samples
+of a fast output do not end the streak of a slow one that keeps being rejected; a step without
+any valid output (every output missing) leaves the streaks and ``rho`` as they were. ``rho`` is
 capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
@@ -98,8 +101,8 @@ class GateSettings:
         return cls(threshold=float(chi2.isf(probability, 1)), **overrides)
 
     def c_threshold(self) -> float:
-        """The threshold as the C code takes it: a negative number disables the gate."""
-        return self.threshold if self.enabled else -1.0
+        """The threshold as the C code takes it: 0 disables the gate."""
+        return self.threshold if self.enabled else 0.0
 
     def to_json(self) -> dict:
         data = dataclasses.asdict(self)
@@ -117,12 +120,15 @@ class GateSettings:
 
 
 class GateState:
-    """The gate's bookkeeping for one estimator run (mirrored by the C of every estimator).
+    """The gate's bookkeeping for one estimator run (the C kit's ``learnest_gate.h``, rule for
+    rule; ``tests/test_ckit.py`` compares them).
 
     Attributes
     ----------
     rejected : (ny,) bool, the outputs rejected by the last step.
-    streak : consecutive steps with at least one rejection.
+    streaks : (ny,) int, per output the consecutive samples *of that output* that were rejected
+        (a missing sample neither lengthens nor ends it).
+    streak : the longest of them.
     inflation : rho, the factor in force (1 outside an episode; see the module docstring).
     """
 
@@ -133,24 +139,47 @@ class GateState:
 
     def reset(self) -> None:
         self.rejected = np.zeros(self.ny, dtype=bool)
-        self.streak = 0
+        self.streaks = np.zeros(self.ny, dtype=int)
         self.inflation = 1.0
 
-    def test(self, d2: np.ndarray) -> np.ndarray:
-        """The rejected mask of normalised innovations ``d2 (ny,)`` (not stored)."""
+    @property
+    def streak(self) -> int:
+        return int(self.streaks.max(initial=0))
+
+    def test(self, d2: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
+        """The rejected mask of normalised innovations ``d2 (ny,)`` of the ``observed`` outputs
+        (None: all; a missing output is never rejected); not stored."""
         if not self.settings.enabled:
             return np.zeros(self.ny, dtype=bool)
-        return ~(np.asarray(d2) <= self.settings.threshold)  # NaN d2 is rejected
+        with np.errstate(invalid="ignore"):
+            rejected = ~(np.asarray(d2) <= self.settings.threshold)  # NaN d2 is rejected
+        return rejected if observed is None else rejected & np.asarray(observed, dtype=bool)
 
-    def record(self, rejected: np.ndarray) -> float:
-        """Store the step's mask, update the streak; return the factor to inflate by now (>= 1)."""
+    def ends_episode(self, rejected: np.ndarray, observed: np.ndarray) -> bool:
+        """Whether this step (before :meth:`record`) ends a recovery episode: it rejects nothing
+        and accepts a sample of an output whose streak had reached ``recover_after`` (the MHEs
+        restart their window)."""
+        in_episode = self.streaks >= self.settings.recover_after
+        return bool(not np.any(rejected) and np.any(in_episode & np.asarray(observed, dtype=bool)))
+
+    def record(self, rejected: np.ndarray, observed: np.ndarray | None = None) -> float:
+        """Store the step's mask, update the streaks; return the factor to inflate by now (>= 1).
+
+        Per observed output the streak grows by a rejection and ends with an acceptance. A step
+        that rejects an output whose streak has reached ``recover_after`` multiplies ``rho`` by
+        ``inflation`` (capped); a step that observes an output and rejects none divides it
+        (down to 1); a step with no ``observed`` output (a pure prediction) changes nothing.
+        """
         self.rejected = np.asarray(rejected, dtype=bool).copy()
+        observed = np.ones(self.ny, dtype=bool) if observed is None else np.asarray(observed, dtype=bool)
+        if not observed.any():
+            return 1.0
+        self.streaks = np.where(observed, np.where(self.rejected, self.streaks + 1, 0), self.streaks)
         if not self.rejected.any():
-            self.streak = 0
             self.inflation = max(1.0, self.inflation / self.settings.inflation)
             return 1.0
-        self.streak += 1
-        if self.streak < self.settings.recover_after or self.inflation * self.settings.inflation > self.cap:
+        due = self.streaks[self.rejected].max() >= self.settings.recover_after
+        if not due or self.inflation * self.settings.inflation > self.cap:
             return 1.0
         self.inflation *= self.settings.inflation
         return self.settings.inflation

@@ -1,8 +1,9 @@
 """Moving horizon estimator (paper section IV-A, eq. (2)) solved by CasADi nlpsol + Ipopt.
 
-This is the reference the compiled MHE (``codegen/mhe.py``, ``runtime/mhe.py``) is tested
-against; the C API re-implements :meth:`MHE.step`'s bookkeeping line by line, so a change here
-must be made there too (the parity test will say so).
+This is the reference the compiled MHEs (``codegen/mhe.py``, ``codegen/mhe_gn.py``) are
+tested against; its window (:mod:`.mhe_window`) and :meth:`MHE._advance` are the C kit's
+``learnest_window.h`` and ``learnest_mhe.h`` line by line, so a change here must be made there
+too (``tests/test_ckit.py`` compares them).
 
 Per sample: the window moves by one stage; the arrival prior becomes the previous solution's
 estimate of the new first state (``xbar_{k-N|k} <- xhat*_{k-N|k-1}``) once the window is full
@@ -12,11 +13,12 @@ the last window state. A step Ipopt does not solve raises :class:`SolverError` a
 estimator as it was: silently keeping a poor estimate would hide the problem, and the caller
 can still decide to go on.
 
-Innovation gate (:mod:`.gate`): before a sample enters the window, each output's innovation
-``y_j - h_j(xpred, u)`` at the prediction ``xpred`` (the warm start's last state) is normalised
-by ``S_jj = (C P_arr C^T)_jj + (R^-1)_jj`` (``C = dh/dx`` at ``xpred``, ``P_arr`` the inverse of
-the arrival weight times the gate's inflation ``rho``); a rejected output gets a 0 in the
-window's gate block ``G`` and never enters the cost while the sample is in the window.
+Innovation gate (:mod:`.gate`): before a sample enters the window, each valid output's
+innovation ``y_j - h_j(xpred, u)`` at the prediction ``xpred`` (the warm start's last state) is
+normalised by ``S_jj = rho (C P0 C^T)_jj + R_jj`` (``C = dh/dx`` at ``xpred``, ``P0`` and ``R``
+the arrival and measurement covariances, ``rho`` the gate's inflation); a rejected or missing
+output gets a 0 in the window's weights ``G`` and never enters the cost while the sample is in
+the window; the rest of its stage stays.
 Recovery: ``rho`` is 1 normally and multiplied by ``inflation`` at each rejecting step from the
 ``recover_after``-th consecutive one on, so the gate widens until the new measurements pass.
 The first step that then rejects nothing ends the episode and restarts the window: it is emptied,
@@ -41,11 +43,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import SolverError
+from ..errors import ShapeError, SolverError
 from ..export import DiscreteModel
 from . import validation
 from .gate import GateReport, GateState
-from .mhe_problem import MHESettings, ParamLayout, build_problem, gate_variances, measurement_function
+from .mhe_problem import MHESettings, ParamLayout, build_problem, measurement_function
+from .mhe_window import Window
 
 NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
                  "propagates no P. The arrival-cost weight is `arrival_weight`.")
@@ -78,8 +81,9 @@ class MHE(GateReport):
         self.rejections = 0
         self._gate = GateState(self.settings.gate, model.ny)
         self._meas = measurement_function(model, "meas")
-        self._P_given = self._P_cov = self._R_weight = None
-        self._p: np.ndarray | None = None
+        self._weights: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # Q, R, P
+        self._P_cov = self._R_cov = None
+        self._now: Window | None = None
         self._window: np.ndarray | None = None
         self._count = 0
 
@@ -98,43 +102,63 @@ class MHE(GateReport):
 
     @property
     def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight ``P`` of the arrival cost given at :meth:`reset` (the gate's
-        recovery divides it by its inflation while a track is being recovered)."""
+        """(nx, nx) the weight ``P`` of the arrival cost in use (the inverse of its covariance)."""
         self._started()
-        return self._P_given.copy()
+        return self._weights[2].copy()
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from the prior ``x0 (nx,)``, the first arrival ``xbar``.
 
         ``P0 (nx, nx)``, if given, is the covariance of that prior: the arrival weight becomes
-        ``inv(P0)`` for the whole run (otherwise ``diag(1/arrival_std**2)`` from the settings).
+        ``inv(P0)`` for the whole run (otherwise the settings' arrival covariance).
         """
         x0 = validation.vector("MHE.reset: x0", x0, self.model.nx)
         Q, R, P = self.settings.weights()
+        Q_cov, R_cov, P_cov = self.settings.covariances()
         if P0 is not None:
-            P = arrival_weight_from_covariance(P0, self.model.nx)
-        lay, n1 = self.layout, self.layout.horizon + 1
-        p = np.zeros(lay.size)
-        p[lay.slice("xbar")] = x0
-        for name, W in (("Q", Q), ("R", R), ("P", P)):
-            p[lay.slice(name)] = W.ravel(order="F")
-        self._p, self._window, self._count = p, np.tile(x0, (n1, 1)), 0
-        self._P_given, self._P_cov, self._R_weight = P, np.linalg.inv(P), R
-        self._R_cov = np.linalg.inv(R)
+            P, P_cov = arrival_weight_from_covariance(P0, self.model.nx), np.array(P0, dtype=float)
+        self._weights, self._P_cov, self._R_cov = (Q, R, P), P_cov, R_cov
+        self._now = Window.empty(self.layout, x0)
+        self._window, self._count = np.tile(x0, (self.layout.horizon + 1, 1)), 0
         self._gate = GateState(self.settings.gate, self.model.ny)  # settings as of this reset
         self._restart = False
         self.rejections = 0
 
-    def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
+        """New covariances (None keeps one) from the next step on: process ``Q``, measurement
+        ``R`` and the arrival cost's ``P_arrival``; the window, its solution and the gate stay
+        (the C ``set_noise`` and ``set_arrival``)."""
+        self._started()
+        weights = list(self._weights)
+        if Q is not None:
+            weights[0] = arrival_weight_from_covariance(Q, self.model.nx, "MHE.set_noise: Q")
+        if R is not None:
+            weights[1] = arrival_weight_from_covariance(R, self.model.ny, "MHE.set_noise: R")
+        if P_arrival is not None:
+            weights[2] = arrival_weight_from_covariance(P_arrival, self.model.nx,
+                                                        "MHE.set_noise: P_arrival")
+            self._P_cov = np.array(P_arrival, dtype=float)
+        if R is not None:
+            self._R_cov = np.array(R, dtype=float)
+        self._weights = tuple(weights)
+
+    def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
         """Take the sample ``y (ny,)`` with ``u (nu,)``, the input applied since the previous one.
 
-        The first step after :meth:`reset` takes sample 0: there is no transition and ``u``
-        only enters ``h``. Returns the estimate ``x (nx,)``.
+        NaN in ``y`` is a missing output, or ``valid (ny,)`` says which outputs ``y`` holds; a
+        missing output contributes nothing (its weight in the window is 0). The first step after
+        :meth:`reset` takes sample 0: there is no transition and ``u`` only enters ``h``.
+        Returns the estimate ``x (nx,)``.
         """
         self._started()
         u = validation.vector("MHE.step: u", u, self.model.nu)
-        y = validation.vector("MHE.step: y", y, self.model.ny)
-        p, guess, rejected, restart = self._advance(u, y)
+        y, mask = validation.measurements("MHE.step: y", y, valid, self.model.ny)
+        if y.shape != (self.model.ny,):
+            raise ShapeError(f"MHE.step: y: expected shape ({self.model.ny},), got {y.shape}")
+        valid = np.ones(self.model.ny, dtype=bool) if mask is None else mask
+        window, guess, rejected = self._advance(u, y, valid)
+        p = window.parameters(self.layout, *self._weights)
         try:
             solution = self.problem.solver(x0=guess.ravel(), p=p)
         except RuntimeError as exc:  # error_on_fail: nlpsol raises when Ipopt did not succeed
@@ -142,67 +166,57 @@ class MHE(GateReport):
             status = self.problem.solver.stats().get("return_status", "unknown")
             raise SolverError(f"MHE.step (sample {self._count}): Ipopt returned {status}") from exc
         self.iterations = int(self.problem.solver.stats()["iter_count"])
-        self._p, self._window = p, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
+        self._now, self._window = window, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
         self._count += 1
-        self._gate.record(rejected)
+        self._gate.record(rejected, valid)
         self._restart = False
         self.rejections += int(rejected.sum())
         return self.x
 
-    def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
-            P0: np.ndarray | None = None) -> np.ndarray:
-        """Estimate a whole run: ``U (T, nu)``, ``Y (T, ny)`` -> ``X_hat (T, nx)``.
+    def predict(self, u: np.ndarray) -> np.ndarray:
+        """A sample without measurement: ``step(u, y, valid=all False)``."""
+        return self.step(u, np.zeros(self.model.ny), np.zeros(self.model.ny, dtype=bool))
 
-        Sample 0 uses ``Y[0]`` only (with a zero input in ``h``); sample ``k >= 1`` is
-        ``step(U[k-1], Y[k])``, so ``U[T-1]`` is not used.
+    def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
+            P0: np.ndarray | None = None, valid=None) -> np.ndarray:
+        """Estimate a whole run: ``U (T, nu)``, ``Y (T, ny)`` (``valid (T, ny)`` or None) ->
+        ``X_hat (T, nx)``. Sample ``k`` is ``step(U[max(k-1, 0)], Y[k])``: sample 0 uses ``U[0]``
+        only in ``h``, and ``U[T-1]`` is not used.
         """
+        Y, mask = validation.measurements("MHE.run", Y, valid, self.model.ny)
         U, Y = validation.run_arrays("MHE.run", U, Y, self.model.nu, self.model.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
-        X_hat[0] = self.step(np.zeros(self.model.nu), Y[0])
-        for k in range(1, len(Y)):
-            X_hat[k] = self.step(U[k - 1], Y[k])
+        for k in range(len(Y)):
+            X_hat[k] = self.step(U[max(k - 1, 0)], Y[k], None if mask is None else mask[k])
         return X_hat
 
-    def _advance(self, u: np.ndarray, y: np.ndarray):
-        """Parameters, warm start, rejected outputs and whether the window restarts, for the
-        next sample (mirrored by ``<prefix>_step`` in C)."""
-        lay = self.layout
-        p, guess = self._p.copy(), self._window.copy()
-        U, Y = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("Y")].reshape(-1, lay.ny)
-        mask, G = p[lay.slice("mask")], p[lay.slice("G")].reshape(-1, lay.ny)
-        if self._count > 0:
-            if mask[0] == 1.0:  # window was full: the arrival moves on to the next sample
-                p[lay.slice("xbar")] = self._window[1]
-            for block in (U, Y, mask, G, guess):
-                block[:-1] = block[1:]
+    def _advance(self, u: np.ndarray, y: np.ndarray, valid: np.ndarray):
+        """The window, warm start and rejected outputs of the next sample (the C kit's
+        ``learnest_mhe_advance`` and ``learnest_mhe_gate``, line by line)."""
+        has_previous = self._count > 0
+        window, guess = self._now.copy(), self._window.copy()
+        if has_previous:
+            window.shift(self._window)
+            guess[:-1] = guess[1:]
             guess[-1] = self.model.step(self._window[-1], u)
+        window.open(u)
         rho = self._gate.inflation
         h, C = (np.asarray(v) for v in self._meas(guess[-1], u))
         h = h.ravel()
-        S = gate_variances(C, rho * self._P_cov, self._R_weight)
+        S = rho * np.einsum("ij,jk,ik->i", C, self._P_cov, C) + np.diag(self._R_cov)
+        innovation = np.where(valid, y - h, 0.0)
         with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
-            rejected = self._gate.test((y - h) ** 2 / S)
-        recovering = self._gate.streak >= self.settings.gate.recover_after
-        restart = self._count > 0 and (self._restart or (recovering and not rejected.any()))
-        if restart:
-            xbar = restart_prior(guess[-1], C, rho * self._P_cov, self._R_cov, y - h, rejected)
-            p, guess = self._restarted(p, xbar)
-            U, Y = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("Y")].reshape(-1, lay.ny)
-            mask, G = p[lay.slice("mask")], p[lay.slice("G")].reshape(-1, lay.ny)
-        U[-1], Y[-1], mask[-1] = u, y, 1.0
-        G[-1] = 0.0 if restart else ~rejected  # a restart folds the sample into the prior
-        return p, guess, rejected, restart
-
-    def _restarted(self, p: np.ndarray, xbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The parameters and guess of an empty window with prior ``xbar`` (the recovery's
-        restart: the sample is then taken as the first after a reset)."""
-        lay = self.layout
-        fresh = np.zeros_like(p)
-        for name in ("Q", "R", "P"):
-            fresh[lay.slice(name)] = p[lay.slice(name)]
-        fresh[lay.slice("xbar")] = xbar
-        return fresh, np.tile(xbar, (lay.horizon + 1, 1))
+            rejected = self._gate.test(innovation ** 2 / S, valid)
+        keep = valid & ~rejected
+        if has_previous and (self._restart or self._gate.ends_episode(rejected, valid)):
+            xbar = restart_prior(guess[-1], C, rho * self._P_cov, self._R_cov, innovation, ~keep)
+            window = Window.empty(self.layout, xbar)
+            window.open(u)
+            guess = np.tile(xbar, (self.layout.horizon + 1, 1))
+            keep = np.zeros_like(keep)  # the sample is in the prior
+        window.weigh(y, keep)
+        return window, guess, rejected
 
     def _started(self) -> np.ndarray:
         if self._window is None:
@@ -229,9 +243,9 @@ def restart_prior(x_pred: np.ndarray, C: np.ndarray, P: np.ndarray, R: np.ndarra
     return x_pred + P @ Ck.T @ np.linalg.solve(S, innovation[keep])
 
 
-def arrival_weight_from_covariance(P0: np.ndarray, nx: int) -> np.ndarray:
+def arrival_weight_from_covariance(P0: np.ndarray, nx: int, where: str = "MHE.reset: P0") -> np.ndarray:
     """``inv(P0)`` for a symmetric positive-definite ``P0 (nx, nx)``, with clear errors."""
-    P0 = validation.covariance("MHE.reset: P0", P0, nx, definite=True)
+    P0 = validation.covariance(where, P0, nx, definite=True)
     L = np.linalg.cholesky(P0)
     L_inv = np.linalg.inv(L)
     return L_inv.T @ L_inv

@@ -145,6 +145,15 @@ class MHESettings:
             P = 0.5 * (P + P.T)
         return Q, R, P
 
+    def covariances(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(Q (nx, nx), R (ny, ny), P (nx, nx))``, the covariances the weights invert (what
+        the C API takes): ``diag(std**2)``, P the arrival covariance when one is set."""
+        Q, R, P = (np.diag(np.square(getattr(self, name)))
+                   for name in ("process_std", "measurement_std", "arrival_std"))
+        if self.arrival_covariance is not None:
+            P = np.asarray(self.arrival_covariance, dtype=float)
+        return Q, R, P
+
     def to_json(self) -> dict:
         data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "gate"}
         return {**json.loads(json.dumps(data)), "gate": self.gate.to_json()}  # tuples -> lists
@@ -260,11 +269,6 @@ def measurement_function(model: "DiscreteModel", name: str) -> cs.Function:
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     h = model.h(x, u)
     return cs.Function(name, [x, u], [h, cs.densify(cs.jacobian(h, x))], ["x", "u"], ["h", "C"])
-
-
-def gate_variances(C: np.ndarray, P_arrival_cov: np.ndarray, R_weight: np.ndarray) -> np.ndarray:
-    """``S_jj = (C P C^T)_jj + (R^-1)_jj``: the predicted innovation variance of each output."""
-    return np.einsum("ij,jk,ik->i", C, P_arrival_cov, C) + np.diag(np.linalg.inv(R_weight))
 
 
 def _split(p: cs.MX, layout: ParamLayout) -> list[cs.MX]:

@@ -153,17 +153,22 @@ class UKF(GateReport):
         self.rejections = 0
         self._first = True
 
-    def step(self, u, y) -> np.ndarray:
+    def step(self, u, y, valid=None) -> np.ndarray:
         """Filter one sample and return the posterior mean ``x (nx,)``.
 
         Predicts with ``u (nu,)``, the input applied since the previous sample (no predict on
-        the first call after :meth:`reset`), then updates with ``y (ny,)``, evaluating ``h`` at
-        the same ``u``. Raises :class:`SolverError` (state unchanged) if the covariance stops
-        being positive definite. An output the gate rejects is not an error (see the class).
+        the first call after :meth:`reset`), then updates with the outputs ``y (ny,)`` holds
+        (NaN: missing; or those ``valid (ny,)`` marks): a missing output contributes nothing,
+        none leaves the prediction, evaluating ``h`` at the same ``u``. Raises
+        :class:`SolverError` (state unchanged) if the covariance stops being positive definite.
+        An output the gate rejects is not an error (see the class).
         """
         self._require_reset("step")
         u = validation.vector("UKF.step u", u, self.model.nu)
-        y = validation.vector("UKF.step y", y, self.model.ny)
+        y, mask = validation.measurements("UKF.step y", y, valid, self.model.ny)
+        if y.shape != (self.model.ny,):
+            raise ShapeError(f"UKF.step y: expected shape ({self.model.ny},), got {y.shape}")
+        valid = np.ones(self.model.ny, dtype=bool) if mask is None else mask
         saved = self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f.copy()
         try:
             if self._first:
@@ -172,7 +177,7 @@ class UKF(GateReport):
                 self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
             else:
                 self._kf.predict(u=u)
-            rejected = self._gated_update(u, y)
+            rejected = self._gated_update(u, y, valid)
         except np.linalg.LinAlgError as exc:  # Cholesky of a non-positive-definite P
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"UKF.step: {exc} (state left as before this step)") from exc
@@ -185,29 +190,49 @@ class UKF(GateReport):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc
         # recovery: the variances grow, the covariances stay (see estimators/gate.py)
-        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected)
+        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, valid)
         self.rejections += int(rejected.sum())
         self._first = False
         return self.x
 
-    def _gated_update(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """FilterPy's update on the outputs the gate keeps; returns the rejected mask."""
+    def _gated_update(self, u: np.ndarray, y: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """FilterPy's update on the valid outputs the gate keeps; returns the rejected mask."""
         from filterpy.kalman import unscented_transform
 
         kf = self._kf
+        if not valid.any():  # a pure prediction
+            kf.update(None)
+            return np.zeros(self.model.ny, dtype=bool)
         sigmas_h = np.atleast_2d([self._hx(s, u) for s in kf.sigmas_f])
         zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
         with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
-            rejected = self._gate.test((y - zp) ** 2 / np.diag(S))
-        if not rejected.any():
+            rejected = self._gate.test((y - zp) ** 2 / np.diag(S), valid)
+        keep = valid & ~rejected
+        if keep.all():
             kf.update(y, u=u)
-        elif rejected.all():
+        elif not keep.any():
             kf.update(None)  # the prediction stands
         else:
-            keep = ~rejected
             kf.update(y[keep], R=kf.R[np.ix_(keep, keep)],
                       hx=lambda x, u: self._hx(x, u)[keep], u=u)
         return rejected
+
+    def predict(self, u) -> np.ndarray:
+        """A sample without measurement: ``step(u, y, valid=all False)``."""
+        return self.step(u, np.zeros(self.model.ny), np.zeros(self.model.ny, dtype=bool))
+
+    def set_noise(self, Q=None, R=None, P_arrival=None) -> None:
+        """New process- and measurement-noise covariances (None keeps one) from the next step
+        on; the state and its covariance stay (the C ``set_noise``). The UKF has no arrival
+        cost: ``P_arrival`` is refused."""
+        self._require_reset("set_noise")
+        if P_arrival is not None:
+            raise ValueError("UKF.set_noise: P_arrival is the MHEs' arrival covariance; the UKF has "
+                             "no arrival cost")
+        if Q is not None:
+            self._kf.Q = validation.covariance("UKF.set_noise Q", Q, self.model.nx).copy()
+        if R is not None:
+            self._kf.R = validation.covariance("UKF.set_noise R", R, self.model.ny).copy()
 
     @property
     def x(self) -> np.ndarray:
@@ -225,7 +250,7 @@ class UKF(GateReport):
         if self._first is None:
             raise RuntimeError(f"UKF.{what}: call reset(x0) first")
 
-    def run(self, U, Y, x0, P0=None) -> np.ndarray:
+    def run(self, U, Y, x0, P0=None, valid=None) -> np.ndarray:
         """Filter a whole run from ``x0``.
 
         Parameters
@@ -233,16 +258,18 @@ class UKF(GateReport):
         U : (T, nu) inputs; ``U[k]`` is applied from sample k to sample k+1.
         Y : (T, ny) measurements.
         x0, P0 : initial mean ``(nx,)`` and covariance ``(nx, nx)``.
+        valid : (T, ny) which outputs each sample holds (None: those that are not NaN).
 
         Returns
         -------
         X_hat : (T, nx) posterior means. Sample 0 is an update only (``h`` with ``U[0]``);
             sample k >= 1 is ``step(U[k-1], Y[k])``.
         """
+        Y, mask = validation.measurements("UKF.run", Y, valid, self.model.ny)
         U, Y = validation.run_arrays("UKF.run", U, Y, self.model.nu, self.model.ny)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
         for k in range(len(Y)):
-            X_hat[k] = self.step(U[max(k - 1, 0)], Y[k])
+            X_hat[k] = self.step(U[max(k - 1, 0)], Y[k], None if mask is None else mask[k])
         return X_hat
 

@@ -80,3 +80,42 @@ def run_arrays(where: str, U, Y, nu: int, ny: int) -> tuple[np.ndarray, np.ndarr
             row = int(np.argwhere(~np.isfinite(A))[0, 0])
             raise DataError(f"{where}: {name} has a non-finite value at sample {row}")
     return np.ascontiguousarray(U), np.ascontiguousarray(Y)
+
+
+def flags(where: str, valid, shape: tuple[int, ...]) -> np.ndarray | None:
+    """Per-output validity (True: the output holds a measurement) as a bool array of
+    ``shape``, or None for "every output valid"; 0/1 numbers and bools are accepted."""
+    if valid is None:
+        return None
+    v = np.asarray(valid)
+    if v.shape != tuple(shape):
+        raise ShapeError(f"{where}: expected shape {tuple(shape)}, got {v.shape}")
+    if v.dtype != bool and not np.all((v == 0) | (v == 1)):
+        raise DataError(f"{where}: validity flags must be 0/1 or bool, got {np.unique(v)[:5].tolist()}")
+    return v.astype(bool)
+
+
+def measurements(where: str, Y, valid, ny: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """``Y (ny,)`` or ``(T, ny)`` and its validity (True: the output holds a measurement).
+
+    Without ``valid``, NaN marks a missing output (the run format's empty cell); with it, a
+    missing output may hold anything. Missing outputs are returned as 0 (the compiled
+    estimators never read them), the validity as None when every output is present. An
+    infinite value, or a NaN marked valid, raises :class:`DataError`.
+    """
+    Y = np.array(Y, dtype=float)
+    if Y.ndim not in (1, 2) or Y.shape[-1] != ny:
+        raise ShapeError(f"{where}: expected shape ({ny},) or (T, {ny}), got {Y.shape}")
+    mask = flags(f"{where} valid", valid, Y.shape)
+    if mask is None:
+        mask = ~np.isnan(Y)
+    Y[~mask] = 0.0
+    bad = ~np.isfinite(Y)
+    if bad.any():
+        if Y.ndim == 1:
+            raise DataError(f"{where}: non-finite value in {Y} (NaN marks a missing output; "
+                            "infinity, or NaN marked valid, is an error)")
+        row = int(np.argwhere(bad)[0, 0])
+        raise DataError(f"{where}: Y has a non-finite value at sample {row} (NaN marks a "
+                        "missing output; infinity, or NaN marked valid, is an error)")
+    return Y, (None if mask.all() else mask)

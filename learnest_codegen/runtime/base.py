@@ -1,38 +1,70 @@
-"""What every ctypes estimator binding shares: the manifest check, typed symbols, status codes.
+"""What every ctypes estimator binding shares: the C kit's API, typed once, behind the
+interface of the Python references.
 
 A compiled estimator directory holds ``manifest.json`` and ``lib<prefix>.so``; the binding
-checks the manifest against what the caller expects, loads the library, types each
-``<prefix>_<name>`` symbol once from a signature table, and turns a negative C status
-(``learnest_status.h``) into :class:`SolverError` naming the call and the code. Torch-free.
+checks the manifest against what the caller expects, loads the library, checks the
+fingerprint compiled into it against the manifest's (a library swapped for another build is
+refused before it runs), types each ``<prefix>_<name>`` symbol once from a signature table,
+and turns a negative C status (``learnest_status.h``) into :class:`SolverError` naming the
+call and the code. Each instance owns its workspace (a numpy buffer handed to
+``<prefix>_init``), so any number of instances of one library run independently.
+Torch-free.
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
+import threading
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from ..errors import DataError, ModelMismatchError, SettingsError, SolverError
+from ..errors import DataError, ModelMismatchError, SettingsError, ShapeError, SolverError
+from ..estimators import validation
 from .limits import check_option
 from .manifest import check_manifest, read_manifest
 from .status import status_name
 
 C_DTYPES = {"float64": (np.float64, ctypes.c_double), "float32": (np.float32, ctypes.c_float)}
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+INT, HANDLE, PTR = ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p
+_LOCKS: dict[str, threading.Lock] = {}
+_LOCKS_LOCK = threading.Lock()
+
+
+def library_lock(library: Path) -> threading.Lock:
+    """The process-wide lock of one library file (one per real path, made on first use)."""
+    key = os.path.realpath(library)
+    with _LOCKS_LOCK:
+        return _LOCKS.setdefault(key, threading.Lock())
 
 
 class CompiledEstimator:
-    """Base of the ctypes bindings: ``directory``, ``manifest``, sizes and the typed library.
+    """Base of the ctypes bindings: ``directory``, ``manifest``, sizes, the typed library and
+    the API every estimator shares (``reset``, ``step``, ``predict``, ``run``, ``set_noise``,
+    ``x``, the gate's report).
 
-    Subclasses set ``ESTIMATORS`` (manifest ``estimator`` values they load) and
-    ``signatures(real_pointer, real)`` -> ``{name: (restype, argtypes)}``.
+    Subclasses set ``ESTIMATORS`` (manifest ``estimator`` values they load) and define
+    ``_settings(settings)``, ``_covariances(P0) -> (P0, Q, R)`` and, for their own symbols,
+    ``extra_signatures()``.
+
+    Attributes
+    ----------
+    rejected, last_status, rejections : the innovation gate's report, as the references'.
+    fingerprint : the build's identity, as compiled into the library.
     """
+
+    #: Whether calls of two handles of one library must not overlap (the Ipopt MHE's static
+    #: solver pool); then ``init``, ``reset``, ``step``, ``predict`` and ``run`` hold
+    #: :func:`library_lock`.
+    SERIALISE = False
 
     ESTIMATORS: tuple[str, ...] = ()
 
-    def __init__(self, directory: Path, expect: Mapping[str, Any] | None):
+    def __init__(self, directory: Path, expect: Mapping[str, Any] | None, settings: Any = None):
         self.directory = Path(directory)
         if not self.directory.is_dir():
             raise FileNotFoundError(f"compiled estimator folder {self.directory} does not exist")
@@ -45,28 +77,74 @@ class CompiledEstimator:
         check_manifest(self.manifest, expect, self.where)
         m = self.manifest
         self.nx, self.nu, self.ny = int(m["nx"]), int(m["nu"]), int(m["ny"])
-        precision = m.get("precision", "float64")
+        self.horizon = int(m["horizon"] or 0)
+        precision = m["precision"]
         if precision not in C_DTYPES:
             raise ModelMismatchError(f"{self.where}: manifest precision {precision!r} is not one of "
                                      f"{list(C_DTYPES)}; recompile the estimator")
         self.dtype, self.c_real = C_DTYPES[precision]
         self.real_pointer = np.ctypeslib.ndpointer(dtype=self.dtype, flags="C_CONTIGUOUS")
         library = self.directory / m["library"]
-        if not library.is_file():
-            raise FileNotFoundError(f"{self.where}: library {library} does not exist (rebuild the estimator)")
         self._lib = ctypes.CDLL(str(library))
+        self._serial = library_lock(library) if self.SERIALISE else nullcontext()
         self._c = {}
-        for name, (restype, argtypes) in self.signatures().items():
+        for name, (restype, argtypes) in {**self.signatures(), **self.extra_signatures()}.items():
             try:
                 fn = getattr(self._lib, f"{m['prefix']}_{name}")
             except AttributeError as exc:
                 raise ModelMismatchError(f"{self.where}: {library.name} has no symbol "
-                                         f"{m['prefix']}_{name}") from exc
+                                         f"{m['prefix']}_{name}; recompile the estimator") from exc
             fn.restype, fn.argtypes = restype, argtypes
             self._c[name] = fn
+        self.fingerprint = self._c["fingerprint"]().decode()
+        if self.fingerprint != m["fingerprint"]:
+            raise ModelMismatchError(
+                f"{library}: its fingerprint {self.fingerprint!r} is not the manifest's "
+                f"{m['fingerprint']!r} (a library of another build); recompile the estimator")
+        self._check_library()
+        self.settings = self._settings(settings)
+        self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
+        self._handle: int | None = None
+        self.last_status = 0
 
     def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
+        """The C API every estimator shares (``learnest_api.h``)."""
+        R, h = self.real_pointer, HANDLE
+        return {
+            "fingerprint": (ctypes.c_char_p, []), "real_size": (INT, []), "dt": (ctypes.c_double, []),
+            "sizes": (None, [ctypes.POINTER(INT)] * 4), "workspace_size": (ctypes.c_size_t, []),
+            "init": (INT, [PTR, ctypes.c_size_t, R, R, R, R, ctypes.POINTER(HANDLE)]),
+            "reset": (INT, [h, R, R, R, R]),
+            "step": (INT, [h, R, PTR, PTR]),
+            "predict": (INT, [h, R]),
+            "run": (INT, [h, INT, R, R, PTR, R]),
+            "set_noise": (INT, [h, PTR, PTR]),
+            "set_gate": (INT, [h, self.c_real, INT, self.c_real]),
+            "get_rejected": (INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
+            "rejections": (INT, [h]), "samples": (INT, [h]), "get_state": (INT, [h, R]),
+        }
+
+    def extra_signatures(self) -> dict[str, tuple[Any, list[Any]]]:
+        return {}
+
+    def _settings(self, settings: Any) -> Any:
         raise NotImplementedError
+
+    def _covariances(self, P0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _configure(self) -> None:
+        """Run-time options after the first init (the embedded MHE's solver options)."""
+
+    def _check_library(self) -> None:
+        sizes = [INT() for _ in range(4)]
+        self._c["sizes"](*(ctypes.byref(s) for s in sizes))
+        got = (*(s.value for s in sizes), self._c["dt"](), self._c["real_size"]())
+        want = (self.nx, self.nu, self.ny, self.horizon, float(self.manifest["dt"]),
+                np.dtype(self.dtype).itemsize)
+        if got != want:
+            raise ModelMismatchError(f"{self.where}: library (nx, nu, ny, N, dt, real size) = {got}, "
+                                     f"manifest says {want}; recompile the estimator")
 
     def real_array(self, a, *, exact: bool = False) -> np.ndarray:
         """``a`` as a C-contiguous array of the library's real type.
@@ -98,17 +176,127 @@ class CompiledEstimator:
         (ctypes would wrap 2**32 + 10 to 10 without a word)."""
         return check_option(limit, value, where)
 
-    def check_real_size(self, real_size: int) -> None:
-        """Raise :class:`ModelMismatchError` unless the library's reals are the manifest's."""
-        if real_size != np.dtype(self.dtype).itemsize:
-            built = {4: "float32", 8: "float64"}.get(real_size, f"{real_size}-byte")
-            raise ModelMismatchError(f"{self.where}: the library computes in {built}, the manifest "
-                                     f"says precision {self.manifest.get('precision', 'float64')!r} "
-                                     "(edited?); recompile the estimator")
-
     def check_status(self, call: str, code: int, detail: str = "") -> int:
         """Raise :class:`SolverError` for a negative status; return the code otherwise."""
         if code < 0:
             raise SolverError(f"{type(self).__name__}.{call} ({self.directory.name}{detail}): "
-                              f"C returned {code} ({status_name(code)})")
+                              f"C returned {code} ({status_name(code)}); the estimator is as before")
         return code
+
+    # -- the shared API --------------------------------------------------------------------
+
+    def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
+        """Start over from ``x0 (nx,)`` with covariance ``P0 (nx, nx)`` (default: the settings')
+        and the settings' noise covariances and gate."""
+        x0 = validation.vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
+        args = [self.real_array(a, exact=True) for a in (x0, *self._covariances(P0))]
+        if self._handle is None:
+            handle = HANDLE()
+            with self._serial:
+                code = self._c["init"](self._memory.ctypes.data, self._memory.nbytes, *args,
+                                       ctypes.byref(handle))
+            self.check_status("reset", code)
+            self._handle = handle.value
+            self._configure()
+        else:
+            with self._serial:
+                code = self._c["reset"](self._handle, *args)
+            self.check_status("reset", code)
+        gate = self.settings.gate
+        self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
+                                                       gate.recover_after, gate.inflation))
+        self.last_status = 0
+
+    def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
+        """One sample: ``u (nu,)`` the input applied since the previous sample, ``y (ny,)`` the
+        measurement (NaN: a missing output), or ``valid (ny,)`` saying which outputs it holds
+        (then a missing one may hold anything). The C call takes the validity as flags.
+        Returns the estimate ``x (nx,)``."""
+        handle = self._started("step")
+        name = type(self).__name__
+        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
+        y, mask = validation.measurements(f"{name}.step: y", y, valid, self.ny)
+        if y.shape != (self.ny,):
+            raise ShapeError(f"{name}.step: y: expected shape ({self.ny},), got {y.shape}")
+        y, flags = self.real_array(y), None if mask is None else np.ascontiguousarray(mask, dtype=np.uint8)
+        with self._serial:
+            code = self._c["step"](handle, u, y.ctypes.data, None if flags is None else flags.ctypes.data)
+        self.last_status = self.check_status("step", code, self._sample())
+        return self.x
+
+    def predict(self, u: np.ndarray) -> np.ndarray:
+        """A sample without measurement (every output missing); returns ``x (nx,)``."""
+        handle = self._started("predict")
+        u = self.real_array(validation.vector(f"{type(self).__name__}.predict: u", u, self.nu))
+        with self._serial:
+            code = self._c["predict"](handle, u)
+        self.last_status = self.check_status("predict", code, self._sample())
+        return self.x
+
+    def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray, P0: np.ndarray | None = None,
+            valid=None) -> np.ndarray:
+        """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` (NaN: missing), ``valid (T, ny)``
+        or None -> ``X_hat (T, nx)``; sample 0 is ``step(U[0], Y[0])``, sample ``k``
+        ``step(U[k-1], Y[k])``."""
+        name = type(self).__name__
+        Y, mask = validation.measurements(f"{name}.run", Y, valid, self.ny)
+        U, Y = validation.run_arrays(f"{name}.run", U, Y, self.nu, self.ny)
+        self.reset(x0, P0)
+        X_hat = np.full((len(Y), self.nx), np.nan, dtype=self.dtype)
+        flags = None if mask is None else np.ascontiguousarray(mask, dtype=np.uint8)
+        T = self.c_int(len(Y), "run_length", f"{name}.run: T")
+        U, Y = self.real_array(U), self.real_array(Y)
+        with self._serial:
+            code = self._c["run"](self._handle, T, U, Y, None if flags is None else flags.ctypes.data,
+                                  X_hat)
+        self.last_status = self.check_status("run", code, self._sample())
+        return X_hat.astype(float)
+
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
+        """New process- and measurement-noise covariances (None keeps one) on the running
+        estimator: its state, covariance or window stay. ``P_arrival``: the MHEs' arrival
+        covariance (an estimator without an arrival cost refuses it)."""
+        name = type(self).__name__
+        if P_arrival is not None:
+            raise ValueError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
+                             f"this estimator has no arrival cost")
+        Q = None if Q is None else self.real_array(
+            validation.covariance(f"{name}.set_noise: Q", Q, self.nx), exact=True)
+        R = None if R is None else self.real_array(
+            validation.covariance(f"{name}.set_noise: R", R, self.ny), exact=True)
+        self.check_status("set_noise", self._c["set_noise"](
+            self._started("set_noise"), None if Q is None else Q.ctypes.data,
+            None if R is None else R.ctypes.data))
+
+    @property
+    def x(self) -> np.ndarray:
+        """The current estimate ``(nx,)``."""
+        x = np.empty(self.nx, dtype=self.dtype)
+        self.check_status("x", self._c["get_state"](self._started("x"), x))
+        return x.astype(float)
+
+    @property
+    def rejected(self) -> np.ndarray:
+        """(ny,) bool: the outputs the gate rejected in the last step."""
+        mask = np.zeros(self.ny, dtype=np.intc)
+        self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
+        return mask.astype(bool)
+
+    @property
+    def rejections(self) -> int:
+        """Outputs rejected since :meth:`reset`."""
+        return int(self._c["rejections"](self._started("rejections")))
+
+    @property
+    def samples(self) -> int:
+        """Samples taken since :meth:`reset`."""
+        return int(self._c["samples"](self._started("samples")))
+
+    def _sample(self) -> str:
+        return f", sample {self._c['samples'](self._handle)}"
+
+    def _started(self, what: str) -> int:
+        if self._handle is None:
+            raise RuntimeError(f"{type(self).__name__}.{what}: call reset(x0) first")
+        return self._handle

@@ -4,8 +4,9 @@ Every option a user sets (the Gauss-Newton iteration limit and tolerance, the in
 gate's values, the horizon, the noise stds) has a documented range here, with the reason for
 its ends. The settings classes check their fields with :func:`check_option`, the command line takes
 its click ranges from :data:`LIMITS`, and the generated C's argument checks
-(``<prefix>_set_options``, ``<prefix>_set_gate``) are to test the same numbers, rendered by
-:meth:`Limit.c_condition`, so Python and C cannot disagree (as ``status.py`` does for the
+(``<prefix>_set_options``, ``<prefix>_set_gate``) test the same numbers, rendered into
+``learnest_status.h`` as ``LEARNEST_<C_NAME>_MIN/_MAX`` by :func:`c_macros`, so Python and C cannot
+disagree (as ``status.py`` does for the
 status codes). An integer option is a C ``int``: its range lies inside ``[1, INT_MAX]``, so a
 Python int never wraps on its way to C. Torch-free.
 """
@@ -39,6 +40,7 @@ class Limit:
     low_open: bool = False
     high_open: bool = False
     off: tuple[float, ...] = ()
+    c_name: str = ""
 
     def contains(self, value: float) -> bool:
         if value in self.off:
@@ -83,23 +85,23 @@ _TOLERANCE_WHY = ("the converged Gauss-Newton step stops when its largest compon
 
 #: Every option's range; a key with ``[precision]`` depends on the C real type.
 LIMITS: dict[str, Limit] = {limit.name: limit for limit in (
-    Limit("max_iterations", 1, 1000, integer=True,
+    Limit("max_iterations", 1, 1000, integer=True, c_name="MAX_ITER",
           why="bounds the time of a converged step that cannot reach its tolerance (the "
               "KNODE cartpole takes 2 iterations on 94 % of samples, at most 18); a larger "
               "limit only waits longer"),
-    Limit("tolerance[float64]", 1e-14, 1e-3, why=_TOLERANCE_WHY),
-    Limit("tolerance[float32]", 1e-6, 1e-3, why=_TOLERANCE_WHY),
-    Limit("gate_threshold", 1.0, 1e12, off=(0.0, math.inf),
+    Limit("tolerance[float64]", 1e-14, 1e-3, why=_TOLERANCE_WHY, c_name="TOL"),
+    Limit("tolerance[float32]", 1e-6, 1e-3, why=_TOLERANCE_WHY, c_name="TOL_FLOAT32"),
+    Limit("gate_threshold", 1.0, 1e12, off=(0.0, math.inf), c_name="THRESHOLD",
           why="a chi-square(1) quantile: below 1 the gate rejects a third of clean outputs or "
               "more; above 1e12 (a 1e6-sigma innovation) it is an 'off' that still runs the "
               "recovery (say 0 to turn the gate off)"),
-    Limit("gate_recover_after", 1, 1_000_000, integer=True,
+    Limit("gate_recover_after", 1, 1_000_000, integer=True, c_name="RECOVER_AFTER",
           why="consecutive rejecting samples before the recovery starts; a C int, and beyond a "
               "million the recovery is in effect off"),
-    Limit("gate_inflation", 1.0, 100.0, low_open=True,
+    Limit("gate_inflation", 1.0, 100.0, low_open=True, c_name="INFLATION",
           why="the recovery's factor per rejecting sample: at 1 nothing grows, and a factor "
               "above the inflation cap (1e6 in float32) would never be applied"),
-    Limit("horizon", 1, 1000, integer=True,
+    Limit("horizon", 1, 1000, integer=True, c_name="HORIZON",
           why="MHE window transitions; the workspace and the solve grow with it, and a window "
               "of a thousand samples is already seconds of data at the usual rates"),
     Limit("std", 1e-100, 1e100,
@@ -131,3 +133,18 @@ def check_option(name: str, value, where: str, *, precision: str | None = None) 
         if lim.contains(number):
             return number
     raise SettingsError(f"{where} must be {lim.describe()}, got {value!r}")
+
+
+def c_macros() -> str:
+    """The ranges the C API checks, as ``#define LEARNEST_<C_NAME>_MIN/_MAX`` lines of
+    ``learnest_status.h`` (an open lower end is said in a comment; the C compares with ``>``)."""
+    lines = []
+    for lim in LIMITS.values():
+        if not lim.c_name:
+            continue
+        fmt = (lambda v: str(int(v))) if lim.integer else (lambda v: repr(float(v)))
+        bound = "exclusive" if lim.low_open else "inclusive"
+        lines.append(f"/* {lim.name}: {lim.describe()}. */")
+        lines.append(f"#define LEARNEST_{lim.c_name}_MIN {fmt(lim.low)} /* {bound} */")
+        lines.append(f"#define LEARNEST_{lim.c_name}_MAX {fmt(lim.high)}")
+    return "\n".join(lines)

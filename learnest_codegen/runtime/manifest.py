@@ -1,25 +1,36 @@
 """``manifest.json``: what a compiled estimator directory holds and was built from.
 
-The runtime checks a manifest against what the caller expects before loading a library, so a
-library built for another system, model kind or dimension fails with a clear message instead of
-producing garbage. The manifest also records the library's size and SHA-256, checked before the
-library is opened: a file cut short by an interrupted copy or a full disk would otherwise kill
-the process inside ``dlopen`` (SIGBUS) with no message. This module must not import torch.
+:class:`GeneratedEstimator` is the one result type of every generator and the manifest itself:
+its fields are the file's keys. The runtime checks a manifest against what the caller expects
+before loading a library, so a library built for another system, model kind or dimension fails
+with a clear message instead of producing garbage. The manifest also records the library's size
+and SHA-256, checked before the library is opened (a file cut short by an interrupted copy or a
+full disk would otherwise kill the process inside ``dlopen`` with SIGBUS), and the fingerprint
+compiled into the library, checked once it is loaded (``runtime/base.py``). This module must
+not import torch.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import ModelMismatchError
+from .status import STATUS_NAMES
 
 MANIFEST = "manifest.json"
 # 2: every estimator gates its measurements (settings "gate", C status 1 MEASUREMENT_REJECTED,
 # <prefix>_set_gate / _get_rejected); a version-1 library has no gate and must be recompiled.
-FORMAT_VERSION = 2
+# 3: the C kit's API (covariances in every init, per-output validity in step, predict,
+# set_noise, a fingerprint in every library, <prefix>.h for every estimator).
+FORMAT_VERSION = 3
+_VERSION_NEWS = {2: "version 2 added the innovation gate to every estimator",
+                 3: "version 3 gave every estimator the C kit's API: covariances in init, "
+                    "missing outputs, predict, set_noise and a fingerprint"}
 
 
 def settings_hash(settings: Mapping[str, Any]) -> str:
@@ -100,9 +111,10 @@ def read_manifest(directory: Path) -> dict:
     except json.JSONDecodeError as exc:
         raise ModelMismatchError(f"{path} is not valid JSON: {exc}") from exc
     if manifest.get("format_version") != FORMAT_VERSION:
+        news = "; ".join(v for k, v in _VERSION_NEWS.items() if k > (manifest.get("format_version") or 0))
         raise ModelMismatchError(f"{path}: format_version {manifest.get('format_version')!r}, "
-                                 f"this runtime reads {FORMAT_VERSION} (version 2 added the "
-                                 "innovation gate to every estimator); recompile the estimator")
+                                 f"this runtime reads {FORMAT_VERSION} ({news}); recompile the "
+                                 "estimator")
     if "settings" in manifest and "settings_hash" in manifest \
             and settings_hash(manifest["settings"]) != manifest["settings_hash"]:
         raise ModelMismatchError(f"{path}: its settings were edited after the library was built "
@@ -121,3 +133,110 @@ def check_manifest(manifest: Mapping[str, Any], expect: Mapping[str, Any] | None
              for k, v in expect.items() if manifest.get(k) != v]
     if wrong:
         raise ModelMismatchError(f"{where}: compiled estimator does not match: " + "; ".join(wrong))
+
+
+@dataclass(frozen=True)
+class GeneratedEstimator:
+    """A generated and compiled estimator folder: what every generator returns, and its
+    ``manifest.json`` (each field but ``directory`` and ``extra`` is a key of the file;
+    ``extra`` holds an estimator's own keys, written at the top level too).
+
+    Attributes
+    ----------
+    directory : the folder.
+    estimator : ``"ukf"``, ``"mhe"``, ``"mhe_gn"`` or ``"mhe_rti"``.
+    prefix : the prefix of every exported C symbol and file (``<prefix>.h``, ``<prefix>.c``).
+    system, model_kind, system_fingerprint, model_hash : what the model is.
+    nx, nu, ny, dt, horizon : sizes (horizon None for the UKF) and sampling period [s].
+    precision : ``"float64"`` or ``"float32"``, the C real type.
+    settings, settings_hash, solver : the estimator's settings (and the embedded MHE's solver).
+    fingerprint : the string ``<prefix>_fingerprint()`` of the library returns.
+    source_hash, code_hash : SHA-256 of the sources the fingerprint names, and of every file.
+    sources, headers : the folder's C sources and headers (file names).
+    library : the shared library's file name; library_bytes, library_sha256 its digest.
+    generate_seconds, build_seconds, build_reused : timing, and whether the library was reused.
+    code_bytes : size of the sources and headers.
+    """
+
+    directory: Path
+    estimator: str
+    prefix: str
+    system: str
+    model_kind: str
+    system_fingerprint: str
+    model_hash: str
+    nx: int
+    nu: int
+    ny: int
+    dt: float
+    horizon: int | None
+    precision: str
+    settings: dict
+    settings_hash: str
+    solver: dict | None
+    fingerprint: str
+    source_hash: str
+    code_hash: str
+    sources: tuple[str, ...]
+    headers: tuple[str, ...]
+    library: str
+    casadi_version: str
+    generate_seconds: float
+    build_seconds: float
+    build_reused: bool
+    code_bytes: int
+    library_bytes: int | None = None
+    library_sha256: str | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def reused(self) -> bool:
+        """True when the library was up to date and not recompiled."""
+        return self.build_reused
+
+    @property
+    def manifest_path(self) -> Path:
+        return Path(self.directory) / MANIFEST
+
+    @property
+    def library_path(self) -> Path:
+        return Path(self.directory) / self.library
+
+    @property
+    def header_path(self) -> Path:
+        """``<prefix>.h``, the C API of the estimator."""
+        return Path(self.directory) / f"{self.prefix}.h"
+
+    @property
+    def source_paths(self) -> tuple[Path, ...]:
+        return tuple(Path(self.directory) / name for name in self.sources)
+
+    def to_json(self) -> dict:
+        """The manifest's content (``write_manifest`` adds the format version and digest)."""
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if f.name not in ("directory", "extra")}
+        data.update(sources=list(self.sources), headers=list(self.headers),
+                    matrix_layout="row-major", tuning="covariances",
+                    status_codes={str(k): v for k, v in STATUS_NAMES.items()})
+        return {**dict(self.extra), **data}
+
+    def write(self) -> "GeneratedEstimator":
+        """Write ``manifest.json``; returns the result with the library's size and SHA-256."""
+        write_manifest(self.directory, self.to_json())
+        return GeneratedEstimator.read(self.directory)
+
+    @classmethod
+    def read(cls, directory: Path) -> "GeneratedEstimator":
+        """The folder's manifest (checked as :func:`read_manifest` checks it)."""
+        data = read_manifest(directory)
+        names = {f.name for f in dataclasses.fields(cls)} - {"directory", "extra"}
+        derived = {"format_version", "matrix_layout", "tuning", "status_codes"}
+        missing = sorted(n for n in names if n not in data
+                         and cls.__dataclass_fields__[n].default is dataclasses.MISSING)
+        if missing:
+            raise ModelMismatchError(f"{Path(directory) / MANIFEST}: missing {missing}; recompile "
+                                     "the estimator")
+        known = {k: data[k] for k in names if k in data}
+        known["sources"], known["headers"] = tuple(known["sources"]), tuple(known["headers"])
+        extra = {k: v for k, v in data.items() if k not in names and k not in derived}
+        return cls(directory=Path(directory), **known, extra=extra)

@@ -1,19 +1,12 @@
 """ctypes binding of a compiled MHE (``codegen/mhe.py``); torch-free.
 
 :class:`CompiledMHE` has the interface of the Python reference
-:class:`~learnest_codegen.estimators.mhe.MHE` (``reset``, ``step``, ``x``, ``window``, ``run``)
-and checks ``manifest.json`` before loading the library. Each instance owns its workspace (a
-numpy buffer handed to ``<prefix>_init``), so several estimators of one library run
-independently. Rebuild into a new directory rather than over a library this process has
-loaded: ``dlopen`` would hand back the old one.
+:class:`~learnest_codegen.estimators.mhe.MHE` (``reset``, ``step``, ``x``, ``window``, ``run``,
+``arrival_weight``) over the C kit's API (``runtime/base.py``).
 """
 
 from __future__ import annotations
 
-import ctypes
-import os
-import threading
-from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -21,20 +14,9 @@ import numpy as np
 
 from ..errors import ModelMismatchError
 from ..estimators import validation
-from ..estimators.mhe import NO_COVARIANCE, arrival_weight_from_covariance
+from ..estimators.mhe import NO_COVARIANCE
 from ..estimators.mhe_problem import MHESettings
-from .base import CompiledEstimator
-
-_INT, _HANDLE = ctypes.c_int, ctypes.c_void_p
-_LOCKS: dict[str, threading.Lock] = {}
-_LOCKS_LOCK = threading.Lock()
-
-
-def library_lock(library: Path) -> threading.Lock:
-    """The process-wide lock of one library file (one per real path, made on first use)."""
-    key = os.path.realpath(library)
-    with _LOCKS_LOCK:
-        return _LOCKS.setdefault(key, threading.Lock())
+from .base import HANDLE, INT, CompiledEstimator
 
 
 class CompiledMHE(CompiledEstimator):
@@ -46,7 +28,7 @@ class CompiledMHE(CompiledEstimator):
     expect : manifest entries the library must have, e.g. ``{"system": "cartpole",
         "model_kind": "knode", "model_hash": h}``; any difference raises
         :class:`ModelMismatchError`.
-    settings : weights to use (its horizon must be the library's); default: the settings
+    settings : tuning to use (its horizon must be the library's); default: the settings
         recorded in the manifest.
 
     Attributes
@@ -59,53 +41,36 @@ class CompiledMHE(CompiledEstimator):
     #: The Ipopt solver's C keeps its memories in one static pool per library (CasADi's
     #: checkout/release), so two handles of one library must not solve at the same time
     #: (two threads failed with NO_MEMORY in 1 of 4 runs): ``init``, ``reset``, ``step`` and
-    #: ``run`` hold :func:`library_lock`. The embedded MHE keeps everything in its workspace.
+    #: ``run`` hold :func:`~learnest_codegen.runtime.base.library_lock`. The embedded MHE keeps everything in its workspace.
     SERIALISE = True
 
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,
                  settings: MHESettings | None = None):
-        super().__init__(directory, expect)
-        m = self.manifest
-        self.horizon = int(m["horizon"])
-        self.settings = settings or MHESettings.from_json(m["settings"])
-        if self.settings.horizon != self.horizon:
-            raise ModelMismatchError(f"{self.where}: settings.horizon is {self.settings.horizon}, "
-                                     f"the library was generated for {self.horizon}")
-        self.settings.check(self.nx, self.ny, self.where)
-        self._check_sizes()
-        self._serial = library_lock(self.directory / m["library"]) if self.SERIALISE else nullcontext()
-        self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
-        self._handle: int | None = None
-        self._P: np.ndarray | None = None
-        self.last_status = 0
+        super().__init__(directory, expect, settings)
 
-    def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
-        R, h = self.real_pointer, _HANDLE
-        return {
-            "workspace_size": (ctypes.c_size_t, []),
-            "init": (_INT, [ctypes.c_void_p, ctypes.c_size_t, R, R, R, R, ctypes.POINTER(_HANDLE)]),
-            "reset": (_INT, [h, R, R, R, R]),
-            "step": (_INT, [h, R, R]),
-            "run": (_INT, [h, _INT, R, R, R]),
-            "get_state": (_INT, [h, R]),
-            "get_window": (_INT, [h, R]),
-            "samples": (_INT, [h]),
-            "sizes": (None, [ctypes.POINTER(_INT)] * 4),
-            "set_gate": (_INT, [h, self.c_real, _INT, self.c_real]),
-            "get_rejected": (_INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
-            "rejections": (_INT, [h]),
-        }
+    def extra_signatures(self) -> dict[str, tuple[Any, list[Any]]]:
+        R = self.real_pointer
+        return {"get_window": (INT, [HANDLE, R]), "get_arrival": (INT, [HANDLE, R]),
+                "set_arrival": (INT, [HANDLE, R])}
+
+    def _settings(self, settings: MHESettings | None) -> MHESettings:
+        settings = settings or MHESettings.from_json(self.manifest["settings"])
+        if settings.horizon != self.horizon:
+            raise ModelMismatchError(f"{self.where}: settings.horizon is {settings.horizon}, "
+                                     f"the library was generated for {self.horizon}")
+        settings.check(self.nx, self.ny, self.where)
+        return settings
+
+    def _covariances(self, P0):
+        Q, R, P = self.settings.covariances()
+        if P0 is not None:
+            P = validation.covariance(f"{type(self).__name__}.reset: P0", P0, self.nx, definite=True)
+        return P, Q, R
 
     @property
     def P(self):
         """Not available: an MHE has no state covariance (raises AttributeError)."""
         raise AttributeError(NO_COVARIANCE)
-
-    @property
-    def x(self) -> np.ndarray:
-        x = np.empty(self.nx, dtype=self.dtype)
-        self.check_status("x", self._c["get_state"](self._started("x"), x))
-        return x.astype(float)
 
     @property
     def window(self) -> np.ndarray:
@@ -114,91 +79,26 @@ class CompiledMHE(CompiledEstimator):
         return X.astype(float)
 
     @property
+    def arrival_covariance(self) -> np.ndarray:
+        """(nx, nx) the covariance of the arrival cost in use."""
+        P = np.empty((self.nx, self.nx), dtype=self.dtype)
+        self.check_status("arrival_covariance", self._c["get_arrival"](self._started("arrival"), P))
+        return P.astype(float)
+
+    @property
     def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight ``P`` of the arrival cost in use."""
-        self._started("arrival_weight")
-        return self._P.copy()
+        """(nx, nx) the weight of the arrival cost in use (the inverse of its covariance)."""
+        return np.linalg.inv(self.arrival_covariance)
 
-    def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
-        """Start over from ``x0 (nx,)``; ``P0 (nx, nx)`` as in :meth:`MHE.reset`."""
-        x0 = validation.vector(f"{type(self).__name__}.reset: x0", x0, self.nx)
-        Q, R, P = self.settings.weights()
-        if P0 is not None:
-            P = arrival_weight_from_covariance(P0, self.nx)
-        args = [self.real_array(a, exact=True) for a in (x0, Q, R, P)]
-        if self._handle is None:
-            handle = _HANDLE()
-            with self._serial:
-                code = self._c["init"](self._memory.ctypes.data, self._memory.nbytes, *args,
-                                       ctypes.byref(handle))
-            self.check_status("reset", code)
-            self._handle = handle.value
-            self._configure(self._handle)
-        else:
-            with self._serial:
-                code = self._c["reset"](self._handle, *args)
-            self.check_status("reset", code)
-        gate = self.settings.gate
-        self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
-                                                       gate.recover_after, gate.inflation))
-        self._P = P
-        self.last_status = 0
-
-    @property
-    def rejected(self) -> np.ndarray:
-        """(ny,) bool: the outputs the gate rejected in the last step."""
-        mask = np.zeros(self.ny, dtype=np.intc)
-        self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
-        return mask.astype(bool)
-
-    @property
-    def rejections(self) -> int:
-        """Outputs rejected since :meth:`reset`."""
-        return int(self._c["rejections"](self._started("rejections")))
-
-    def _configure(self, handle: int) -> None:
-        """Run-time options after the first init (the Ipopt MHE has none)."""
-
-    def step(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Take sample ``y (ny,)`` with input ``u (nu,)``, as :meth:`MHE.step`; returns ``x (nx,)``."""
-        handle = self._started("step")
-        name = type(self).__name__
-        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
-        y = self.real_array(validation.vector(f"{name}.step: y", y, self.ny))
-        with self._serial:
-            code = self._c["step"](handle, u, y)
-        self.last_status = self.check_status("step", code, self._sample())
-        return self.x
-
-    def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
-            P0: np.ndarray | None = None) -> np.ndarray:
-        """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` -> ``X_hat (T, nx)``.
-
-        Same convention as :meth:`MHE.run` (sample 0 uses ``Y[0]`` only).
-        """
-        U, Y = validation.run_arrays(f"{type(self).__name__}.run", U, Y, self.nu, self.ny)
-        self.reset(x0, P0)
-        X_hat = np.empty((len(Y), self.nx), dtype=self.dtype)
-        T = self.c_int(len(Y), "run_length", f"{type(self).__name__}.run: T")
-        U, Y = self.real_array(U), self.real_array(Y)
-        with self._serial:
-            code = self._c["run"](self._handle, T, U, Y, X_hat)
-        self.last_status = self.check_status("run", code, self._sample())
-        return X_hat.astype(float)
-
-    def _sample(self) -> str:
-        return f", sample {self._c['samples'](self._handle)}"
-
-    def _started(self, what: str) -> int:
-        if self._handle is None:
-            raise RuntimeError(f"{type(self).__name__}.{what}: call reset(x0) first")
-        return self._handle
-
-    def _check_sizes(self) -> None:
-        sizes = [_INT() for _ in range(4)]
-        self._c["sizes"](*(ctypes.byref(s) for s in sizes))
-        got = tuple(s.value for s in sizes)
-        self.check_real_size(self._c["real_size"]() if "real_size" in self._c else 8)  # Ipopt: double
-        if got != (self.nx, self.nu, self.ny, self.horizon):
-            raise ModelMismatchError(f"{self.where}: library sizes (nx, nu, ny, N) = {got}, manifest "
-                                     f"says {(self.nx, self.nu, self.ny, self.horizon)}")
+    def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
+                  P_arrival: np.ndarray | None = None) -> None:
+        """New covariances (None keeps one) on the running estimator, its window kept: process
+        ``Q``, measurement ``R`` and the arrival cost's ``P_arrival`` (C: ``set_noise`` and
+        ``set_arrival``)."""
+        if P_arrival is not None:
+            P = self.real_array(validation.covariance(f"{type(self).__name__}.set_noise: P_arrival",
+                                                      P_arrival, self.nx, definite=True),
+                                exact=True)
+            self.check_status("set_noise", self._c["set_arrival"](self._started("set_noise"), P))
+        if Q is not None or R is not None:
+            super().set_noise(Q, R)

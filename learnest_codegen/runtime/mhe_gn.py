@@ -1,10 +1,8 @@
 """ctypes binding of the embedded (Gauss-Newton) MHE, ``codegen/mhe_gn.py``; torch-free.
 
 :class:`CompiledEmbeddedMHE` has the interface of the Python reference
-:class:`~learnest_codegen.estimators.mhe.MHE` (``reset``, ``step``, ``x``, ``window``, ``run``,
-``arrival_weight``). Each instance owns its workspace (a numpy buffer of
-``<prefix>_workspace_size()`` bytes handed to ``<prefix>_init``), so any number of instances
-of one library run independently.
+:class:`~learnest_codegen.estimators.mhe.MHE` and of :class:`CompiledMHE`, plus the
+Gauss-Newton iterations of the last step and the solver options.
 """
 
 from __future__ import annotations
@@ -15,7 +13,8 @@ from typing import Any, Mapping
 from ..errors import ModelMismatchError
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
-from .mhe import _HANDLE, _INT, CompiledMHE
+from .base import HANDLE, INT
+from .mhe import CompiledMHE
 
 MODES = {"converged": 0, "rti": 1}
 
@@ -28,7 +27,7 @@ class CompiledEmbeddedMHE(CompiledMHE):
     directory : folder written by :func:`~learnest_codegen.codegen.mhe_gn.generate_embedded_mhe`.
     expect : manifest entries the library must have; any difference raises
         :class:`ModelMismatchError`.
-    settings : weights to use (its horizon must be the library's); default: the manifest's.
+    settings : tuning to use (its horizon must be the library's); default: the manifest's.
     solver : mode, iteration limit and tolerance to use (its precision must be the
         library's); default: the manifest's.
 
@@ -50,17 +49,17 @@ class CompiledEmbeddedMHE(CompiledMHE):
             raise ModelMismatchError(f"{self.where}: solver precision {self.solver.precision!r}, "
                                      f"the library was generated in {m['precision']!r}")
 
-    def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
-        return {**super().signatures(), "set_options": (_INT, [_HANDLE, _INT, _INT, self.c_real]),
-                "iterations": (_INT, [_HANDLE]), "real_size": (_INT, [])}
+    def extra_signatures(self) -> dict[str, tuple[Any, list[Any]]]:
+        return {**super().extra_signatures(),
+                "set_options": (INT, [HANDLE, INT, INT, self.c_real]), "iterations": (INT, [HANDLE])}
 
     @property
     def iterations(self) -> int:
         """Gauss-Newton iterations of the last step."""
         return int(self._c["iterations"](self._started("iterations")))
 
-    def _configure(self, handle: int) -> None:
+    def _configure(self) -> None:
         s = self.solver
         max_iterations = self.c_int(s.max_iterations, "max_iterations", "GaussNewtonSettings.max_iterations")
-        self.check_status("reset", self._c["set_options"](handle, MODES[s.mode], max_iterations,
+        self.check_status("reset", self._c["set_options"](self._handle, MODES[s.mode], max_iterations,
                                                           s.tolerance))

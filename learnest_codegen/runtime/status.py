@@ -3,7 +3,8 @@
 Each code is a name, a meaning and how the caller recovers. :mod:`..codegen.status` renders
 the table into the C header every estimator includes, and the ctypes bindings read names from
 it here, so C and Python cannot disagree. Zero and positive codes are not errors; negative
-codes are, and a step that returns one leaves the estimator as it was. Torch-free.
+codes are, and a step that returns one leaves the estimator as it was. The positive codes are
+bits (1 an output rejected, 2 an input rejected; a step that did both returns 3). Torch-free.
 """
 
 from __future__ import annotations
@@ -29,12 +30,22 @@ STATUSES = (
            "<prefix>_get_rejected says which; after recover_after such steps in a row the "
            "estimator inflates its uncertainty to re-acquire a lost track",
            "not an error; keep stepping (a long run of it means the sensor or the model is off)"),
+    Status(2, "INPUT_REJECTED",
+           "reserved for the input plausibility check: the input u of this sample was outside "
+           "its plausible range and the step went on without it (the estimator's header says "
+           "how); no estimator returns it yet",
+           "not an error; keep stepping (a long run of it means the actuator, its command log "
+           "or the declared range is wrong)"),
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
            "call <prefix>_init on the workspace first"),
-    Status(-2, "BAD_ARGUMENT", "a NULL pointer, or a size or option out of range",
+    Status(-2, "BAD_ARGUMENT",
+           "a NULL pointer, a size, a validity flag other than 0 or 1, or an option outside its "
+           "documented range (LEARNEST_*_MIN/_MAX below)",
            "fix the call; nothing was changed"),
-    Status(-3, "NONFINITE_INPUT", "an input (u, y, x0 or a weight) is NaN or infinite",
-           "drop the sample (or call reset); the estimator is unchanged"),
+    Status(-3, "NONFINITE_INPUT",
+           "an input (u, a valid output of y, x0 or a covariance) is NaN or infinite",
+           "mark a missing output missing (valid[j] = 0) or call predict; the estimator is "
+           "unchanged"),
     Status(-4, "NO_MEMORY", "the workspace is smaller than <prefix>_workspace_size()",
            "give a larger buffer"),
     Status(-5, "NONFINITE_RESULT", "the solution or covariance came out NaN or infinite",

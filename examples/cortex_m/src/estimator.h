@@ -1,13 +1,12 @@
 /* estimator.h: the estimator as the loop sees it.
  *
- * estimator_ukf.c implements this over a generated UKF, estimator_mhe.c over a generated
- * embedded MHE (mhe_rti or mhe_gn); the Makefile picks one (ESTIMATOR=ukf|mhe_rti|mhe_gn).
- * The loop speaks double; the adapter rounds to the API's real type (float in a float32
- * build) on the way in and widens (exactly) on the way out. */
+ * estimator.c implements this over any generated estimator (ukf, mhe_rti, mhe_gn): they share
+ * one C API. The loop speaks double; the adapter rounds to the API's real type (float in a
+ * float32 build) on the way in and widens (exactly) on the way out. */
 #ifndef ESTIMATOR_H
 #define ESTIMATOR_H
 
-#include "estimator_config.h" /* generated: EST_PREFIX, EST_NX/NU/NY, EST_WORKSPACE_BYTES, tuning */
+#include "estimator_config.h" /* generated: the header, EST_PREFIX, EST_NX/NU/NY, EST_WORKSPACE_BYTES */
 
 /* Place the estimator in its static workspace and start it; learnest_status.h's code. */
 int estimator_init(void);

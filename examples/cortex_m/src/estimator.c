@@ -1,8 +1,7 @@
-/* estimator_common.h: what both adapters share: the API's names from EST_PREFIX, the
- * static workspace, and the double <-> real conversions. Included by one adapter only. */
-#ifndef ESTIMATOR_COMMON_H
-#define ESTIMATOR_COMMON_H
-
+/* estimator.c: estimator.h over any generated estimator (UKF, embedded MHE): they share one
+ * C API (docs/c_api.md), so only the prefix differs; estimator_config.h names it. The
+ * estimator starts from the tuned defaults of its generated header (<prefix>_init_default)
+ * in a static workspace of <PREFIX>_WORKSPACE_BYTES bytes: no heap, no hand-copied numbers. */
 #include "estimator.h"
 
 #define EST_CONCAT_(a, b) a##b
@@ -22,11 +21,15 @@ static void est_round(est_real* to, const double* from, int n) {
     for (i = 0; i < n; ++i) to[i] = (est_real)from[i];
 }
 
+int estimator_init(void) {
+    return EST_API(_init_default)(est_workspace, sizeof est_workspace, &est_h);
+}
+
 int estimator_step(const double* u, const double* y) {
     est_real ur[EST_NU], yr[EST_NY];
     est_round(ur, u, EST_NU);
     est_round(yr, y, EST_NY);
-    return EST_API(_step)(est_h, ur, yr);
+    return EST_API(_step)(est_h, ur, yr, 0); /* every output present in this run */
 }
 
 void estimator_get_state(double* x) {
@@ -37,5 +40,3 @@ void estimator_get_state(double* x) {
     int ok = EST_API(_get_state)(est_h, xr) == LEARNEST_OK;
     for (i = 0; i < EST_NX; ++i) x[i] = ok ? (double)xr[i] : 0.0;
 }
-
-#endif /* ESTIMATOR_COMMON_H */

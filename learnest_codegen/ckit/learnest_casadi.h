@@ -1,0 +1,118 @@
+/* learnest_casadi.h -- the kit's model hooks over CasADi-generated functions.
+ *
+ * CasADi's generated functions share one calling convention, f(arg, res, iw, w, mem), with
+ * work arrays sized by the <name>_SZ_ARG/_RES/_IW/_W macros of their header. Include this
+ * after the model's header (which defines casadi_real and casadi_int) and after naming the
+ * functions the estimator uses; it defines struct learnest_model (the work arrays) and the
+ * hooks the kit calls:
+ *   LEARNEST_MODEL_STAGE  (x, u) -> (F(x, u), dF/dx)           learnest_model_stage
+ *   LEARNEST_MODEL_NODE   (x, u) -> (h(x, u), dh/dx)           learnest_model_node
+ *   LEARNEST_MODEL_F      (x, u) -> F(x, u)                    learnest_model_F
+ *   LEARNEST_MODEL_PREDICT, LEARNEST_MODEL_UPDATE               the UKF's two halves
+ *   LEARNEST_MODEL_SOLVER (+ _CHECKOUT, _RELEASE)               the Ipopt MHE's nlpsol
+ * and LEARNEST_CASADI_SZ_ARG, _RES, _IW, _W (the largest over them). Every hook is static.
+ */
+#ifndef LEARNEST_CASADI_H
+#define LEARNEST_CASADI_H
+
+#include "learnest_kit.h"
+
+/* + 1: a size may be 0 and ISO C has no zero-size arrays. */
+struct learnest_model {
+  const casadi_real* arg[LEARNEST_CASADI_SZ_ARG + 1];
+  casadi_real* res[LEARNEST_CASADI_SZ_RES + 1];
+  casadi_int iw[LEARNEST_CASADI_SZ_IW + 1];
+  casadi_real w[LEARNEST_CASADI_SZ_W + 1];
+};
+
+typedef int (*learnest_casadi_function)(const casadi_real** arg, casadi_real** res,
+                                        casadi_int* iw, casadi_real* w, int mem);
+
+/* f(in..., out...) on the work arrays of md; CasADi's status (SX code: always 0). */
+LEARNEST_KIT int learnest_casadi_call(struct learnest_model* md, learnest_casadi_function f,
+                                      const learnest_real* const* in, int n_in,
+                                      learnest_real* const* out, int n_out) {
+  int i;
+  for (i = 0; i < n_in; ++i) md->arg[i] = in[i];
+  for (i = 0; i < n_out; ++i) md->res[i] = out[i];
+  return f(md->arg, md->res, md->iw, md->w, 0);
+}
+
+#ifdef LEARNEST_MODEL_STAGE
+LEARNEST_KIT void learnest_model_stage(struct learnest_model* md, const learnest_real* x,
+                                       const learnest_real* u, learnest_real* F,
+                                       learnest_real* A) {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+  in[0] = x, in[1] = u, out[0] = F, out[1] = A;
+  (void)learnest_casadi_call(md, LEARNEST_MODEL_STAGE, in, 2, out, 2);
+}
+#endif
+
+#ifdef LEARNEST_MODEL_NODE
+LEARNEST_KIT void learnest_model_node(struct learnest_model* md, const learnest_real* x,
+                                      const learnest_real* u, learnest_real* h, learnest_real* C) {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+  in[0] = x, in[1] = u, out[0] = h, out[1] = C;
+  (void)learnest_casadi_call(md, LEARNEST_MODEL_NODE, in, 2, out, 2);
+}
+#endif
+
+#ifdef LEARNEST_MODEL_F
+LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_real* x,
+                                   const learnest_real* u, learnest_real* F) {
+  const learnest_real* in[2];
+  learnest_real* out[1];
+  in[0] = x, in[1] = u, out[0] = F;
+  (void)learnest_casadi_call(md, LEARNEST_MODEL_F, in, 2, out, 1);
+}
+#endif
+
+#ifdef LEARNEST_MODEL_PREDICT
+/* (x, P, u, Q) -> (x_prior, P_prior); matrices column-major. */
+LEARNEST_KIT int learnest_model_predict(struct learnest_model* md, const learnest_real* x,
+                                        const learnest_real* P, const learnest_real* u,
+                                        const learnest_real* Q, learnest_real* x_prior,
+                                        learnest_real* P_prior) {
+  const learnest_real* in[4];
+  learnest_real* out[2];
+  in[0] = x, in[1] = P, in[2] = u, in[3] = Q, out[0] = x_prior, out[1] = P_prior;
+  return learnest_casadi_call(md, LEARNEST_MODEL_PREDICT, in, 4, out, 2);
+}
+
+/* (x, P, u, y, R, mask) -> (x_post, P_post, d2): the update on the outputs mask keeps, and
+ * each output's normalised innovation d2. */
+LEARNEST_KIT int learnest_model_update(struct learnest_model* md, const learnest_real* x,
+                                       const learnest_real* P, const learnest_real* u,
+                                       const learnest_real* y, const learnest_real* R,
+                                       const learnest_real* mask, learnest_real* x_post,
+                                       learnest_real* P_post, learnest_real* d2) {
+  const learnest_real* in[6];
+  learnest_real* out[3];
+  in[0] = x, in[1] = P, in[2] = u, in[3] = y, in[4] = R, in[5] = mask;
+  out[0] = x_post, out[1] = P_post, out[2] = d2;
+  return learnest_casadi_call(md, LEARNEST_MODEL_UPDATE, in, 6, out, 3);
+}
+#endif
+
+#ifdef LEARNEST_MODEL_SOLVER
+/* The NLP solver: x = argmin of the problem with parameters p from the warm start x0.
+ * Its memory is checked out of CasADi's static pool for the call and given back. */
+LEARNEST_KIT int learnest_model_solve(struct learnest_model* md, const learnest_real* p,
+                                      const learnest_real* x0, learnest_real* x) {
+  int i, flag, mem = LEARNEST_MODEL_SOLVER_CHECKOUT();
+  if (mem < 0) return LEARNEST_NO_MEMORY;
+  for (i = 0; i <= LEARNEST_CASADI_SZ_ARG; ++i) md->arg[i] = 0;  /* no bounds, no multipliers */
+  for (i = 0; i <= LEARNEST_CASADI_SZ_RES; ++i) md->res[i] = 0;
+  md->arg[0] = x0;
+  md->arg[1] = p;
+  md->res[0] = x;
+  flag = LEARNEST_MODEL_SOLVER(md->arg, md->res, md->iw, md->w, mem);
+  LEARNEST_MODEL_SOLVER_RELEASE(mem);
+  if (flag) return flag == 2 ? LEARNEST_MAX_ITERATIONS : LEARNEST_SOLVER_FAILED;
+  return LEARNEST_OK;
+}
+#endif
+
+#endif /* LEARNEST_CASADI_H */

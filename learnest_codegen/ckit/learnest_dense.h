@@ -1,0 +1,198 @@
+/* learnest_dense.h -- small dense linear algebra of the kit (learnest_kit.h first).
+ *
+ * Square n x n matrices, stored column-major (CasADi's order) unless a function says it reads
+ * a symmetric matrix, for which the order does not matter. Work arrays come from the caller
+ * (no VLA, no malloc). Tested against numpy.linalg in tests/test_ckit.py.
+ */
+#ifndef LEARNEST_DENSE_H
+#define LEARNEST_DENSE_H
+
+#include "learnest_kit.h"
+
+/* In-place lower Cholesky factor of the n x n matrix M (only its lower triangle is read):
+ * M = L L^T. 0 (M partly overwritten) if a pivot is not positive. */
+LEARNEST_KIT int learnest_cholesky(learnest_real* M, int n) {
+  int i, j, k;
+  for (j = 0; j < n; ++j) {
+    learnest_real d = M[j + j * n];
+    for (k = 0; k < j; ++k) d -= M[j + k * n] * M[j + k * n];
+    if (!(d > 0)) return 0;
+    d = LEARNEST_SQRT(d);
+    M[j + j * n] = d;
+    for (i = j + 1; i < n; ++i) {
+      learnest_real v = M[i + j * n];
+      for (k = 0; k < j; ++k) v -= M[i + k * n] * M[j + k * n];
+      M[i + j * n] = v / d;
+    }
+  }
+  return 1;
+}
+
+/* b <- L^-1 b for the lower triangular n x n L (column-major). */
+LEARNEST_KIT void learnest_forward_subst(const learnest_real* L, int n, learnest_real* b) {
+  int i, k;
+  for (i = 0; i < n; ++i) {
+    learnest_real v = b[i];
+    for (k = 0; k < i; ++k) v -= L[i + k * n] * b[k];
+    b[i] = v / L[i + i * n];
+  }
+}
+
+/* b <- L^-T b for the lower triangular n x n L (column-major). */
+LEARNEST_KIT void learnest_backward_subst(const learnest_real* L, int n, learnest_real* b) {
+  int i, k;
+  for (i = n - 1; i >= 0; --i) {
+    learnest_real v = b[i];
+    for (k = i + 1; k < n; ++k) v -= L[k + i * n] * b[k];
+    b[i] = v / L[i + i * n];
+  }
+}
+
+/* r' W r for the n x n W (column-major). */
+LEARNEST_KIT learnest_real learnest_quad(const learnest_real* W, const learnest_real* r, int n) {
+  learnest_real acc = 0;
+  int i, j;
+  for (j = 0; j < n; ++j) {
+    learnest_real t = 0;
+    for (i = 0; i < n; ++i) t += W[i + j * n] * r[i];
+    acc += t * r[j];
+  }
+  return acc;
+}
+
+/* dst = src^T for n x n matrices: between row- and column-major storage. */
+LEARNEST_KIT void learnest_transpose(learnest_real* dst, const learnest_real* src, int n) {
+  int i, j;
+  for (i = 0; i < n; ++i) {
+    for (j = 0; j < n; ++j) dst[j * n + i] = src[i * n + j];
+  }
+}
+
+/* 1 when the n x n A is diagonal (every off-diagonal entry exactly 0). */
+LEARNEST_KIT int learnest_is_diagonal(const learnest_real* A, int n) {
+  int i;
+  for (i = 0; i < n * n; ++i) {
+    if (i % (n + 1) != 0 && A[i] != 0) return 0;
+  }
+  return 1;
+}
+
+/* Ainv = A^-1 for a symmetric positive definite n x n A (either storage order: both are
+ * symmetric; the result is symmetric to rounding). A diagonal A is inverted entry by entry
+ * (1 / a_ii exactly, as 1 / std^2 in Python); otherwise by Cholesky, with work L (n * n).
+ * 0 when A is not positive definite or the inverse is not finite. */
+LEARNEST_KIT int learnest_spd_inverse(const learnest_real* A, int n, learnest_real* Ainv,
+                                      learnest_real* L) {
+  int i, j, k;
+  if (learnest_is_diagonal(A, n)) {
+    for (i = 0; i < n * n; ++i) Ainv[i] = 0;
+    for (i = 0; i < n; ++i) {
+      if (!(A[i * n + i] > 0)) return 0;
+      Ainv[i * n + i] = 1 / A[i * n + i];
+    }
+    return learnest_all_finite(Ainv, n * n);
+  }
+  for (j = 0; j < n; ++j) {  /* L row-major here: L[i * n + j], lower */
+    learnest_real d = A[j * n + j];
+    for (k = 0; k < j; ++k) d -= L[j * n + k] * L[j * n + k];
+    if (!(d > 0) || !isfinite(d)) return 0;
+    L[j * n + j] = LEARNEST_SQRT(d);
+    for (i = j + 1; i < n; ++i) {
+      learnest_real v = (learnest_real)0.5 * (A[i * n + j] + A[j * n + i]);
+      for (k = 0; k < j; ++k) v -= L[i * n + k] * L[j * n + k];
+      L[i * n + j] = v / L[j * n + j];
+    }
+  }
+  for (j = 0; j < n; ++j) {  /* column j of A^-1: solve L L^T x = e_j */
+    for (i = 0; i < n; ++i) {
+      learnest_real v = i == j ? 1 : 0;
+      for (k = 0; k < i; ++k) v -= L[i * n + k] * Ainv[k * n + j];
+      Ainv[i * n + j] = v / L[i * n + i];
+    }
+    for (i = n - 1; i >= 0; --i) {
+      learnest_real v = Ainv[i * n + j];
+      for (k = i + 1; k < n; ++k) v -= L[k * n + i] * Ainv[k * n + j];
+      Ainv[i * n + j] = v / L[i * n + i];
+    }
+  }
+  return learnest_all_finite(Ainv, n * n);
+}
+
+/* 1 when the n x n A is symmetric and positive semidefinite to rounding (relative 1e-10,
+ * float 1e-5): the Cholesky factorisation of A + d I, d a rounding-sized shift, must succeed;
+ * work L (n * n). A covariance that is not would make every later covariance meaningless. */
+LEARNEST_KIT int learnest_covariance_ok(const learnest_real* A, int n, learnest_real* L) {
+  const learnest_real tol = LEARNEST_IS_FLOAT ? (learnest_real)1e-5 : (learnest_real)1e-10;
+  const learnest_real tiny = LEARNEST_IS_FLOAT ? (learnest_real)1e-30 : (learnest_real)1e-300;
+  learnest_real scale = 0;
+  int i, j, k;
+  for (i = 0; i < n; ++i) scale = (learnest_real)fmax(scale, fabs(A[i * n + i]));
+  for (i = 0; i < n; ++i) {
+    for (j = 0; j < i; ++j) {
+      learnest_real a = A[i * n + j], b = A[j * n + i];
+      if (fabs(a - b) > tol * (scale + fabs(a) + fabs(b))) return 0;
+    }
+  }
+  for (j = 0; j < n; ++j) {
+    learnest_real d = A[j * n + j] + tol * scale + tiny;
+    for (k = 0; k < j; ++k) d -= L[j * n + k] * L[j * n + k];
+    if (!(d > 0)) return 0;
+    L[j * n + j] = LEARNEST_SQRT(d);
+    for (i = j + 1; i < n; ++i) {
+      learnest_real v = A[i * n + j];
+      for (k = 0; k < j; ++k) v -= L[i * n + k] * L[j * n + k];
+      L[i * n + j] = v / L[j * n + j];
+    }
+  }
+  return 1;
+}
+
+/* C (m x n) = A (m x k) B (k x n); all column-major. */
+LEARNEST_KIT void learnest_mat_mul(const learnest_real* A, const learnest_real* B, int m, int k,
+                                   int n, learnest_real* C) {
+  int i, j, l;
+  for (j = 0; j < n; ++j) {
+    for (i = 0; i < m; ++i) {
+      learnest_real v = 0;
+      for (l = 0; l < k; ++l) v += A[i + l * m] * B[l + j * k];
+      C[i + j * m] = v;
+    }
+  }
+}
+
+/* C (m x n) = A (m x k) B^T (B: n x k); all column-major. */
+LEARNEST_KIT void learnest_mat_mul_t(const learnest_real* A, const learnest_real* B, int m, int k,
+                                     int n, learnest_real* C) {
+  int i, j, l;
+  for (j = 0; j < n; ++j) {
+    for (i = 0; i < m; ++i) {
+      learnest_real v = 0;
+      for (l = 0; l < k; ++l) v += A[i + l * m] * B[j + l * n];
+      C[i + j * m] = v;
+    }
+  }
+}
+
+/* A covariance as an API call gives it (n x n, row-major) checked: finite (else
+ * LEARNEST_NONFINITE_INPUT), symmetric and positive semidefinite to rounding (else
+ * LEARNEST_NOT_POSITIVE_DEFINITE); dst = its column-major copy; work holds n * n. */
+LEARNEST_KIT int learnest_covariance_in(const learnest_real* A, int n, learnest_real* dst,
+                                        learnest_real* work) {
+  if (!learnest_all_finite(A, n * n)) return LEARNEST_NONFINITE_INPUT;
+  if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  learnest_transpose(dst, A, n);
+  return LEARNEST_OK;
+}
+
+/* A <- (A + A^T) / 2 for the n x n A. */
+LEARNEST_KIT void learnest_symmetrise(learnest_real* A, int n) {
+  int i, j;
+  for (i = 0; i < n; ++i) {
+    for (j = 0; j < i; ++j) {
+      learnest_real v = (learnest_real)0.5 * (A[i * n + j] + A[j * n + i]);
+      A[i * n + j] = A[j * n + i] = v;
+    }
+  }
+}
+
+#endif /* LEARNEST_DENSE_H */

@@ -1,0 +1,314 @@
+/* learnest_gn.h -- the structured Gauss-Newton core of the embedded MHE (docs/embedded_mhe.md).
+ *
+ * The unknowns are the window states X = x_0..x_N; the residuals of eq. (2) are the arrival
+ * term a_i |x_i - xbar|^2_P (a_i = 1 - m_{i-1}), the process terms m_i |x_{i+1} - F(x_i,
+ * u_{i+1})|^2_Q and the measurement terms m_i |G_i (y_i - h(x_i, u_i))|^2_R. Each iteration
+ * linearises F and h at every stage, assembles the block-tridiagonal normal equations,
+ * factorises them by a block Cholesky recursion (O(N NX^3), no dense matrix) and takes the
+ * longest step of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the cost.
+ *
+ * Include after learnest_mhe.h, with the model declared before:
+ *   struct learnest_model;   (whatever the model needs; the kit passes a pointer through)
+ *   static void learnest_model_stage(struct learnest_model*, const learnest_real* x,
+ *       const learnest_real* u, learnest_real* F, learnest_real* A);   F(x, u), A = dF/dx
+ *   static void learnest_model_node(struct learnest_model*, const learnest_real* x,
+ *       const learnest_real* u, learnest_real* h, learnest_real* C);   h(x, u), C = dh/dx
+ * with A (NX x NX) and C (NY x NX) column-major (learnest_casadi.h gives them for CasADi code).
+ */
+#ifndef LEARNEST_GN_H
+#define LEARNEST_GN_H
+
+#include "learnest_mhe.h"
+
+#define LEARNEST_GN_CONVERGED 0
+#define LEARNEST_GN_RTI 1
+#define LEARNEST_GN_ARMIJO ((learnest_real)1e-4)
+#define LEARNEST_GN_MAX_HALVINGS 30
+
+/* F, A at each stage (x_i, u_{i+1}); h, C at each node (x_i, u_i); column-major blocks. */
+struct learnest_lin {
+  learnest_real F[LEARNEST_N * LEARNEST_NX], A[LEARNEST_N * LEARNEST_NXX];
+  learnest_real h[(LEARNEST_N + 1) * LEARNEST_NY], C[(LEARNEST_N + 1) * LEARNEST_NY * LEARNEST_NX];
+};
+
+struct learnest_gn {
+  int mode, max_iter, iterations, lin_valid;
+  learnest_real tol;
+  learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];  /* weights / the largest */
+  struct learnest_lin lin, trial;  /* at the iterate, and at the line search's point */
+  learnest_real Xt[LEARNEST_NW];
+  learnest_real D[(LEARNEST_N + 1) * LEARNEST_NXX];  /* diagonal blocks, then their factors */
+  learnest_real E[LEARNEST_N * LEARNEST_NXX];  /* blocks (i, i+1), then the factor's (i+1, i) */
+  learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], tmp[LEARNEST_NXX], rw[LEARNEST_NX], rv[LEARNEST_NY];
+};
+
+/* The weights of p divided by their largest diagonal entry, as the Ipopt MHE scales its cost. */
+LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest_mhe_problem* p) {
+  learnest_real big = 0;
+  int i;
+  for (i = 0; i < LEARNEST_NX; ++i) big = p->Q[i * LEARNEST_NX + i] > big ? p->Q[i * LEARNEST_NX + i] : big;
+  for (i = 0; i < LEARNEST_NY; ++i) big = p->R[i * LEARNEST_NY + i] > big ? p->R[i * LEARNEST_NY + i] : big;
+  for (i = 0; i < LEARNEST_NX; ++i) big = p->P[i * LEARNEST_NX + i] > big ? p->P[i * LEARNEST_NX + i] : big;
+  big = 1 / big;
+  for (i = 0; i < LEARNEST_NXX; ++i) s->Q[i] = big * p->Q[i];
+  for (i = 0; i < LEARNEST_NYY; ++i) s->R[i] = big * p->R[i];
+  for (i = 0; i < LEARNEST_NXX; ++i) s->P[i] = big * p->P[i];
+}
+
+/* Linearise every stage and node of window w at the states X into L. */
+LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct learnest_window* w,
+                                        const learnest_real* X, struct learnest_lin* L) {
+  int i;
+  for (i = 0; i < LEARNEST_N; ++i) {
+    learnest_model_stage(md, X + i * LEARNEST_NX, w->U + (i + 1) * LEARNEST_NU, L->F + i * LEARNEST_NX,
+                         L->A + i * LEARNEST_NXX);
+  }
+  for (i = 0; i <= LEARNEST_N; ++i) {
+    learnest_model_node(md, X + i * LEARNEST_NX, w->U + i * LEARNEST_NU, L->h + i * LEARNEST_NY,
+                        L->C + i * LEARNEST_NY * LEARNEST_NX);
+  }
+}
+
+/* The linearisation of the window after learnest_mhe_advance: the shifted stages keep theirs
+ * (stage i of the new window is stage i+1 of the old one, same x and u) when it is valid,
+ * and the new last stage and node are evaluated; otherwise the whole window. */
+LEARNEST_KIT void learnest_gn_advance(struct learnest_gn* s, struct learnest_model* md,
+                                      const struct learnest_window* w, const learnest_real* X,
+                                      int has_previous) {
+  struct learnest_lin* L = &s->lin;
+  if (!(s->lin_valid && has_previous)) {
+    learnest_gn_linearise(md, w, X, L);
+    return;
+  }
+  learnest_shift(L->F, LEARNEST_NX, LEARNEST_N);
+  learnest_shift(L->A, LEARNEST_NXX, LEARNEST_N);
+  learnest_shift(L->h, LEARNEST_NY, LEARNEST_N + 1);
+  learnest_shift(L->C, LEARNEST_NY * LEARNEST_NX, LEARNEST_N + 1);
+  learnest_model_stage(md, X + (LEARNEST_N - 1) * LEARNEST_NX, w->U + LEARNEST_N * LEARNEST_NU,
+                       L->F + (LEARNEST_N - 1) * LEARNEST_NX, L->A + (LEARNEST_N - 1) * LEARNEST_NXX);
+  learnest_model_node(md, X + LEARNEST_N * LEARNEST_NX, w->U + LEARNEST_N * LEARNEST_NU,
+                      L->h + LEARNEST_N * LEARNEST_NY, L->C + LEARNEST_N * LEARNEST_NY * LEARNEST_NX);
+}
+
+/* The cost of window w at X with linearisation L (scaled weights). */
+LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct learnest_window* w,
+                                            const learnest_real* X, const struct learnest_lin* L) {
+  learnest_real c = 0;
+  int i, j;
+  for (i = 0; i <= LEARNEST_N; ++i) {
+    const learnest_real* x = X + i * LEARNEST_NX;
+    learnest_real a = i ? 1 - w->mask[i - 1] : 1;
+    if (a != 0) {
+      for (j = 0; j < LEARNEST_NX; ++j) s->rw[j] = x[j] - w->xbar[j];
+      c += a * learnest_quad(s->P, s->rw, LEARNEST_NX);
+    }
+    if (w->mask[i] != 0) {
+      for (j = 0; j < LEARNEST_NY; ++j) {
+        s->rv[j] = w->G[i * LEARNEST_NY + j] * (w->Y[i * LEARNEST_NY + j] - L->h[i * LEARNEST_NY + j]);
+      }
+      c += w->mask[i] * learnest_quad(s->R, s->rv, LEARNEST_NY);
+      if (i < LEARNEST_N) {
+        for (j = 0; j < LEARNEST_NX; ++j) s->rw[j] = X[(i + 1) * LEARNEST_NX + j] - L->F[i * LEARNEST_NX + j];
+        c += w->mask[i] * learnest_quad(s->Q, s->rw, LEARNEST_NX);
+      }
+    }
+  }
+  return c;
+}
+
+/* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
+ * gradient): diagonal blocks D_i, blocks E_i = H_{i, i+1}, gradient g. */
+LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
+                                    const learnest_real* X) {
+  const struct learnest_lin* L = &s->lin;
+  int i, r, c, k;
+  memset(s->D, 0, sizeof s->D);
+  memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  memset(s->g, 0, sizeof s->g);
+  for (i = 0; i <= LEARNEST_N; ++i) {
+    learnest_real* D = s->D + i * LEARNEST_NXX;
+    learnest_real* g = s->g + i * LEARNEST_NX;
+    const learnest_real* x = X + i * LEARNEST_NX;
+    learnest_real a = i ? 1 - w->mask[i - 1] : 1, m = w->mask[i];
+    if (a != 0) {  /* arrival term a |x_i - xbar|^2_P */
+      for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        for (r = 0; r < LEARNEST_NX; ++r) {
+          D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
+          g[r] += a * s->P[r + c * LEARNEST_NX] * s->rw[c];
+        }
+      }
+    }
+    if (m == 0) continue;
+    {  /* measurement term m |G (y_i - h(x_i))|^2_R: D += C'RC, g -= C'R v (C, v weighted) */
+      const learnest_real* Gi = w->G + i * LEARNEST_NY;
+      learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
+      for (k = 0; k < LEARNEST_NY * LEARNEST_NX; ++k) {
+        C[k] = Gi[k % LEARNEST_NY] * L->C[i * LEARNEST_NY * LEARNEST_NX + k];
+      }
+      for (k = 0; k < LEARNEST_NY; ++k) {
+        s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
+      }
+      for (r = 0; r < LEARNEST_NY; ++r) {
+        Rv[r] = 0;
+        for (k = 0; k < LEARNEST_NY; ++k) Rv[r] += s->R[r + k * LEARNEST_NY] * s->rv[k];
+        for (c = 0; c < LEARNEST_NX; ++c) {
+          learnest_real v = 0;
+          for (k = 0; k < LEARNEST_NY; ++k) v += s->R[r + k * LEARNEST_NY] * C[k + c * LEARNEST_NY];
+          RC[r + c * LEARNEST_NY] = v;
+        }
+      }
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        for (r = 0; r < LEARNEST_NX; ++r) {
+          learnest_real v = 0;
+          for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
+          D[r + c * LEARNEST_NX] += m * v;
+        }
+        for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
+      }
+    }
+    if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
+      const learnest_real* A = L->A + i * LEARNEST_NXX;
+      learnest_real* Dn = s->D + (i + 1) * LEARNEST_NXX;
+      learnest_real* E = s->E + i * LEARNEST_NXX;
+      learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
+      learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
+      for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
+      for (r = 0; r < LEARNEST_NX; ++r) {
+        Qw[r] = 0;
+        for (k = 0; k < LEARNEST_NX; ++k) Qw[r] += s->Q[r + k * LEARNEST_NX] * s->rw[k];
+        for (c = 0; c < LEARNEST_NX; ++c) {
+          learnest_real v = 0;
+          for (k = 0; k < LEARNEST_NX; ++k) v += s->Q[r + k * LEARNEST_NX] * A[k + c * LEARNEST_NX];
+          QA[r + c * LEARNEST_NX] = v;
+        }
+      }
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        for (r = 0; r < LEARNEST_NX; ++r) {
+          learnest_real v = 0;
+          for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
+          D[r + c * LEARNEST_NX] += m * v;
+          E[r + c * LEARNEST_NX] = -m * QA[c + r * LEARNEST_NX];  /* -(A'Q)[r][c] = -(QA)[c][r] */
+          Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+        }
+        for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
+        gn[c] += m * Qw[c];
+      }
+    }
+  }
+}
+
+/* Solve H dx = -g for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i (lower
+ * triangles read) and N blocks E_i = H_{i, i+1} (all NX x NX, column-major), by the block
+ * Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = (L_i^-1 E_i)'. D and E are
+ * overwritten by the factor; tmp holds NX * NX. 0 if H is not positive definite. */
+LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const learnest_real* g,
+                                    learnest_real* dx, learnest_real* tmp) {
+  int i, r, c, k;
+  for (i = 0; i <= LEARNEST_N; ++i) {
+    learnest_real* Di = D + i * LEARNEST_NXX;
+    if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
+      const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        for (r = c; r < LEARNEST_NX; ++r) {
+          learnest_real v = 0;
+          for (k = 0; k < LEARNEST_NX; ++k) v += B[r + k * LEARNEST_NX] * B[c + k * LEARNEST_NX];
+          Di[r + c * LEARNEST_NX] -= v;
+        }
+      }
+    }
+    if (!learnest_cholesky(Di, LEARNEST_NX)) return 0;
+    if (i < LEARNEST_N) {  /* B_i = (L_i^-1 E_i)' */
+      learnest_real* Ei = E + i * LEARNEST_NXX;
+      for (c = 0; c < LEARNEST_NX; ++c) learnest_forward_subst(Di, LEARNEST_NX, Ei + c * LEARNEST_NX);
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        for (r = 0; r < LEARNEST_NX; ++r) tmp[r + c * LEARNEST_NX] = Ei[c + r * LEARNEST_NX];
+      }
+      memcpy(Ei, tmp, LEARNEST_NXX * sizeof(learnest_real));
+    }
+  }
+  for (i = 0; i <= LEARNEST_N; ++i) {  /* forward: z_i = L_i^-1 (-g_i - B_{i-1} z_{i-1}) */
+    learnest_real* z = dx + i * LEARNEST_NX;
+    for (r = 0; r < LEARNEST_NX; ++r) z[r] = -g[i * LEARNEST_NX + r];
+    if (i > 0) {
+      const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
+      for (r = 0; r < LEARNEST_NX; ++r) {
+        for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[r + k * LEARNEST_NX] * z[k - LEARNEST_NX];
+      }
+    }
+    learnest_forward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);
+  }
+  for (i = LEARNEST_N; i >= 0; --i) {  /* backward: dx_i = L_i^-T (z_i - B_i' dx_{i+1}) */
+    learnest_real* z = dx + i * LEARNEST_NX;
+    if (i < LEARNEST_N) {
+      const learnest_real* B = E + i * LEARNEST_NXX;
+      for (r = 0; r < LEARNEST_NX; ++r) {
+        for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[k + r * LEARNEST_NX] * z[LEARNEST_NX + k];
+      }
+    }
+    learnest_backward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);
+  }
+  return 1;
+}
+
+/* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. */
+LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
+                                       const learnest_real* X, learnest_real* big) {
+  int j;
+  learnest_gn_build(s, w, X);
+  if (!learnest_btd_solve(s->D, s->E, s->g, s->dx, s->tmp)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
+  *big = 0;
+  for (j = 0; j < LEARNEST_NW; ++j) {
+    if (LEARNEST_FABS(s->dx[j]) > *big) *big = LEARNEST_FABS(s->dx[j]);
+  }
+  return LEARNEST_OK;
+}
+
+/* Move X along dx by the longest of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the
+ * cost; the linearisation at the new point (needed by the next iteration, or by the next
+ * sample in RTI mode) comes from the line search's own evaluation. */
+LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_model* md,
+                                         const struct learnest_window* w, learnest_real* X,
+                                         learnest_real big) {
+  learnest_real cost, slope = 0, alpha = 1;
+  int j, halvings;
+  cost = learnest_gn_cost(s, w, X, &s->lin);
+  for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
+  for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
+    learnest_real trial_cost;
+    for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
+    learnest_gn_linearise(md, w, s->Xt, &s->trial);
+    trial_cost = learnest_gn_cost(s, w, s->Xt, &s->trial);
+    /* Armijo; a step below tol is taken whole (its cost change is round-off). */
+    if (trial_cost <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope || alpha * big <= s->tol) {
+      memcpy(X, s->Xt, sizeof s->Xt);
+      memcpy(&s->lin, &s->trial, sizeof s->lin);
+      return LEARNEST_OK;
+    }
+    alpha *= (learnest_real)0.5;
+  }
+  return LEARNEST_LINE_SEARCH_FAILED;
+}
+
+/* Converged mode: steps until the next Gauss-Newton step is at most tol (that step is not
+ * taken), at most max_iter steps (LEARNEST_MAX_ITERATIONS). RTI mode: one step. X (the warm
+ * start, linearised in lin) becomes the solution; *steps = the steps taken. */
+LEARNEST_KIT int learnest_gn_solve(struct learnest_gn* s, struct learnest_model* md,
+                                   const struct learnest_window* w, learnest_real* X, int* steps) {
+  int code;
+  learnest_real big;
+  *steps = 0;
+  for (;;) {
+    code = learnest_gn_direction(s, w, X, &big);
+    if (code != LEARNEST_OK) return code;
+    if (s->mode == LEARNEST_GN_CONVERGED && big <= s->tol) return LEARNEST_OK;
+    if (s->mode == LEARNEST_GN_CONVERGED && *steps == s->max_iter) return LEARNEST_MAX_ITERATIONS;
+    code = learnest_gn_line_search(s, md, w, X, big);
+    if (code != LEARNEST_OK) return code;
+    ++*steps;
+    if (s->mode == LEARNEST_GN_RTI) return LEARNEST_OK;
+  }
+}
+
+#endif /* LEARNEST_GN_H */

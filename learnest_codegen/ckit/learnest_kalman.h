@@ -1,0 +1,107 @@
+/* learnest_kalman.h -- what the Kalman filters of the kit (the UKF, learnest_ukf.h; the EKF,
+ * learnest_ekf.h) share: the handle (the state, its covariance, the noise covariances, the
+ * model), their tuning from covariances, run-time tuning, the covariance guard and recovery of
+ * a step, the API of learnest_api.h and get_covariance.
+ *
+ * Include after learnest_kit.h with LEARNEST_PREFIX, LEARNEST_NX, LEARNEST_NU, LEARNEST_NY and
+ * the model (struct learnest_model); the including file then defines learnest_est_step.
+ */
+#ifndef LEARNEST_KALMAN_H
+#define LEARNEST_KALMAN_H
+
+#include "learnest_dense.h"
+#include "learnest_handle.h"
+
+#define LEARNEST_KF_NXX (LEARNEST_NX * LEARNEST_NX)
+#define LEARNEST_KF_NYY (LEARNEST_NY * LEARNEST_NY)
+#define LEARNEST_KF_NMAX (LEARNEST_NX > LEARNEST_NY ? LEARNEST_NX : LEARNEST_NY)
+
+LEARNEST_HANDLE {
+  struct learnest_common c;
+  /* Filter state; the model reads matrices column-major, the API speaks row-major. */
+  learnest_real x[LEARNEST_NX], P[LEARNEST_KF_NXX], Q[LEARNEST_KF_NXX], R[LEARNEST_KF_NYY];
+  struct learnest_model model;
+};
+
+struct learnest_kalman_tuning {
+  learnest_real P0[LEARNEST_KF_NXX], Q[LEARNEST_KF_NXX], R[LEARNEST_KF_NYY];  /* col-major */
+};
+typedef struct learnest_kalman_tuning learnest_tuning;
+
+/* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; positive
+ * semidefinite is enough); nothing is written unless every given one is valid. */
+LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
+                                   const learnest_real* Q, const learnest_real* R) {
+  learnest_real w[LEARNEST_KF_NMAX * LEARNEST_KF_NMAX];
+  learnest_tuning c;
+  int code = P0 ? learnest_covariance_in(P0, LEARNEST_NX, c.P0, w) : LEARNEST_OK;
+  if (code == LEARNEST_OK && Q) code = learnest_covariance_in(Q, LEARNEST_NX, c.Q, w);
+  if (code == LEARNEST_OK && R) code = learnest_covariance_in(R, LEARNEST_NY, c.R, w);
+  if (code != LEARNEST_OK) return code;
+  if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
+  if (Q) memcpy(t->Q, c.Q, sizeof c.Q);
+  if (R) memcpy(t->R, c.R, sizeof c.R);
+  return LEARNEST_OK;
+}
+
+LEARNEST_KIT void learnest_est_defaults(LEARNEST_HANDLE* h) { (void)h; }
+
+LEARNEST_KIT void learnest_est_start(LEARNEST_HANDLE* h, const learnest_real* x0,
+                                     const learnest_tuning* t) {
+  memcpy(h->x, x0, sizeof h->x);
+  memcpy(h->P, t->P0, sizeof h->P);
+  memcpy(h->Q, t->Q, sizeof h->Q);
+  memcpy(h->R, t->R, sizeof h->R);
+}
+
+LEARNEST_KIT int learnest_est_set_noise(LEARNEST_HANDLE* h, const learnest_real* Q,
+                                        const learnest_real* R) {
+  learnest_tuning t;
+  int code = learnest_est_tune(&t, 0, Q, R);
+  if (code != LEARNEST_OK) return code;
+  if (Q) memcpy(h->Q, t.Q, sizeof h->Q);
+  if (R) memcpy(h->R, t.R, sizeof h->R);
+  return LEARNEST_OK;
+}
+
+LEARNEST_KIT const learnest_real* learnest_est_state(const LEARNEST_HANDLE* h) { return h->x; }
+
+/* The end of a step: x_post and P_post (column-major, overwritten) must be finite, P_post
+ * symmetric (it is symmetrised) and positive semidefinite to rounding (P - K S K^T can lose it
+ * from extreme but valid covariances; such a P would poison every later step, so it is an
+ * error, not an OK); then the gate books the step (rejected, valid: NY flags each), its
+ * recovery grows the variances (the covariances stay, so stale correlations fade) and the step
+ * is committed. */
+LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real* x_post,
+                                        learnest_real* P_post, const int* rejected,
+                                        const unsigned char* valid) {
+  learnest_real work[LEARNEST_KF_NXX], factor;
+  int i, any = 0;
+  if (!learnest_all_finite(x_post, LEARNEST_NX) || !learnest_all_finite(P_post, LEARNEST_KF_NXX)) {
+    return LEARNEST_NONFINITE_RESULT;
+  }
+  learnest_symmetrise(P_post, LEARNEST_NX);
+  if (!learnest_covariance_ok(P_post, LEARNEST_NX, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  for (i = 0; i < LEARNEST_NY; ++i) any |= rejected[i];
+  factor = learnest_gate_record(&h->c.gate, rejected, valid);
+  for (i = 0; factor != 1 && i < LEARNEST_NX; ++i) P_post[i * LEARNEST_NX + i] *= factor;
+  memcpy(h->x, x_post, sizeof h->x);
+  memcpy(h->P, P_post, sizeof h->P);
+  return any ? LEARNEST_MEASUREMENT_REJECTED : LEARNEST_OK;
+}
+
+/* Defined by the including file (learnest_ukf.h, learnest_ekf.h). */
+LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
+                                   const learnest_real* y, const unsigned char* valid,
+                                   int* rejected);
+
+#include "learnest_api.h"
+
+int LEARNEST_API(get_covariance)(const LEARNEST_HANDLE* h, learnest_real* P) {
+  if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
+  if (!P) return LEARNEST_BAD_ARGUMENT;
+  learnest_transpose(P, h->P, LEARNEST_NX);
+  return LEARNEST_OK;
+}
+
+#endif /* LEARNEST_KALMAN_H */

@@ -1,0 +1,195 @@
+/* learnest_mhe.h -- what the Ipopt MHE and the embedded Gauss-Newton MHE share: the problem of
+ * a sample (window and weights, laid out as ParamLayout in estimators/mhe_problem.py), their
+ * tuning from covariances, the innovation gate of a new sample and the recovery's restart
+ * (estimators/mhe.py is the Python reference, line by line).
+ *
+ * Include after learnest_kit.h with LEARNEST_NX, LEARNEST_NU, LEARNEST_NY, LEARNEST_N.
+ */
+#ifndef LEARNEST_MHE_H
+#define LEARNEST_MHE_H
+
+#include "learnest_dense.h"
+#include "learnest_gate.h"
+#include "learnest_window.h"
+
+#define LEARNEST_NXX (LEARNEST_NX * LEARNEST_NX)
+#define LEARNEST_NYY (LEARNEST_NY * LEARNEST_NY)
+#define LEARNEST_NMAX (LEARNEST_NX > LEARNEST_NY ? LEARNEST_NX : LEARNEST_NY)
+
+/* The parameters of one sample's problem: the window, then the weights Q, R, P (inverse
+ * covariances, symmetric, column-major), exactly the parameter vector of the Ipopt MHE. */
+struct learnest_mhe_problem {
+  struct learnest_window w;
+  learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];
+};
+
+/* Tuning as init/reset take it (covariances, row-major, symmetrised) and the weights. */
+struct learnest_mhe_tuning {
+  learnest_real P_cov[LEARNEST_NXX], Q_cov[LEARNEST_NXX], R_cov[LEARNEST_NYY];
+  learnest_real P[LEARNEST_NXX], Q[LEARNEST_NXX], R[LEARNEST_NYY];
+};
+
+struct learnest_mhe {
+  struct learnest_mhe_problem now;   /* the last solved problem */
+  struct learnest_mhe_problem next;  /* the problem being solved */
+  learnest_real X[LEARNEST_NW];      /* the solution of now, oldest stage first */
+  learnest_real Xn[LEARNEST_NW];     /* the warm start of next, then its solution */
+  learnest_real P_cov[LEARNEST_NXX], R_cov[LEARNEST_NYY];  /* for the gate (row-major) */
+  int restart;                       /* the next step empties the window */
+};
+
+/* One covariance A (n x n, row-major) checked and inverted: finite (else
+ * LEARNEST_NONFINITE_INPUT), symmetric and positive definite (else
+ * LEARNEST_NOT_POSITIVE_DEFINITE); cov = A symmetrised, weight = its inverse (symmetrised). */
+LEARNEST_KIT int learnest_mhe_covariance(const learnest_real* A, int n, learnest_real* cov,
+                                         learnest_real* weight) {
+  learnest_real work[LEARNEST_NMAX * LEARNEST_NMAX];
+  if (!learnest_all_finite(A, n * n)) return LEARNEST_NONFINITE_INPUT;
+  if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  memcpy(cov, A, (size_t)(n * n) * sizeof(learnest_real));
+  learnest_symmetrise(cov, n);
+  if (!learnest_spd_inverse(cov, n, weight, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  learnest_symmetrise(weight, n);
+  return LEARNEST_OK;
+}
+
+/* t from the covariances P0 (arrival), Q (process), R (measurement); any may be NULL (its
+ * part of t is left alone). Nothing is written to t unless every given one is valid. */
+LEARNEST_KIT int learnest_mhe_tune(struct learnest_mhe_tuning* t, const learnest_real* P0,
+                                   const learnest_real* Q, const learnest_real* R) {
+  struct learnest_mhe_tuning c;
+  int code = LEARNEST_OK;
+  if (P0) code = learnest_mhe_covariance(P0, LEARNEST_NX, c.P_cov, c.P);
+  if (code == LEARNEST_OK && Q) code = learnest_mhe_covariance(Q, LEARNEST_NX, c.Q_cov, c.Q);
+  if (code == LEARNEST_OK && R) code = learnest_mhe_covariance(R, LEARNEST_NY, c.R_cov, c.R);
+  if (code != LEARNEST_OK) return code;
+  if (P0) {
+    memcpy(t->P_cov, c.P_cov, sizeof c.P_cov);
+    memcpy(t->P, c.P, sizeof c.P);
+  }
+  if (Q) {
+    memcpy(t->Q_cov, c.Q_cov, sizeof c.Q_cov);
+    memcpy(t->Q, c.Q, sizeof c.Q);
+  }
+  if (R) {
+    memcpy(t->R_cov, c.R_cov, sizeof c.R_cov);
+    memcpy(t->R, c.R, sizeof c.R);
+  }
+  return LEARNEST_OK;
+}
+
+/* The weights and covariances of t into m (the problem the next step starts from). */
+LEARNEST_KIT void learnest_mhe_set_tuning(struct learnest_mhe* m, const struct learnest_mhe_tuning* t) {
+  memcpy(m->now.Q, t->Q, sizeof m->now.Q);  /* symmetric: row- and column-major alike */
+  memcpy(m->now.R, t->R, sizeof m->now.R);
+  memcpy(m->now.P, t->P, sizeof m->now.P);
+  memcpy(m->P_cov, t->P_cov, sizeof m->P_cov);
+  memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
+}
+
+/* Start over from the prior x0 with tuning t. */
+LEARNEST_KIT void learnest_mhe_reset(struct learnest_mhe* m, const learnest_real* x0,
+                                     const struct learnest_mhe_tuning* t) {
+  memset(m, 0, sizeof *m);
+  learnest_window_reset(&m->now.w, x0);
+  learnest_mhe_set_tuning(m, t);
+  learnest_window_fill(m->X, x0);
+}
+
+/* next and its warm start Xn from now and X: the window moves on one stage when a sample was
+ * taken before (has_previous) and opens the new sample's stage with input u. The caller then
+ * predicts the last stage of the warm start, Xn[N] = F(X[N], u) (when has_previous). */
+LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
+                                       const learnest_real* u) {
+  memcpy(&m->next, &m->now, sizeof m->next);
+  memcpy(m->Xn, m->X, sizeof m->Xn);
+  if (has_previous) {
+    learnest_window_shift(&m->next.w, m->X);
+    learnest_shift(m->Xn, LEARNEST_NX, LEARNEST_N + 1);
+  }
+  learnest_window_open(&m->next.w, u);
+}
+
+/* The recovery's new prior (estimators/mhe.py restart_prior): the Kalman update of x_pred
+ * with covariance rho diag(P_cov) (its correlations dropped) by the outputs kept (keep[j]),
+ * C = dh/dx (NY x NX, column-major), R_cov (row-major) and innovation nu. xbar = x_pred when
+ * no output is kept or S is not positive definite. */
+LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const learnest_real* C,
+                                         const learnest_real* P_cov, learnest_real rho,
+                                         const learnest_real* R_cov, const learnest_real* nu,
+                                         const int* keep, learnest_real* xbar) {
+  learnest_real PCt[LEARNEST_NX * LEARNEST_NY], S[LEARNEST_NYY], Si[LEARNEST_NYY];
+  learnest_real L[LEARNEST_NYY], z[LEARNEST_NY];
+  int i, j, l;
+  for (i = 0; i < LEARNEST_NX; ++i) xbar[i] = x_pred[i];
+  for (i = 0; i < LEARNEST_NX; ++i) {  /* PCt = rho diag(P) C^T M */
+    for (j = 0; j < LEARNEST_NY; ++j) {
+      learnest_real v = P_cov[i * LEARNEST_NX + i] * C[j + i * LEARNEST_NY];
+      PCt[i * LEARNEST_NY + j] = keep[j] ? rho * v : 0;
+    }
+  }
+  for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (C rho P C^T + R) M + (I - M) */
+    for (l = 0; l < LEARNEST_NY; ++l) {
+      learnest_real v = R_cov[j * LEARNEST_NY + l];
+      for (i = 0; i < LEARNEST_NX; ++i) v += C[j + i * LEARNEST_NY] * PCt[i * LEARNEST_NY + l];
+      S[j * LEARNEST_NY + l] = (keep[j] && keep[l]) ? v : (j == l ? 1 : 0);
+    }
+  }
+  if (!learnest_spd_inverse(S, LEARNEST_NY, Si, L)) return;
+  for (j = 0; j < LEARNEST_NY; ++j) {
+    z[j] = 0;
+    for (l = 0; l < LEARNEST_NY; ++l) z[j] += Si[j * LEARNEST_NY + l] * (keep[l] ? nu[l] : 0);
+  }
+  for (i = 0; i < LEARNEST_NX; ++i) {
+    for (j = 0; j < LEARNEST_NY; ++j) xbar[i] += PCt[i * LEARNEST_NY + j] * z[j];
+  }
+}
+
+/* The innovation gate of the new sample (u, y, valid) and the recovery's restart, after
+ * learnest_mhe_advance and the prediction of Xn[N]: h and C = dh/dx (column-major) at
+ * x_pred = Xn[N]; a valid output's d2 = (y - h)^2 / S_jj with
+ * S_jj = rho (C P_cov C^T)_jj + R_cov_jj. A restart (after a failed step, or on the step that
+ * ends a recovery episode, learnest_gate_ends_episode) empties the window around
+ * learnest_restart_prior and folds the sample into it. Weighs the sample's outputs
+ * (G); sets rejected (NY) and *restarted; returns 1 when an output was rejected. */
+LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest_gate* g,
+                                   int has_previous, const learnest_real* u,
+                                   const learnest_real* y, const unsigned char* valid,
+                                   const learnest_real* h, const learnest_real* C, int* rejected,
+                                   int* restarted) {
+  learnest_real d2[LEARNEST_NY], nu[LEARNEST_NY], xbar[LEARNEST_NX];
+  int i, j, k, any, keep[LEARNEST_NY];
+  for (i = 0; i < LEARNEST_NY; ++i) {
+    learnest_real s = 0;
+    for (j = 0; j < LEARNEST_NX; ++j) {
+      for (k = 0; k < LEARNEST_NX; ++k) {
+        s += C[i + j * LEARNEST_NY] * m->P_cov[j * LEARNEST_NX + k] * C[i + k * LEARNEST_NY];
+      }
+    }
+    s = g->rho * s + m->R_cov[i * LEARNEST_NY + i];
+    nu[i] = valid[i] ? y[i] - h[i] : 0;
+    d2[i] = nu[i] * nu[i] / s;
+  }
+  any = learnest_gate_test(g, d2, valid, LEARNEST_NY, rejected);
+  for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
+  *restarted = has_previous && (m->restart || learnest_gate_ends_episode(g, rejected, valid));
+  if (*restarted) {
+    learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, m->P_cov, g->rho, m->R_cov, nu,
+                           keep, xbar);
+    learnest_window_reset(&m->next.w, xbar);
+    learnest_window_open(&m->next.w, u);
+    learnest_window_fill(m->Xn, xbar);
+    for (j = 0; j < LEARNEST_NY; ++j) keep[j] = 0;  /* the sample is in the prior */
+  }
+  learnest_window_weigh(&m->next.w, y, keep);
+  return any;
+}
+
+/* The solved next problem becomes the current one. */
+LEARNEST_KIT void learnest_mhe_commit(struct learnest_mhe* m) {
+  memcpy(&m->now, &m->next, sizeof m->now);
+  memcpy(m->X, m->Xn, sizeof m->X);
+  m->restart = 0;
+}
+
+#endif /* LEARNEST_MHE_H */

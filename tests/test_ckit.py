@@ -1,0 +1,443 @@
+"""The C kit on its own: built without any generated code, checked against independent references.
+
+``tests/ckit/*.c`` wrap the kit (``learnest_codegen/ckit``) in plain functions (``kit_core.c``:
+dense algebra, the block-tridiagonal solve, the gate, the MHE window) or instantiate its
+estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``). Each is compiled
+under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float,
+and as C++ with g++; the results are compared with numpy.linalg, a dense solve, the Python
+gate (``estimators/gate.py``), the Python MHE's window bookkeeping (``estimators/mhe.py``,
+``mhe_window.py``), the Ipopt MHE and FilterPy's Kalman filter.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learnest_codegen import NoiseModel, Signal, System, get_system
+from learnest_codegen.codegen.templates import kit_files, write_kit
+from learnest_codegen.estimators.gate import GateSettings, GateState
+from learnest_codegen.estimators.mhe import MHE
+from learnest_codegen.estimators.mhe_problem import MHESettings
+from learnest_codegen.export import prior_model
+from learnest_codegen.runtime.limits import LIMITS
+from learnest_codegen.runtime.status import STATUS_NAMES
+
+SOURCES = Path(__file__).resolve().parent / "ckit"
+COMPILERS = [cc for cc in ("gcc", "clang") if shutil.which(cc)]
+FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fno-math-errno",
+         "-ffp-contract=off"]
+DTYPES = {"double": np.float64, "float": np.float32}
+CODES = {name: code for code, name in STATUS_NAMES.items()}
+N = 5  # kit_core.c's horizon; its sizes are the cartpole's (NX 4, NU 1, NY 2)
+
+
+@pytest.fixture(scope="module")
+def kit(tmp_path_factory):
+    """The kit (with its rendered status header) in one folder."""
+    root = tmp_path_factory.mktemp("kit")
+    write_kit(root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def libraries(kit):
+    """(source, compiler, real) -> a loaded shared library, built on first use."""
+    cache = {}
+
+    def get(source: str, cc: str = "gcc", real: str = "double"):
+        key = (source, cc, real)
+        if key not in cache:
+            library = kit / f"{source}_{cc}_{real}.so"
+            command = [cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fPIC", "-shared",
+                       str(SOURCES / f"{source}.c"), "-o", str(library), "-lm"]
+            proc = subprocess.run(command, capture_output=True, text=True)
+            assert proc.returncode == 0, f"{' '.join(command)}\n{proc.stderr}"
+            cache[key] = Kit(ctypes.CDLL(str(library)), DTYPES[real])
+        return cache[key]
+    return get
+
+
+class Kit:
+    """A loaded test library: calls with numpy arrays of its real type."""
+
+    def __init__(self, lib, dtype):
+        self.lib, self.dtype = lib, dtype
+        self.c_real = ctypes.c_float if dtype == np.float32 else ctypes.c_double
+
+    def a(self, values) -> np.ndarray:
+        """A C-contiguous copy of ``values`` in the library's real type (the C may write it)."""
+        return np.array(values, dtype=self.dtype, order="C")
+
+    def __call__(self, name, *args, restype=ctypes.c_int):
+        fn = getattr(self.lib, name)
+        fn.restype = restype
+        converted = []
+        for arg in args:
+            if isinstance(arg, np.ndarray):
+                converted.append(arg.ctypes.data_as(ctypes.c_void_p))
+            elif isinstance(arg, float):
+                converted.append(self.c_real(arg))
+            else:
+                converted.append(arg)
+        return fn(*converted)
+
+
+def random_spd(rng, n, scale=1.0):
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T + 0.5 * np.eye(n))
+
+
+def tolerance(dtype) -> float:
+    return 1e-11 if dtype == np.float64 else 2e-4
+
+
+# -- builds ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
+    """Every test source (so every kit header) under -Werror with gcc and clang in double and
+    float (the library fixture), and as C++11 with g++."""
+    for real in DTYPES:
+        proc = subprocess.run([cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fsyntax-only",
+                               str(SOURCES / f"{source}.c")], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+    if cc == "gcc" and shutil.which("g++"):
+        proc = subprocess.run(["g++", "-x", "c++", "-std=c++11", "-Wall", "-Wextra", "-Werror",
+                               "-pedantic", f"-I{kit}", "-fsyntax-only", str(SOURCES / f"{source}.c")],
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+
+
+def test_the_kit_is_what_a_folder_gets(kit):
+    names = {p.name for p in kit_files()}
+    assert {"learnest_kit.h", "learnest_gn.h", "learnest_window.h", "learnest_ukf.h"} <= names
+    assert all((kit / name).read_text() == (p.read_text()) for name, p in
+               ((p.name, p) for p in kit_files()))
+    status = (kit / "learnest_status.h").read_text()
+    for limit in (lim for lim in LIMITS.values() if lim.c_name):
+        high = re.search(rf"#define LEARNEST_{limit.c_name}_MAX (\S+)", status).group(1)
+        assert float(high) == limit.high
+    assert "#define LEARNEST_INPUT_REJECTED (2)" in status
+
+
+# -- dense algebra -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_dense_algebra_equals_numpy(libraries, cc, real):
+    k = libraries("kit_core", cc, real)
+    tol = tolerance(k.dtype)
+    rng = np.random.default_rng(0)
+    for n in range(1, 7):
+        A = random_spd(rng, n)
+        M = k.a(A.T)  # column-major
+        assert k("kt_cholesky", M, n) == 1
+        L = np.tril(M.reshape(n, n).T.astype(float))
+        np.testing.assert_allclose(L, np.linalg.cholesky(A), rtol=0, atol=tol * np.abs(A).max())
+        b = rng.normal(size=n)
+        Lc = k.a(L.T)
+        x = k.a(b)
+        k("kt_forward", Lc, n, x)
+        np.testing.assert_allclose(x, np.linalg.solve(L, b), rtol=0, atol=tol * 10 * np.abs(b).max())
+        x = k.a(b)
+        k("kt_backward", Lc, n, x)
+        np.testing.assert_allclose(x, np.linalg.solve(L.T, b), rtol=0, atol=tol * 10 * np.abs(b).max())
+        inv = k.a(np.zeros((n, n)))
+        assert k("kt_spd_inverse", k.a(A), n, inv) == 1
+        expected = np.linalg.inv(A)
+        np.testing.assert_allclose(inv, expected, rtol=0, atol=tol * 100 * np.abs(expected).max())
+        d = rng.uniform(0.1, 3, size=n) ** 2
+        inv = k.a(np.zeros((n, n)))
+        assert k("kt_spd_inverse", k.a(np.diag(d)), n, inv) == 1
+        np.testing.assert_array_equal(np.diag(inv), (1 / k.a(d)))  # the diagonal rule: exact
+        r = rng.normal(size=n)
+        assert k("kt_quad", k.a(A.T), k.a(r), n, restype=k.c_real) == pytest.approx(r @ A @ r, rel=tol * 10)
+        assert k("kt_covariance_ok", k.a(A), n) == 1
+        if n > 1:
+            indefinite = A - 2 * np.linalg.eigvalsh(A).max() * np.outer(np.eye(n)[0], np.eye(n)[0])
+            skew = A + np.triu(np.ones((n, n)), 1) * np.abs(A).max()
+            for bad in (indefinite, skew):
+                assert k("kt_covariance_ok", k.a(bad), n) == 0
+            # the inverse reads a symmetric matrix (its callers check symmetry first)
+            assert k("kt_spd_inverse", k.a(indefinite), n, k.a(np.zeros((n, n)))) == 0
+    assert k("kt_covariance_ok", k.a(np.zeros((3, 3))), 3) == 1  # semidefinite is a covariance
+    assert k("kt_spd_inverse", k.a(np.zeros((3, 3))), 3, k.a(np.zeros((3, 3)))) == 0
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_block_tridiagonal_solve_equals_a_dense_solve(libraries, cc, real):
+    """H dx = -g for a random SPD block-tridiagonal H of N+1 blocks of 4 x 4."""
+    k = libraries("kit_core", cc, real)
+    nx, rng = 4, np.random.default_rng(1)
+    for _ in range(5):
+        blocks = [rng.normal(size=(2 * nx, 2 * nx)) for _ in range(N)]
+        H = np.zeros(((N + 1) * nx, (N + 1) * nx))
+        for i, B in enumerate(blocks):  # a sum of stage terms J_i' J_i: SPD, block tridiagonal
+            H[i * nx:(i + 2) * nx, i * nx:(i + 2) * nx] += B.T @ B
+        H += 0.1 * np.eye(len(H))
+        D = np.stack([H[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx].T for i in range(N + 1)])
+        E = np.stack([H[i * nx:(i + 1) * nx, (i + 1) * nx:(i + 2) * nx].T for i in range(N)])
+        g = rng.normal(size=len(H))
+        Dc, Ec, dx = k.a(D), k.a(E), k.a(np.zeros(len(H)))
+        assert k("kt_btd_solve", Dc, Ec, k.a(g), dx) == 1
+        expected = np.linalg.solve(H, -g)
+        scale = np.abs(expected).max() * np.linalg.cond(H)
+        np.testing.assert_allclose(dx, expected, rtol=0, atol=tolerance(k.dtype) * scale)
+    H = -np.eye((N + 1) * nx)  # not positive definite: refused
+    D = np.stack([H[:nx, :nx]] * (N + 1))
+    assert k("kt_btd_solve", k.a(D), k.a(np.zeros((N, nx, nx))), k.a(np.ones(len(H))),
+             k.a(np.zeros(len(H)))) == 0
+
+
+# -- the gate ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cc", COMPILERS)
+def test_gate_equals_the_python_gate(libraries, cc):
+    """Random normalised innovations and validity: the C gate rejects the same outputs, keeps
+    the same per-output streaks and inflation, ends the same episodes and returns the same
+    factors as estimators/gate.py."""
+    k = libraries("kit_core", cc, "double")
+    settings = GateSettings(threshold=9.0, recover_after=3, inflation=2.0)
+    g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e12, restype=None)
+    py = GateState(settings, 2)
+    rng = np.random.default_rng(2)
+    rho, streaks, episodes = ctypes.c_double(), np.zeros(2, dtype=np.intc), 0
+    for step in range(600):
+        d2 = rng.choice([0.5, 3.0, 20.0, 1e6, np.nan], size=2, p=[0.3, 0.2, 0.2, 0.2, 0.1])
+        valid = (rng.random(2) < [0.9, 0.3]).astype(np.uint8)  # a fast and a slow output
+        rejected = np.zeros(2, dtype=np.intc)
+        any_c = k("kt_gate_test", g, k.a(d2), valid, rejected)
+        expected = py.test(d2, valid.astype(bool))
+        np.testing.assert_array_equal(rejected.astype(bool), expected, err_msg=f"step {step}")
+        assert any_c == int(expected.any())
+        ends = k("kt_gate_ends_episode", g, rejected, valid)
+        assert ends == int(py.ends_episode(expected, valid.astype(bool)))
+        episodes += ends
+        factor = k("kt_gate_record", g, rejected, valid, restype=ctypes.c_double)
+        assert factor == py.record(expected, valid.astype(bool))
+        k("kt_gate_state", g, ctypes.byref(rho), streaks, restype=None)
+        assert rho.value == py.inflation and streaks.tolist() == py.streaks.tolist()
+    assert episodes > 0 and py.inflation >= 1
+    # out of range: refused, nothing changed
+    for bad in ((0.5, 3, 2.0), (-1.0, 3, 2.0), (np.nan, 3, 2.0), (9.0, 0, 2.0), (9.0, 10**7, 2.0),
+                (9.0, 3, 1.0), (9.0, 3, 1e4), (9.0, 3, np.inf)):
+        assert k("kt_gate_set", g, float(bad[0]), bad[1], float(bad[2])) == CODES["BAD_ARGUMENT"]
+    assert k("kt_gate_set", g, 0.0, 3, 2.0) == 0 and k("kt_gate_set", g, float("inf"), 3, 2.0) == 0
+
+
+# -- the MHE window ------------------------------------------------------------------------
+
+def test_window_equals_the_python_mhe_bookkeeping(libraries):
+    """The C window (shift, arrival update, per-output weights G, gate, restart) against the
+    Python MHE's own ``_advance`` over a random sequence: missing outputs, outliers that trip
+    the gate and its recovery, failed solves that restart the window. Both are given the same
+    stand-in solutions; every array of the window and the warm start must be equal (the
+    restart prior to rounding: one solves with numpy, the other by Cholesky)."""
+    k = libraries("kit_core", "gcc", "double")
+    cartpole = get_system("cartpole")
+    model = prior_model(cartpole)
+    settings = MHESettings.from_system(cartpole, horizon=N, gate=GateSettings(recover_after=3))
+    mhe = MHE(model, settings)
+    rng = np.random.default_rng(3)
+    x0 = np.array(cartpole.x0, dtype=float)
+    Q, R, P0 = settings.covariances()
+    mhe.reset(x0)
+    m = np.zeros(k("kt_mhe_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    assert k("kt_mhe_reset", m, k.a(x0), k.a(P0), k.a(Q), k.a(R)) == 0
+    g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    gate = settings.gate
+    k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e12, restype=None)
+    n1, restarts, rejections = N + 1, 0, 0
+    for step in range(300):
+        u = rng.normal(size=1)
+        y = model.measure(mhe.x, u) + 0.01 * rng.normal(size=2)
+        if 100 <= step < 106 or rng.random() < 0.03:
+            y = y + 5.0  # gross: rejected, and six in a row trip the recovery
+        valid = rng.random(2) < 0.85
+        y = np.where(valid, y, np.nan)  # a missing output's value is never read
+        has_previous = mhe._count > 0
+        if rng.random() < 0.03 and has_previous:  # a failed solve: both restart next step
+            mhe._restart = True
+            k("kt_mhe_fail", m, restype=None)
+        x_pred = model.step(mhe.x, u) if has_previous else x0  # the warm start's last state
+        window, guess, rejected = mhe._advance(u, y, valid)
+        h, C = (np.asarray(v) for v in mhe._meas(x_pred, u))
+        k("kt_mhe_advance", m, int(has_previous), k.a(u), k.a(x_pred), restype=None)
+        rej, restarted = np.zeros(2, dtype=np.intc), ctypes.c_int()
+        any_c = k("kt_mhe_gate", m, g, int(has_previous), k.a(u), k.a(y), valid.astype(np.uint8),
+                  k.a(h.ravel()), k.a(C.T), rej, ctypes.byref(restarted))
+        np.testing.assert_array_equal(rej.astype(bool), rejected, err_msg=f"step {step}")
+        assert any_c == int(rejected.any())
+        blocks = [np.zeros(s) for s in (4, n1, 2 * n1, n1, 2 * n1, 4 * n1)]
+        k("kt_mhe_next", m, *blocks, restype=None)
+        xbar, U, Y, mask, G, Xn = blocks
+        np.testing.assert_array_equal(U, window.U.ravel(), err_msg=f"step {step}")
+        np.testing.assert_array_equal(Y, window.Y.ravel(), err_msg=f"step {step}")
+        np.testing.assert_array_equal(mask, window.mask, err_msg=f"step {step}")
+        np.testing.assert_array_equal(G, window.G.ravel(), err_msg=f"step {step}")
+        restarts += restarted.value
+        if restarted.value:  # the prior: a Kalman update, numpy's solve against Cholesky
+            np.testing.assert_allclose(xbar, window.xbar, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(Xn, guess.ravel(), rtol=1e-12, atol=1e-14)
+        else:
+            np.testing.assert_array_equal(xbar, window.xbar, err_msg=f"step {step}")
+            np.testing.assert_array_equal(Xn, guess.ravel(), err_msg=f"step {step}")
+        X = guess + 1e-3 * rng.normal(size=guess.shape)  # a stand-in solution, the same for both
+        k("kt_mhe_commit", m, k.a(X.ravel()), restype=None)
+        mhe._now, mhe._window, mhe._count = window, X, mhe._count + 1
+        mhe._gate.record(rejected, valid)
+        mhe._restart = False
+        k("kt_gate_record", g, rej, valid.astype(np.uint8), restype=ctypes.c_double)
+        rejections += int(rejected.sum())
+    assert restarts >= 3 and rejections >= 6  # the recovery and the failures were exercised
+
+
+# -- the kit's estimators over a linear model ----------------------------------------------
+
+def linear_system() -> System:
+    """A mass-spring-damper with both states measured: RK4 of it is linear."""
+    def dynamics(ops, x, u, p):
+        return [x[1], (-p["k"] * x[0] - p["c"] * x[1] + u[0]) / p["m"]]
+
+    return System(
+        name="msd2", states=(Signal("q", "m"), Signal("v", "m/s")), inputs=(Signal("F", "N"),),
+        outputs=(Signal("q", "m"), Signal("v", "m/s")), params={"m": 2.0, "k": 3.0, "c": 0.4},
+        true_params={"m": 2.0, "k": 3.0, "c": 0.4}, dynamics=dynamics,
+        measurement=lambda ops, x, u, p: [x[0], x[1]],
+        noise=NoiseModel(measurement_std=(0.05, 0.1), state_std=(0.01, 0.01),
+                         process_std=(1e-3, 1e-2), initial_std=(0.5, 0.5)),
+        dt=0.05, duration=10.0, x0=(1.0, 0.0),
+        excitation=lambda t, rng: np.sin(t + rng.uniform())[:, None])
+
+
+@pytest.fixture(scope="module")
+def linear():
+    """The linear system, its matrices (Phi, Gamma, C) and a simulated run with missing outputs."""
+    from learnest_codegen.simulation import simulate
+
+    system = linear_system()
+    model = prior_model(system)
+    Phi = np.stack([model.step(e, np.zeros(1)) for e in np.eye(2)], axis=1)
+    Gamma = model.step(np.zeros(2), np.ones(1))[:, None]
+    run = simulate(system, seed=0, duration=8.0)
+    valid = np.random.default_rng(4).random(run.y.shape) < 0.7
+    valid[40:50] = False  # ten samples with no output: ten predictions
+    return system, model, (Phi, Gamma, np.eye(2)), run, valid
+
+
+def start(k, prefix, model_matrices, x0, P0, Q, R):
+    """init a kit estimator on a numpy workspace and set its linear model."""
+    memory = np.zeros(k(f"{prefix}_workspace_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    handle = ctypes.c_void_p()
+    assert k(f"{prefix}_init", memory, ctypes.c_size_t(memory.nbytes),
+             *(k.a(a) for a in (x0, P0, Q, R)), ctypes.byref(handle)) == 0
+    Phi, Gamma, C = model_matrices
+    assert k("kt_set_model", handle, k.a(Phi.T), k.a(Gamma.T), k.a(C.T)) == 0
+    return memory, handle
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("prefix, source", [("tukf", "kit_ukf"), ("tekf", "kit_ekf")])
+def test_kalman_filters_equal_a_kalman_filter_skipping_missing_updates(libraries, linear, cc,
+                                                                      prefix, source):
+    """The kit's UKF logic over the Kalman filter's predict and masked update, and the kit's
+    EKF (docs/c_kit.md's worked example) over the linear model: both equal FilterPy's
+    KalmanFilter that predicts every sample after the first and updates on the outputs present
+    only (none: no update), to 1e-12."""
+    from filterpy.kalman import KalmanFilter
+
+    k = libraries(source, cc, "double")
+    system, model, matrices, run, valid = linear
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
+    memory, h = start(k, prefix, matrices, x0, P0, Q, R)
+    kf = KalmanFilter(dim_x=2, dim_z=2)
+    kf.F, kf.B, kf.Q, kf.x, kf.P = matrices[0], matrices[1], Q, x0.copy(), P0.copy()
+    x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
+    for i in range(len(run.y)):
+        u = run.u[max(i - 1, 0)]
+        if i > 0:
+            kf.predict(u=u)
+        keep = valid[i]
+        if keep.any():
+            kf.update(run.y[i][keep], R=R[np.ix_(keep, keep)], H=np.eye(2)[keep])
+        y = np.where(keep, run.y[i], np.nan)  # a missing output may hold NaN
+        code = k(f"{prefix}_step", h, k.a(u), k.a(y), keep.astype(np.uint8))
+        assert code == 0
+        k(f"{prefix}_get_state", h, x)
+        k(f"{prefix}_get_covariance", h, P)
+        np.testing.assert_allclose(x, kf.x, rtol=0, atol=1e-12 * np.abs(kf.x).max())
+        np.testing.assert_allclose(P, kf.P, rtol=0, atol=1e-12 * np.abs(kf.P).max())
+    assert k(f"{prefix}_samples", h) == len(run.y)
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+def test_embedded_mhe_equals_the_ipopt_mhe_with_missing_outputs(libraries, linear, cc):
+    """The kit's Gauss-Newton MHE (converged) over the linear model against the Python MHE
+    (CasADi's nlpsol with Ipopt) of the same model, with outputs missing at random and ten
+    samples without any: the same estimates to 1e-7."""
+    k = libraries("kit_gn", cc, "double")
+    system, model, matrices, run, valid = linear
+    settings = MHESettings.from_system(system, horizon=6)
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    gate = settings.gate
+    assert k("tgn_set_gate", h, gate.threshold, gate.recover_after, gate.inflation) == 0
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)  # a missing output may hold NaN
+    X_c = k.a(np.zeros((T, 2)))
+    assert k("tgn_run", h, T, k.a(run.u[:T]), k.a(Y), valid[:T].astype(np.uint8), X_c) == 0
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
+    assert np.abs(X_c - run.x[:T]).mean() < 0.05
+    # samples 43..49 have no output: the window after sample 49 is its arrival prior and six
+    # predictions, F of each state with the input of the next sample
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_run", h, 50, k.a(run.u[:50]), k.a(Y[:50]), valid[:50].astype(np.uint8),
+             k.a(np.zeros((50, 2)))) == 0
+    window = k.a(np.zeros((7, 2)))
+    assert k("tgn_get_window", h, window) == 0
+    Phi, Gamma, _ = matrices
+    for i in range(6):
+        predicted = Phi @ window[i] + Gamma @ run.u[43 + i]
+        np.testing.assert_allclose(window[i + 1], predicted, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("prefix, source", [("tukf", "kit_ukf"), ("tgn", "kit_gn"), ("tekf", "kit_ekf")])
+def test_failed_init_leaves_a_live_estimator_as_it_was(libraries, linear, prefix, source):
+    """init on a workspace that holds a running estimator, with arguments it refuses, returns
+    the error, sets the handle to NULL and leaves the estimator stepping as before."""
+    k = libraries(source, "gcc", "double")
+    system, model, matrices, run, valid = linear
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
+    memory, h = start(k, prefix, matrices, x0, P0, Q, R)
+    twin_memory, twin = start(k, prefix, matrices, x0, P0, Q, R)
+    for i in range(20):
+        for handle in (h, twin):
+            assert k(f"{prefix}_step", handle, k.a(run.u[max(i - 1, 0)]), k.a(run.y[i]), None) >= 0
+    out = ctypes.c_void_p(1)
+    for bad in ((np.full(2, np.nan), P0, Q, R), (x0, -P0, Q, R), (x0, P0, Q, R + [[0, 1], [0, 0]])):
+        code = k(f"{prefix}_init", memory, ctypes.c_size_t(memory.nbytes), *(k.a(a) for a in bad),
+                 ctypes.byref(out))
+        assert code < 0 and out.value is None
+    assert k(f"{prefix}_init", memory, ctypes.c_size_t(3), *(k.a(a) for a in (x0, P0, Q, R)),
+             ctypes.byref(out)) == CODES["NO_MEMORY"]
+    x_h, x_t = k.a(np.zeros(2)), k.a(np.zeros(2))
+    for i in range(20, 40):
+        for handle in (h, twin):
+            assert k(f"{prefix}_step", handle, k.a(run.u[i - 1]), k.a(run.y[i]), None) >= 0
+        k(f"{prefix}_get_state", h, x_h)
+        k(f"{prefix}_get_state", twin, x_t)
+        np.testing.assert_array_equal(x_h, x_t)
