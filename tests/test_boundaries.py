@@ -395,26 +395,26 @@ def test_a_recompile_rebuilds_a_damaged_or_foreign_library(tmp_path):
     from learnest_codegen.export import prior_model
 
     first = _nominal_ukf(tmp_path / "a")
-    folder, library = first.directory, first.library
+    folder, library = first.directory, first.library_path
     good = library.read_bytes()
     code, expected = _load_in_child(folder)
     assert code == 0, expected
 
     library.write_bytes(good[: len(good) // 3])  # cut short
     again = _nominal_ukf(tmp_path / "a")
-    assert not again.build.reused and library.read_bytes() == good
+    assert not again.reused and library.read_bytes() == good
     assert _load_in_child(folder) == (0, expected)
 
     cartpole = get_system("cartpole")
     longer = dataclasses.replace(cartpole, params={**cartpole.params, "l": 0.6})
     other = compile_estimators(prior_model(longer), tmp_path / "b", model_hash="nominal",
                                estimators=("ukf",))["ukf"]
-    assert other.library.name == library.name and other.library.read_bytes() != good
-    library.write_bytes(other.library.read_bytes())  # the same prefix, another model
+    assert other.prefix == first.prefix and other.library_path.read_bytes() != good
+    library.write_bytes(other.library_path.read_bytes())  # the same prefix, another model
     again = _nominal_ukf(tmp_path / "a")
-    assert not again.build.reused and library.read_bytes() == good
+    assert not again.reused and library.read_bytes() == good
     assert _load_in_child(folder) == (0, expected)
-    assert _nominal_ukf(tmp_path / "a").build.reused  # and an intact one is still reused
+    assert _nominal_ukf(tmp_path / "a").reused  # and an intact one is still reused
 
 
 def test_no_manifest_is_written_for_a_library_that_was_not_built(tmp_path):
@@ -426,11 +426,11 @@ def test_no_manifest_is_written_for_a_library_that_was_not_built(tmp_path):
     content = json.loads((folder / "manifest.json").read_text())
     content = {k: v for k, v in content.items() if k not in ("library_bytes", "library_sha256")}
     write_manifest(folder, content)  # the built library: fine
-    good = result.library.read_bytes()
-    result.library.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    good = result.library_path.read_bytes()
+    result.library_path.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
     with pytest.raises(ModelMismatchError, match="not the library the toolchain built"):
         write_manifest(folder, content)
-    (folder / (result.library.name + ".stamp")).unlink()
+    (folder / (result.library + ".stamp")).unlink()
     with pytest.raises(ModelMismatchError, match="no build stamp"):
         write_manifest(folder, content)
 

@@ -142,6 +142,11 @@ class CompiledEstimator:
         got = (*(s.value for s in sizes), self._c["dt"](), self._c["real_size"]())
         want = (self.nx, self.nu, self.ny, self.horizon, float(self.manifest["dt"]),
                 np.dtype(self.dtype).itemsize)
+        if got[-1] != want[-1]:
+            built = {4: "float32", 8: "float64"}.get(got[-1], f"{got[-1]}-byte reals")
+            raise ModelMismatchError(f"{self.where}: the library computes in {built}, the manifest "
+                                     f"says precision {self.manifest['precision']!r} (edited?); "
+                                     "recompile the estimator")
         if got != want:
             raise ModelMismatchError(f"{self.where}: library (nx, nu, ny, N, dt, real size) = {got}, "
                                      f"manifest says {want}; recompile the estimator")
