@@ -166,6 +166,36 @@ def test_full_selftest_passes():
 
 
 @pytest.mark.slow
+def test_swingup_pendulum_names_parameters_and_coulomb_by_default():
+    """The real pendulum's situation (prior J and mgl about 3x too small, no friction; Coulomb
+    0.2 N m; swing-ups whose torque correlates with sign(qdot); three runs, the angle alone): the
+    default diagnosis names both parameters and the Coulomb friction within 20 %, and no viscous
+    term and no actuator gain stand in for them."""
+    from learnest_codegen.diagnosis.selftest_systems import SWINGUP_TRUE, swingup_pendulum
+
+    case = next(c for c in CASES if c.system == "pendulum_swingup")
+    system = swingup_pendulum()
+    runs = [simulate(system, seed) for seed in (1, 2, 3)]
+    corr = [np.corrcoef(r.u[:, 0], np.sign(r.x[:, 1]))[0, 1] for r in runs]
+    assert all(0.4 < c < 0.75 for c in corr), corr
+    row = run_case(case, QUICK_SETTINGS)
+    assert row["pass"] and row["match"] == "exact" and row["param_error"] < 0.2, row
+    assert "viscous" not in row["found"] and "actuator_gain" not in row["found"], row["found"]
+    assert row["verdict"] in ("explained", "partly explained") and row["gap_closed"] > 0.9
+    assert SWINGUP_TRUE["J"] > 2.5 * system.params["J"] and SWINGUP_TRUE["mgl"] > 2.5 * system.params["mgl"]
+
+
+@pytest.mark.slow
+def test_cart_coulomb_on_true_states_alone():
+    """A cart with sharp Coulomb friction (1 N), three runs, true states: the friction within 10 %
+    and nothing else selected, every parameter in its physical range."""
+    case = next(c for c in CASES if c.system == "cart")
+    row = run_case(case, QUICK_SETTINGS)
+    assert row["pass"] and row["param_error"] < 0.1 and row["physical"], row
+    assert len(row["found"].split(", ")) == 1, row["found"]  # one effect (its equivalents in brackets)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("key", ["pendulum_small_friction: J x2, mgl x1.6, Coulomb 0.05 N m (observer)",
                                  "cartpole: cart mass +0.5 kg (built-in), 4 runs of 4 s pooled (observer)"])
 def test_selftest_with_estimators(key):

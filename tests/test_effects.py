@@ -254,3 +254,27 @@ def test_bounded_solves_match_scipy_and_never_leave_the_box():
     G, b, c = grams(data, settings=FitSettings())
     assert np.allclose(cv_sse(G, b, c, [0], data.lo, data.hi), c)  # theta = 0 in every fold
     assert (cv_sse(G, b, c, [0]) < c).all()  # unbounded, the negative coefficient would fit
+
+
+def test_one_step_uses_each_librarys_own_terms():
+    """Two libraries of one system whose effects share names but not terms (a Coulomb smoothing
+    set from the data's speeds) give each its own residual: the compiled step is not reused
+    across them."""
+    from learnest_codegen.diagnosis.effects import default_context
+
+    system = get_system("ground_robot")
+    rng = np.random.default_rng(2)
+    z = np.column_stack([rng.normal(size=40), rng.normal(size=40), rng.uniform(1, 3, 40),
+                         rng.normal(size=40)])
+    pairs = Pairs.from_states([(np.arange(40) * 0.01, z, rng.normal(0, 0.2, (40, 2)))])
+    residuals = []
+    for speed in (1.0, 100.0):  # v_s = 0.02 m/s and 2 m/s
+        lib = library(system, default_context(system, {"v": speed}))
+        theta = np.zeros(len(lib))
+        theta[[e.name for e in lib].index("coulomb_friction(v)")] = 0.3
+        residuals.append(one_step(system, lib, theta, pairs, False)[0])
+    v = z[:-1, 2]
+    vdot = system.state_names.index("v")
+    # the friction -0.3 tanh(v / v_s) on v': r(theta) = r(0) + 0.3 tanh(v / v_s) (to RK4's accuracy)
+    diff = residuals[1][:, vdot] - residuals[0][:, vdot]
+    np.testing.assert_allclose(diff, 0.3 * (np.tanh(v / 2.0) - np.tanh(v / 0.02)), rtol=0.05)

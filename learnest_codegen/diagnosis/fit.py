@@ -165,10 +165,12 @@ _STEPS: dict = {}
 
 def _step_function(system: System, effects: Sequence[Effect], features: bool, by_input: bool):
     """The RK4 step of the prior plus ``effects`` (parameters symbolic) and its Jacobians, cached."""
-    key = (id(system), tuple(e.name for e in effects), features, by_input)
+    # keyed by identity: two effects of one name may differ (a Coulomb smoothing or a saturation
+    # level set from the data), and the cache holds the objects so that no id is reused
+    key = (id(system), tuple(id(e) for e in effects), features, by_input)
     hit = _STEPS.get(key)
-    if hit is not None and hit[0] is system:
-        return hit[1]
+    if hit is not None and hit[0] is system and all(a is b for a, b in zip(hit[1], effects)):
+        return hit[2]
     m, nx = len(effects), system.nx
     x, u = cs.SX.sym("x", nx), cs.SX.sym("u", system.nu)
     dt, th = cs.SX.sym("dt"), cs.SX.sym("theta", max(m, 1))
@@ -184,7 +186,7 @@ def _step_function(system: System, effects: Sequence[Effect], features: bool, by
     step = cs.Function("step", [x, u, dt, th], outs)
     if len(_STEPS) > 64:
         _STEPS.clear()
-    _STEPS[key] = (system, step)
+    _STEPS[key] = (system, tuple(effects), step)
     return step
 
 
