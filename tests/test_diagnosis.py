@@ -504,10 +504,8 @@ def test_verdict_reasons_never_contradict_the_figures():
             assert "above the noise floor" in why and f"{after:.3g}" in why
 
 
-def test_missing_cells_are_tolerated():
-    """Runs with empty measurement and input cells (what a reader marks as missing): inputs are
-    held, measurements interpolated for the observer, pairs without truth left out; the report
-    counts them and the diagnosis is the one of the complete runs."""
+def _holey_runs():
+    """Two cartpole runs (cart mass +0.5 kg) with empty measurement, input and truth cells."""
     cartpole = get_system("cartpole")
     runs = [simulate(cartpole, seed, duration=3.0) for seed in (1, 2)]
     holey = []
@@ -517,6 +515,14 @@ def test_missing_cells_are_tolerated():
         u[300:303] = np.nan
         x[600:605, 1] = np.nan
         holey.append(dataclasses.replace(r, y=y, u=u, x=x))
+    return cartpole, runs, holey
+
+
+def test_missing_cells_are_tolerated():
+    """Runs with empty measurement and input cells (what a reader marks as missing): inputs are
+    held, pairs without truth left out; the report counts them and the diagnosis is the one of
+    the complete runs."""
+    cartpole, runs, holey = _holey_runs()
     d = diagnose(cartpole, holey, settings=QUICK_SETTINGS)
     r = d.report
     assert r["missing"] == {"inputs": 6, "measurements": 80, "truth": 10}
@@ -524,7 +530,15 @@ def test_missing_cells_are_tolerated():
     (effect,) = r["effects"]
     assert effect["name"] == "mass(pdot via m_c)" and effect["params"]["dm_c"] == pytest.approx(0.5, rel=0.01)
     assert r["fit_pairs"] == sum(len(run) - 1 for run in runs) - 2 * 6  # 5 missing truth rows: 6 pairs
+
+
+@pytest.mark.slow
+def test_missing_measurements_through_the_observer():
+    """The same runs seen through the observer: missing measurements are interpolated for it and
+    the cart mass is still the finding."""
+    cartpole, _, holey = _holey_runs()
     observed = diagnose(cartpole, holey, settings=dataclasses.replace(QUICK_SETTINGS, source="observer"))
+    assert observed.report["missing"]["measurements"] == 80
     assert observed.report["effects"][0]["name"] == "mass(pdot via m_c)"
 
 
