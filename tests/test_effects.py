@@ -278,3 +278,34 @@ def test_one_step_uses_each_librarys_own_terms():
     # the friction -0.3 tanh(v / v_s) on v': r(theta) = r(0) + 0.3 tanh(v / v_s) (to RK4's accuracy)
     diff = residuals[1][:, vdot] - residuals[0][:, vdot]
     np.testing.assert_allclose(diff, 0.3 * (np.tanh(v / 2.0) - np.tanh(v / 0.02)), rtol=0.05)
+
+
+def test_an_effect_that_differs_between_runs_is_not_consistent():
+    """Per-run bounded fits: a coefficient of +1 on two runs and -0.5 on a third is not the same on
+    every run (the sign differs), one of 1.0, 1.1 and 0.9 is; and the summary says so in words."""
+    from learnest_codegen.diagnosis import summary
+    from learnest_codegen.diagnosis.search import consistent, per_run_values
+
+    rng = np.random.default_rng(7)
+    runs = np.repeat([0, 1, 2], 300)
+    phi = rng.normal(size=(900, 1, 1))
+    values = {}
+    for label, per_run in (("differs", [1.0, 1.0, -0.5]), ("same", [1.0, 1.1, 0.9])):
+        R = np.take(per_run, runs)[:, None] * phi[:, :, 0] + 0.01 * rng.normal(size=(900, 1))
+        data = FitData(R, phi, np.ones(1), np.zeros(1), runs=runs)
+        got = per_run_values(data, [0], np.zeros(1))[:, 0]
+        np.testing.assert_allclose(got, per_run, atol=0.01)
+        pooled = float(np.linalg.lstsq(phi[:, 0, :], R[:, 0], rcond=None)[0][0])
+        values[label] = consistent(got, pooled)
+    assert not values["differs"]["consistent"] and values["differs"]["sign_agreement"] == pytest.approx(2 / 3)
+    assert values["same"]["consistent"]
+    report = {"system": "s", "verdict": "partly explained", "verdict_reason": "r", "source": "truth",
+              "explained_in_sample": 0.5, "heldout_gap_closed": 0.4, "basis": "3 runs fitted together",
+              "where": [], "effects": [], "rejected_effects": [],
+              "consistency": [{"effect": "gain", "param": "g", "consistent": False,
+                               "per_run": values["differs"]["per_run"], "sign_agreement": 2 / 3}],
+              "selection": {"blocked": [{"effect": "lag"}]},
+              "shrink": {"one_step": {"before": 2.0, "after": 1.2, "closed": 0.4}}}
+    text = summary(report)
+    assert "gain (g): NOT the same on every run" in text and "sign agrees on 67%" in text
+    assert "lag: not entered, its parameter differs between runs" in text
