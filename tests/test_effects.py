@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from learnest_codegen import get_system
+from learnest_codegen.diagnosis.cv import FitData, block_bootstrap, box_solve, cv_sse, grams
 from learnest_codegen.diagnosis.effects import (
     corrected_dynamics,
     corrected_system,
@@ -15,11 +16,12 @@ from learnest_codegen.diagnosis.effects import (
     library,
     velocity_states,
 )
-from learnest_codegen.diagnosis.fit import FitData, FitSettings, Pairs, block_bootstrap, one_step
+from learnest_codegen.diagnosis.fit import FitSettings, Pairs, one_step
 from learnest_codegen.errors import ShapeError, UnknownNameError
 
 REQUIRED = {"mass", "viscous_friction", "coulomb_friction", "quadratic_drag", "actuator_gain",
             "actuator_offset", "bias"}
+ACTUATOR = {"dead_zone", "saturation", "back_emf", "input_delay", "actuator_lag"}
 
 
 def test_cartpole_library_covers_the_required_kinds():
@@ -131,6 +133,11 @@ def test_pairs_check_shapes():
         Pairs.from_states([(np.arange(3.0), np.zeros((4, 2)), np.zeros((4, 1)))])
     with pytest.raises(ShapeError, match="finite"):
         Pairs.from_states([(np.arange(3.0), np.full((3, 2), np.nan), np.zeros((3, 1)))])
+    # a missing sample leaves out the two pairs it belongs to, nothing else
+    z = np.arange(12.0).reshape(6, 2)
+    z[2, 1] = np.nan
+    pairs = Pairs.from_states([(np.arange(6.0), z, np.zeros((6, 1)))])
+    assert pairs.k.tolist() == [0, 3, 4] and np.isfinite(pairs.x).all() and np.isfinite(pairs.x_next).all()
     with pytest.raises(ValueError, match="2 effects but 1"):
         corrected_dynamics(get_system("cartpole"), library(get_system("cartpole"))[:2], [0.1])
 
@@ -154,3 +161,151 @@ def test_quadrotor_thrust_response_is_the_true_dynamics():
     np.testing.assert_allclose(corrected.f(x, u), quad.f(x, u, variant="true"), rtol=1e-12, atol=1e-9)
     phys = DERIVED["thrust_response"](dict(zip(["k/tau", "1/tau", "k_D/tau"], thetas)))
     np.testing.assert_allclose([phys["tau"], phys["k_T"], phys["k_D"]], [TAU_MOTOR, K_T, K_DRAG], rtol=1e-12)
+
+
+def test_actuator_kinds_and_physical_ranges():
+    """Every driving input gets the actuator dynamics; frictions, drags, delays and lags are >= 0,
+    and a friction acts "through an input" only where that input pushes the velocity one way."""
+    import math
+
+    from learnest_codegen.diagnosis.effects import input_orientation
+
+    car = {e.name: e for e in library(get_system("rc_car"))}
+    assert ACTUATOR <= {e.kind for e in car.values()}
+    assert {"input_delay(v via throttle)", "actuator_lag(psi via steering)", "back_emf(v via throttle)",
+            "dead_zone(v via throttle)", "saturation(psi via steering)"} <= set(car)
+    for e in car.values():
+        if e.kind in ("viscous_friction", "coulomb_friction", "quadratic_drag", "back_emf", "dead_zone",
+                      "input_delay", "actuator_lag"):
+            assert e.lower == 0.0 and not e.physical(-1e-3), e.name
+    assert car["actuator_gain(v via throttle)"].lower == pytest.approx(-1.0, abs=2e-3)
+    assert math.isinf(car["bias(v)"].lower)
+    cartpole = get_system("cartpole")
+    sign = input_orientation(cartpole)
+    assert sign[("pdot", "F")] == 1 and sign[("alphadot", "F")] == 0  # cos(alpha) changes sign
+    names = {e.name for e in library(cartpole)}
+    assert "viscous_friction(pdot via F)" in names and "viscous_friction(alphadot via F)" not in names
+    quad = {e.name: e for e in library(get_system("quadrotor"))}
+    assert all(e.lower == 0.0 for e in quad.values() if e.group == "thrust_response")
+
+
+def test_delay_and_lag_filters_against_closed_forms():
+    """A delay of n + a samples is the linear interpolation of the held input between samples
+    k - n and k - n - 1; a lag is the exact first-order response to the held input, averaged
+    over each step: for a unit step at t = 0, s(t) = 1 - exp(-t / tau), whose mean over
+    [k dt, (k+1) dt] is 1 - tau (exp(-k dt/tau) - exp(-(k+1) dt/tau)) / dt."""
+    from learnest_codegen.diagnosis.actuator_effects import delay, lag
+
+    dt = 0.01
+    u = np.array([0.0, 0.0, 1.0, 3.0, 2.0, 2.0, 5.0])
+    np.testing.assert_allclose(delay(u, dt, 0.0), u)
+    np.testing.assert_allclose(delay(u, dt, 2 * dt), [0, 0, 0, 0, 1, 3, 2])
+    np.testing.assert_allclose(delay(u, dt, 1.5 * dt), [0, 0, 0, 0.5, 2, 2.5, 2])
+    step = np.r_[0.0, np.ones(200)]
+    tau = 0.05
+    k = np.arange(200)
+    exact = 1 - tau * (np.exp(-k * dt / tau) - np.exp(-(k + 1) * dt / tau)) / dt
+    np.testing.assert_allclose(lag(step, dt, tau)[1:], exact, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(lag(step, dt, 0.0), step)
+
+
+def test_filter_features_are_derivatives_of_the_residual():
+    """A delay's and a lag's features (input Jacobian times the filtered input's derivative) match
+    central differences of the one-step residual, away from the delay's sample boundaries."""
+    system = get_system("rc_car")
+    lib = {e.name: e for e in library(system)}
+    effects = [lib["input_delay(v via throttle)"], lib["actuator_lag(psi via steering)"],
+               lib["back_emf(v via throttle)"], lib["dead_zone(v via throttle)"]]
+    rng = np.random.default_rng(4)
+    T = 60
+    z = np.column_stack([rng.normal(size=T), rng.normal(size=T), rng.uniform(1, 3, T), rng.normal(size=T)])
+    u = np.column_stack([np.repeat(rng.uniform(0.2, 0.5, T // 10), 10),
+                         np.repeat(rng.uniform(-1, 1, T // 10), 10)])
+    pairs = Pairs.from_states([(np.arange(T) * 0.01, z, u)])
+    theta = np.array([0.0234, 0.07, 0.1, 0.05])
+    _, J = one_step(system, effects, theta, pairs)
+    for j in range(len(effects)):
+        h = 1e-7
+        up, down = theta.copy(), theta.copy()
+        up[j] += h
+        down[j] -= h
+        numeric = -(one_step(system, effects, up, pairs, False)[0]
+                    - one_step(system, effects, down, pairs, False)[0]) / (2 * h)
+        scale = max(1.0, np.abs(numeric).max())
+        np.testing.assert_allclose(J[:, :, j], numeric, rtol=1e-4, atol=1e-5 * scale)
+
+
+def test_bounded_solves_match_scipy_and_never_leave_the_box():
+    """box_solve is the bounded least-squares optimum (scipy's lsq_linear on the stacked rows), and
+    a cross-validated fit of a coefficient the data want negative stays at its bound of 0."""
+    from scipy.optimize import lsq_linear
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(200, 3))
+    y = A @ np.array([1.0, -2.0, 0.5]) + 0.1 * rng.normal(size=200)
+    lo, hi = np.array([0.0, 0.0, -np.inf]), np.array([np.inf, 1.0, np.inf])
+    ref = lsq_linear(A, y, bounds=(lo, hi)).x
+    got = box_solve(A.T @ A, A.T @ y, lo, hi)
+    np.testing.assert_allclose(got, ref, atol=1e-8)
+    np.testing.assert_allclose(box_solve(A.T @ A, A.T @ y), np.linalg.lstsq(A, y, rcond=None)[0], atol=1e-10)
+    phi = rng.normal(size=(400, 1, 1))
+    data = FitData(-0.7 * phi[:, :, 0] + rng.normal(size=(400, 1)), phi, np.ones(1), np.zeros(1),
+                   lo=np.zeros(1))
+    G, b, c = grams(data, settings=FitSettings())
+    assert np.allclose(cv_sse(G, b, c, [0], data.lo, data.hi), c)  # theta = 0 in every fold
+    assert (cv_sse(G, b, c, [0]) < c).all()  # unbounded, the negative coefficient would fit
+
+
+def test_one_step_uses_each_librarys_own_terms():
+    """Two libraries of one system whose effects share names but not terms (a Coulomb smoothing
+    set from the data's speeds) give each its own residual: the compiled step is not reused
+    across them."""
+    from learnest_codegen.diagnosis.effects import default_context
+
+    system = get_system("ground_robot")
+    rng = np.random.default_rng(2)
+    z = np.column_stack([rng.normal(size=40), rng.normal(size=40), rng.uniform(1, 3, 40),
+                         rng.normal(size=40)])
+    pairs = Pairs.from_states([(np.arange(40) * 0.01, z, rng.normal(0, 0.2, (40, 2)))])
+    residuals = []
+    for speed in (1.0, 100.0):  # v_s = 0.02 m/s and 2 m/s
+        lib = library(system, default_context(system, {"v": speed}))
+        theta = np.zeros(len(lib))
+        theta[[e.name for e in lib].index("coulomb_friction(v)")] = 0.3
+        residuals.append(one_step(system, lib, theta, pairs, False)[0])
+    v = z[:-1, 2]
+    vdot = system.state_names.index("v")
+    # the friction -0.3 tanh(v / v_s) on v': r(theta) = r(0) + 0.3 tanh(v / v_s) (to RK4's accuracy)
+    diff = residuals[1][:, vdot] - residuals[0][:, vdot]
+    np.testing.assert_allclose(diff, 0.3 * (np.tanh(v / 2.0) - np.tanh(v / 0.02)), rtol=0.05)
+
+
+def test_an_effect_that_differs_between_runs_is_not_consistent():
+    """Per-run bounded fits: a coefficient of +1 on two runs and -0.5 on a third is not the same on
+    every run (the sign differs), one of 1.0, 1.1 and 0.9 is; and the summary says so in words."""
+    from learnest_codegen.diagnosis import summary
+    from learnest_codegen.diagnosis.search import consistent, per_run_values
+
+    rng = np.random.default_rng(7)
+    runs = np.repeat([0, 1, 2], 300)
+    phi = rng.normal(size=(900, 1, 1))
+    values = {}
+    for label, per_run in (("differs", [1.0, 1.0, -0.5]), ("same", [1.0, 1.1, 0.9])):
+        R = np.take(per_run, runs)[:, None] * phi[:, :, 0] + 0.01 * rng.normal(size=(900, 1))
+        data = FitData(R, phi, np.ones(1), np.zeros(1), runs=runs)
+        got = per_run_values(data, [0], np.zeros(1))[:, 0]
+        np.testing.assert_allclose(got, per_run, atol=0.01)
+        pooled = float(np.linalg.lstsq(phi[:, 0, :], R[:, 0], rcond=None)[0][0])
+        values[label] = consistent(got, pooled)
+    assert not values["differs"]["consistent"] and values["differs"]["sign_agreement"] == pytest.approx(2 / 3)
+    assert values["same"]["consistent"]
+    report = {"system": "s", "verdict": "partly explained", "verdict_reason": "r", "source": "truth",
+              "explained_in_sample": 0.5, "heldout_gap_closed": 0.4, "basis": "3 runs fitted together",
+              "where": [], "effects": [], "rejected_effects": [],
+              "consistency": [{"effect": "gain", "param": "g", "consistent": False,
+                               "per_run": values["differs"]["per_run"], "sign_agreement": 2 / 3}],
+              "selection": {"blocked": [{"effect": "lag"}]},
+              "shrink": {"one_step": {"before": 2.0, "after": 1.2, "closed": 0.4}}}
+    text = summary(report)
+    assert "gain (g): NOT the same on every run" in text and "sign agrees on 67%" in text
+    assert "lag: not entered, its parameter differs between runs" in text

@@ -28,11 +28,9 @@ from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, system_named
               help="nominal estimators run with the corrected prior ('' for none)")
 @click.option("--backend", type=click.Choice(["c", "python"]), default="c", show_default=True)
 @click.option("--kinds", default=None, help="comma-separated effect kinds to consider (default: all)")
-@click.option("--pool/--no-pool", default=None,
-              help="fit every run of a folder together, folds by run, each run held out in turn "
-                   "[default: pool from 3 runs]")
 @click.option("--estimator-runs", default=2, show_default=True, type=click.IntRange(min=1),
-              help="with --pool: held-out runs the estimators are scored on")
+              help="with several runs (fitted together, each held out in turn): held-out runs "
+                   "the estimators are scored on")
 @click.option("--list-effects", is_flag=True, help="list the effect library of --system and exit")
 @click.option("--selftest", is_flag=True, help="diagnose simulated runs with withheld effects; print a table")
 @click.option("--case", "cases", multiple=True, help="self-test case key (repeatable; default: all)")
@@ -41,7 +39,7 @@ from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, system_named
 @FORCE
 @friendly
 def diagnose(system_name, data, data_format, model, out, source, observer, estimators, backend, kinds,
-             pool, estimator_runs, list_effects, selftest, cases, no_progress, resample, force) -> None:
+             estimator_runs, list_effects, selftest, cases, no_progress, resample, force) -> None:
     """Diagnose the sim-to-real gap of a prior: where it lies, which effect, how far it shrinks.
 
     Writes OUT/diagnosis.json and OUT/report.md with PNG figures. --list-effects prints the
@@ -55,7 +53,7 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     kinds_t = tuple(k.strip() for k in kinds.split(",") if k.strip()) if kinds else None
     settings = dg.DiagnosisSettings(source=source, observer=observer, backend=backend, kinds=kinds_t,
                                     estimators=tuple(e.strip() for e in estimators.split(",") if e.strip()),
-                                    pool=pool, estimator_runs=estimator_runs)
+                                    estimator_runs=estimator_runs)
     if list_effects:
         from ..diagnosis import describe_library, library
 
@@ -88,17 +86,20 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     from ..outputs import claim_output
 
     claim_output(out, inputs=(data, model), force=force, kind="dir")
-    system, runs = dg.load(system_name, data, data_format)
+    system, found = dg.load_recordings(system_name, data, data_format)
     if resample:
-        runs = [to_grid(r, system.dt) for r in runs]
-    for i, r in enumerate(runs):
-        check_sampling(r, system.dt, f"{data} (run {i})")
+        if found.references is not None:
+            raise click.UsageError(f"--resample applies to run CSVs; the {data_format} reader already puts "
+                                   f"its recordings on the model's grid")
+        found = dataclasses.replace(found, runs=[to_grid(r, system.dt) for r in found.runs])
+    for name, r in zip(found.names, found.runs):
+        check_sampling(r, system.dt, f"{data} ({name})")
     trained = None
     if model is not None:
         from ..learning.training import load_model
 
         trained = load_model(model, system)
-    result = dg.diagnose(system, runs, model=trained, settings=settings, work_dir=Path(out) / "work",
+    result = dg.diagnose(system, found, model=trained, settings=settings, work_dir=Path(out) / "work",
                          progress=not no_progress)
     result.write(out)
     report = write_report(result, out)

@@ -33,15 +33,17 @@ import numpy as np
 from ..data import Run
 from ..errors import DataError
 from ..systems import System
+from .cv import fold_labels
 from .effects import Effect, default_context, library
 from .findings import effects_json, step_json
-from .fit import Pairs, fold_labels, one_step
+from .fit import Pairs, one_step
 from .floor import noise_floor
+from .loading import Recordings
 from .pooling import consistency, leave_one_out
-from .segments import observations, pairs_of, split
+from .segments import missing, observations, pairs_of, split
 from .selection import EffectFit, fit_effects
 from .settings import DiagnosisSettings
-from .shrink import HeldOut, by_estimator, shrink, verdict
+from .shrink import HeldOut, by_estimator, shrink, verdict_and_reason
 from .where import knode_comparison, where
 
 
@@ -68,7 +70,7 @@ class Diagnosis:
         return path
 
 
-def diagnose(system: System, runs: Sequence[Run], *, model=None,
+def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
              settings: DiagnosisSettings = DiagnosisSettings(), work_dir: str | Path | None = None,
              progress: bool = False) -> Diagnosis:
     """Diagnose the prior of ``system`` on ``runs`` (see the module docstring).
@@ -76,7 +78,8 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
     Parameters
     ----------
     system : the system (its prior is diagnosed).
-    runs : recorded or simulated runs of it.
+    runs : recorded or simulated runs of it, or :class:`~learnest_codegen.diagnosis.loading.Recordings`
+        (runs with their own references, start states and the recordings skipped).
     model : an optional :class:`~learnest_codegen.learning.training.TrainedModel` to compare with.
     settings : :class:`~learnest_codegen.diagnosis.settings.DiagnosisSettings`.
     work_dir : where compiled estimators go (C backend); a temporary folder by default.
@@ -85,33 +88,34 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
     Returns
     -------
     Diagnosis
-        ``report`` holds the JSON content; the verdict is ``report["verdict"]`` and each
-        estimator's under ``report["estimator_verdicts"]``.
+        ``report`` holds the JSON content; the verdict is ``report["verdict"]`` (why:
+        ``report["verdict_reason"]``) and each estimator's under ``report["estimator_verdicts"]``.
     """
     from tqdm.auto import tqdm
 
     start = time.perf_counter()
-    if not runs:
+    found = runs if isinstance(runs, Recordings) else \
+        Recordings(list(runs), [f"run {i}" for i in range(len(runs))])
+    if not found.runs:
         raise DataError("diagnose: no runs given")
     bar = tqdm(total=5, desc=f"diagnosing {system.name}", disable=not progress)
-    source, segments = observations(system, runs, settings)
-    pooled = settings.pool if settings.pool is not None else len(segments) >= settings.fit.by_run
-    if pooled and len(segments) < 2:
-        raise DataError("pooling needs at least two runs; got one")
+    source, segments = observations(system, found.runs, settings, found.references, found.starts)
+    pooled = len(segments) >= 2  # runs are fitted together, each held out in turn
     fit_segs, held_segs = (segments, []) if pooled else split(segments, settings.holdout)
     fit_pairs = pairs_of(fit_segs)
-    labels, fold_method = fold_labels(fit_pairs, settings.fit.folds, settings.fit.by_run)
+    labels, fold_method = fold_labels(fit_pairs, settings.fit.folds)
     bar.update()
 
     vel = default_context(system).velocity_states
     speed = {v: float(np.sqrt(np.mean(fit_pairs.x[:, system.state_names.index(v)] ** 2))) for v in vel}
-    effects = library(system, default_context(system, speed), settings.kinds)
+    umax = dict(zip(system.input_names, np.max(np.abs(fit_pairs.u), axis=0).tolist()))
+    effects = library(system, default_context(system, speed, umax), settings.kinds)
     r0, _ = one_step(system, effects, np.zeros(len(effects)), fit_pairs, with_features=False)
     sigma, floor_method, spurious = noise_floor(system, effects, fit_segs, fit_pairs, r0, source, settings)
     rows = [system.state_names.index(s) for s in system.residual_state_names]
     bar.update()
 
-    var = np.concatenate([s.var[:-1] for s in fit_segs]) if fit_segs[0].var is not None else None
+    var = np.concatenate([s.var[pairs_of([s]).k] for s in fit_segs]) if fit_segs[0].var is not None else None
     where_part = where(system, r0, sigma, fit_pairs, settings, var)
     if model is not None:
         where_part["knode"] = knode_comparison(system, model, fit_pairs, r0, rows)
@@ -130,34 +134,43 @@ def diagnose(system: System, runs: Sequence[Run], *, model=None,
         run_estimators = None
     per_run = consistency(system, chosen, fit.theta, fit_segs, rows, sigma[rows], settings.fit)
     result, held_res, estimates, held_pairs = shrink(system, chosen, held, model, sigma, rows, settings,
-                                                     work_dir, run_estimators)
+                                                     work_dir, run_estimators, found.reference)
     bar.update()
     bar.close()
     gap_present = bool(fit.chosen) or any(s["gap"] for s in where_part["states"])
-    overall = verdict(gap_present, bool(chosen), fit.refit, result, settings)
-    found = effects_json(system, effects, fit)
-    per_estimator = by_estimator([e["name"] for e in found], result, settings.estimators)
-    for e in found:
+    overall, reason = verdict_and_reason(gap_present, bool(chosen), fit.refit, result, settings)
+    entries = effects_json(system, effects, fit)
+    per_estimator = by_estimator([e["name"] for e in entries], result, settings.estimators)
+    for e in entries:
         e["estimators"] = {n: v["verdict"] for n, v in per_estimator.items()}
     report = {
         "system": system.name, "source": source,
         "observer": settings.observer or (system.default_observer if source == "observer" else None),
-        "runs": len(runs), "pooled": pooled, "folds": fold_method,
+        "runs": len(found.runs), "names": list(found.names), "skipped": dict(found.skipped),
+        "missing": missing(found.runs), "pooled": pooled, "folds": fold_method,
+        "basis": (f"{len(found.runs)} runs fitted together, each held out in turn" if pooled else
+                  f"one run: fitted on its first {1 - settings.holdout:.0%}, scored on the rest; the "
+                  f"findings rest on this one run (a folder of runs holds each out in turn and checks "
+                  f"that each effect is the same on every run)"),
+        "reference": found.reference,
         "fit_pairs": len(fit_pairs), "heldout_pairs": len(held_pairs),
         "noise_floor": {"method": floor_method,
                         "sigma": dict(zip(system.state_names, map(float, sigma)))},
         "where": where_part["states"], "regimes": where_part["regimes"],
         "knode": where_part.get("knode"),
-        "effects": [] if overall == "rejected" else found,
-        "rejected_effects": found if overall == "rejected" else [],
-        "unexplained": float(1.0 - fit.explained_total) if gap_present else 0.0,
-        "verdict": overall,
+        "effects": [] if overall == "rejected" else entries,
+        "rejected_effects": entries if overall == "rejected" else [],
+        "explained_in_sample": float(fit.explained_total) if gap_present else 0.0,
+        "heldout_gap_closed": result["one_step"]["closed"],
+        "verdict": overall, "verdict_reason": reason,
         "estimator_verdicts": {n: v["verdict"] for n, v in per_estimator.items()},
         "by_estimator": per_estimator,
         "consistency": per_run,
         "selection": {"steps": [step_json(effects, s) for s in fit.steps],
                       "stopped_at": step_json(effects, fit.rejected) if fit.rejected else None,
-                      "dropped": fit.dropped, "swapped": fit.swapped, "refit": fit.refit,
+                      "dropped": fit.dropped, "swapped": fit.swapped, "exchanged": fit.exchanged,
+                      "blocked": fit.blocked, "refit": fit.refit,
+                      "cross_validated_share": fit.cv_explained,
                       "heldout_refits": fold_status,
                       "library_size": len(effects),
                       "duplicates": {effects[k].name: effects[v].name for k, v in fit.duplicates.items()}},

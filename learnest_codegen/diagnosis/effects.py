@@ -12,6 +12,16 @@ with one parameter (value and unit) and a *channel* through which it enters the 
 * ``direct:<s>`` - a term added to the derivative of state ``s`` only (a bias, or a damping of a
   velocity that no input drives); ``direct:<s1>,<s2>,...`` - a list of terms, one per state, with
   one shared parameter (a thrust gain common to all three axes).
+* ``filter:<u>`` - a causal filter of input ``u``'s time series before the model sees it (an
+  input delay, a first-order actuator lag): ``Effect.transform(u (T,), dt, theta) -> (T,)``. The
+  model stays Markov in ``(x, u)``; the estimators of a corrected prior are fed the filtered
+  input (a pre-filter a firmware can run too).
+
+Every parameter has its physical range (``Effect.lower``, ``Effect.upper``): friction, drag and
+damping coefficients are >= 0, time constants and delays >= 0, a gain keeps the actuator's
+direction (``1 + gain > 0``); the fits enforce it (bounded least squares), so no effect is ever
+selected with a non-physical sign. An effect that is nonlinear in its parameter (a delay, a
+saturation level) may name ``starts``: values at which the selection also linearises it.
 
 An effect with several parameters is a *group* of one-parameter columns (``Effect.group``) that
 the selection enters and reports together, e.g. the quadrotor's ``thrust_response``
@@ -36,6 +46,7 @@ Systems may add their own kinds: :func:`register_system_effects` (built-in syste
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
@@ -62,6 +73,10 @@ class Effect:
     unit : unit of the parameter.
     term : ``term(ops, x, u, theta)``, the value added to the channel's target.
     description : one line for reports.
+    lower, upper : the parameter's physical range (``-inf, inf``: any sign).
+    starts : parameter values besides 0 at which the selection linearises the effect.
+    transform : for a ``filter:<u>`` channel, ``transform(u (T,), dt, theta) -> (T,)``.
+    derived : ``fn(theta) -> {name: value}``, physical quantities to report beside ``theta``.
     """
 
     kind: str
@@ -69,22 +84,42 @@ class Effect:
     channel: str
     param: str
     unit: str
-    term: Term = field(compare=False, repr=False)
+    term: Term | None = field(compare=False, repr=False)
     description: str = ""
     variable: str = ""  # the state it depends on, when not ``state`` (drag on vx acting on ax')
     group: str = ""  # effects of one group are selected together (one multi-parameter effect)
+    lower: float = -math.inf
+    upper: float = math.inf
+    starts: tuple[float, ...] = ()
+    transform: Callable | None = field(default=None, compare=False, repr=False)
+    derived: Callable | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def is_filter(self) -> bool:
+        return self.channel.startswith("filter:")
+
+    def physical(self, theta: float, tol: float = 1e-9) -> bool:
+        """Whether ``theta`` lies in the parameter's physical range (to ``tol`` of its scale)."""
+        slack = tol * max(1.0, abs(theta))
+        return self.lower - slack <= theta <= self.upper + slack
 
     @property
     def name(self) -> str:
         """A unique, readable key, e.g. ``viscous_friction(pdot via F)``, ``quadratic_drag(vx on ax)``."""
         how, target = self.channel.split(":", 1)
-        via = {"input": f" via {target}", "param": f" via {target}", "direct": ""}[how]
+        via = {"input": f" via {target}", "param": f" via {target}", "filter": f" via {target}",
+               "direct": ""}[how]
         on = f"{self.variable} on " if self.variable and self.variable != self.state else ""
         return f"{self.kind}({on}{self.state}{via})"
 
     def to_json(self) -> dict:
         return {"kind": self.kind, "state": self.state, "channel": self.channel, "param": self.param,
-                "unit": self.unit, "name": self.name, "description": self.description}
+                "unit": self.unit, "name": self.name, "description": self.description,
+                "range": [_finite(self.lower), _finite(self.upper)]}
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
 
 
 @dataclass(frozen=True)
@@ -99,11 +134,15 @@ class LibraryContext:
         drag on ``vx`` changes ``ax'`` when the model carries the acceleration as a state).
     coulomb_scale : per velocity state, the smoothing speed ``v_s`` of ``tanh(v / v_s)``
         (units of the state); :func:`default_context` takes 2 % of a typical speed.
+    input_max : per input, the largest ``|u|`` over the data (the saturation kind's scale).
+    dt : the sample period [s] (the delay and lag kinds' scale).
     """
 
     velocity_states: tuple[str, ...]
     coulomb_scale: Mapping[str, float]
     targets: Mapping[str, str] = field(default_factory=dict)
+    input_max: Mapping[str, float] = field(default_factory=dict)
+    dt: float = 0.01
 
 
 KindBuilder = Callable[[System, LibraryContext], list]
@@ -167,19 +206,46 @@ def input_reach(system: System) -> dict[str, tuple[str, ...]]:
             for i, s in enumerate(system.state_names)}
 
 
-def default_context(system: System, speed_scale: Mapping[str, float] | None = None) -> LibraryContext:
+def input_orientation(system: System, points: int = 64) -> dict[tuple[str, str], int]:
+    """``(state, input) -> +1 / -1 / 0``: the sign of ``d state' / d input`` under the prior, when it
+    is the same at random points (seeded; states and inputs over +-3) and not zero, else 0.
+
+    A friction acting "as a force on input u" opposes the motion only if ``u`` pushes that
+    velocity forward; with ``-1`` the term's sign is flipped, with ``0`` (a cart force's effect on
+    a pole's angular acceleration changes sign with the angle) no such effect is offered.
+    """
+    import numpy as np
+
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    jac = cs.Function("dfdu", [x, u], [cs.jacobian(system.f(x, u), u)])
+    rng = np.random.default_rng(0)
+    signs = np.array([np.sign(np.asarray(jac(rng.uniform(-3, 3, system.nx), rng.uniform(-3, 3, system.nu))))
+                      for _ in range(points)])
+    out = {}
+    for i, s in enumerate(system.state_names):
+        for j, n in enumerate(system.input_names):
+            col = signs[:, i, j]
+            out[(s, n)] = int(col[0]) if np.all(col == col[0]) else 0
+    return out
+
+
+def default_context(system: System, speed_scale: Mapping[str, float] | None = None,
+                    input_max: Mapping[str, float] | None = None) -> LibraryContext:
     """Context from the system; ``speed_scale`` (typical |v| per velocity state, e.g. the RMS
-    over the data) sets the Coulomb smoothing ``v_s = 0.02 * scale`` (default scale 1)."""
+    over the data) sets the Coulomb smoothing ``v_s = 0.02 * scale`` (default scale 1);
+    ``input_max`` the largest ``|u|`` per input (default 1)."""
     vel = velocity_states(system)
     scale = {v: 0.02 * float((speed_scale or {}).get(v, 1.0)) or 0.02 for v in vel}
-    return LibraryContext(tuple(vel), scale, vel)
+    umax = {n: float((input_max or {}).get(n, 1.0)) or 1.0 for n in system.input_names}
+    return LibraryContext(tuple(vel), scale, vel, umax, float(system.dt))
 
 
 # Order matters only for ties: of two candidates with the same signature on the data the first
 # is kept and the other reported as its alias (e.g. the ground robot's drag coefficient C_D
 # aliases quadratic drag on v), so the physical kinds come before raw parameters.
 KIND_ORDER = ("viscous_friction", "coulomb_friction", "quadratic_drag", "actuator_gain",
-              "actuator_offset", "bias", "mass", "parameter")
+              "actuator_offset", "dead_zone", "saturation", "back_emf", "input_delay", "actuator_lag",
+              "bias", "mass", "parameter")
 
 
 def library(system: System, context: LibraryContext | None = None,
@@ -238,6 +304,8 @@ def corrected_dynamics(system: System, effects: Sequence[Effect], thetas: Sequen
         u2, p2, extra = list(u), dict(p), [0.0] * len(states)
         for effect, theta in zip(effects, thetas):
             how, target = effect.channel.split(":", 1)
+            if how == "filter":  # acts on the input's time series, before the model (filter_inputs)
+                continue
             value = effect.term(ops, x, u, theta)
             if how == "input":
                 j = inputs.index(target)
@@ -256,10 +324,26 @@ def corrected_dynamics(system: System, effects: Sequence[Effect], thetas: Sequen
     return dynamics
 
 
+def filter_inputs(system: System, effects: Sequence[Effect], thetas: Sequence[float], u, dt: float):
+    """``u (T, nu)`` through the ``filter:<u>`` effects (in library order), as the corrected prior
+    sees it; the other effects are ignored. A copy; ``u`` itself when there is no filter."""
+    import numpy as np
+
+    pairs = [(e, float(t)) for e, t in zip(effects, thetas) if e.is_filter]
+    if not pairs:
+        return u
+    out = np.array(u, dtype=float, copy=True)
+    for e, theta in pairs:
+        j = system.input_names.index(e.channel.split(":", 1)[1])
+        out[:, j] = e.transform(out[:, j], dt, theta)
+    return out
+
+
 def corrected_system(system: System, effects: Sequence[Effect], thetas: Sequence[float]) -> System:
     """``system`` whose prior includes ``effects`` with parameters ``thetas`` (floats).
 
-    The true dynamics (for simulation) are unchanged.
+    The true dynamics (for simulation) are unchanged. ``filter:<u>`` effects are not part of
+    the dynamics: feed the corrected system :func:`filter_inputs` of the commands.
     """
     import dataclasses
 
@@ -270,9 +354,19 @@ def corrected_system(system: System, effects: Sequence[Effect], thetas: Sequence
 
 def describe_library(effects: Sequence[Effect]) -> str:
     """A plain-text listing (for ``learnest diagnose --list-effects``)."""
-    rows = [("effect", "kind", "acts on", "channel", "parameter [unit]")]
-    rows += [(e.name, e.kind, f"{e.state}'", e.channel, f"{e.param} [{e.unit}]") for e in effects]
+    rows = [("effect", "kind", "acts on", "channel", "parameter [unit]", "range")]
+    rows += [(e.name, e.kind, f"{e.state}'", e.channel, f"{e.param} [{e.unit}]", _range(e)) for e in effects]
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(lines)
+
+
+def _range(e: Effect) -> str:
+    if math.isinf(e.lower) and math.isinf(e.upper):
+        return "any"
+    if math.isinf(e.upper):
+        return f">= {e.lower:g}"
+    if math.isinf(e.lower):
+        return f"<= {e.upper:g}"
+    return f"[{e.lower:g}, {e.upper:g}]"

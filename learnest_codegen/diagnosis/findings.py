@@ -36,11 +36,14 @@ def effects_json(system: System, effects: Sequence[Effect], fit: EffectFit) -> l
                  "params": params,
                  "uncertainty": {c.param: float(fit.theta_std[i]) for c, i in zip(cols, ks)},
                  "units": {c.param: c.unit for c in cols},
-                 "explained": float(sum(fit.explained[i] for i in ks)),
+                 "physical": bool(all(c.physical(float(fit.theta[i])) for c, i in zip(cols, ks))),
+                 "in_sample_share": float(sum(fit.explained[i] for i in ks)),
                  "score": float(fit.scores[k]), "t": t_of.get(j, float("nan")),
                  "aliases": sorted({effects[a].name for i in ks for a in fit.aliases[i]
                                     if effects[a].group != e.group or not e.group}),
                  "description": "; ".join(c.description for c in cols)}
+        if not e.group and e.derived is not None:
+            entry["derived"] = e.derived(float(fit.theta[k]))
         if not e.group and fit.equivalents and fit.equivalents[k]:
             entry["equivalent"] = {effects[d].name: {"value": v, "param": effects[d].param,
                                                      "unit": effects[d].unit}
@@ -59,34 +62,47 @@ def effects_json(system: System, effects: Sequence[Effect], fit: EffectFit) -> l
             if derived:
                 entry["derived"] = derived
         out.append(entry)
-    return sorted(out, key=lambda d: -d["explained"])
+    return sorted(out, key=lambda d: -d["in_sample_share"])
 
 
 def summary(report: dict) -> str:
-    """A few lines for the terminal."""
-    lines = [f"{report['system']}: {report['verdict']} (source: {report['source']}, "
-             f"unexplained {report['unexplained']:.0%})"]
+    """A few lines for the terminal: the verdict with the rule that gave it, the two figures (the
+    held-out gap closed, which decides, and the in-sample share explained), then the details."""
+    closed = report.get("heldout_gap_closed")
+    lines = [f"{report['system']}: {report['verdict']} - held-out gap closed "
+             f"{'-' if closed is None else format(closed, '.1%')}, in-sample share explained "
+             f"{report['explained_in_sample']:.1%} (source: {report['source']})",
+             f"  why: {report['verdict_reason']}", f"  data: {report['basis']}"]
+    for name, why in report.get("skipped", {}).items():
+        lines.append(f"  skipped {name}: {why}")
+    gaps = report.get("missing", {})
+    if any(gaps.values()):
+        lines.append("  missing cells: " + ", ".join(f"{v} {k}" for k, v in gaps.items() if v)
+                     + " (inputs held, measurements interpolated, pairs without truth left out)")
     for s in report["where"]:
         if s["residual_state"]:
             lines.append(f"  {s['state']:>10}': share {s['share']:.0%}, snr {s['snr']:.3g}")
     for label, key in (("", "effects"), ("rejected: ", "rejected_effects")):
         for e in report.get(key, []):
-            p = ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
+            p = ", ".join(f"{k}={v:.4g}" for k, v in {**e["params"], **e.get("derived", {})}.items())
             against = [n.upper() for n, v in e.get("estimators", {}).items() if v == "rejected"]
             note = f"; rejected for the {' and the '.join(against)}" if against and not label else ""
             lines.append(f"  {label}{e['name']}: {p} (+-{next(iter(e['uncertainty'].values())):.2g}), "
-                         f"explains {e['explained']:.0%}{note}")
+                         f"{e['in_sample_share']:.0%} of the in-sample gap{note}")
     for c in report.get("consistency", []):
         if not c["consistent"]:
-            lines.append(f"  {c['effect']}: not consistent across runs (median {c['median']:.4g}, "
-                         f"spread {c['spread']:.2g}, sign agrees on {c['sign_agreement']:.0%})")
+            lines.append(f"  {c['effect']} ({c['param']}): NOT the same on every run (per run "
+                         + ", ".join("-" if v is None else f"{v:.3g}" for v in c["per_run"])
+                         + f"; sign agrees on {c['sign_agreement']:.0%})")
+    for b in report.get("selection", {}).get("blocked", []):
+        lines.append(f"  {b['effect']}: not entered, its parameter differs between runs")
     one = report["shrink"]["one_step"]
-    lines.append(f"  one-step gap {one['before']:.4g} -> {one['after']:.4g}"
-                 + (f" (closed {one['closed']:.0%})" if one.get("closed") is not None else ""))
-    for name in ("mhe", "ukf"):
+    lines.append(f"  held-out one-step gap {one['before']:.4g} -> {one['after']:.4g} noise units^2"
+                 + (f" (closed {one['closed']:.1%})" if one.get("closed") is not None else ""))
+    for name in ("mhe", "ukf", "mhe_gn", "mhe_rti"):
         if name in report["shrink"]:
             s = report["shrink"][name]
-            lines.append(f"  {name.upper()} MSE {s['before']:.4g} -> {s['after']:.4g}"
+            lines.append(f"  {name.upper()} held-out MSE {s['before']:.4g} -> {s['after']:.4g}"
                          + (f" (closed {s['closed']:.0%})" if s.get("closed") is not None else "")
                          + f": {s['verdict']}")
     return "\n".join(lines)

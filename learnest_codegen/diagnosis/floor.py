@@ -87,7 +87,7 @@ def noise_floor(system: System, effects: Sequence[Effect], segments: Sequence[Se
                 r0: np.ndarray, source: str, settings: DiagnosisSettings):
     """``(sigma (nx,), method, spurious (m,) or None)``: the floor per state, how it was found, and
     what each effect's feature explains of pure observer error (weighted, noise units)."""
-    from .fit import single_feature_size, weighted
+    from .cv import single_feature_size, weighted
 
     scale = derivative_scale(system, pairs)
     method, cal, sigma_cal = "relative", None, np.zeros(system.nx)

@@ -5,23 +5,28 @@ this module); see :mod:`~learnest_codegen.diagnosis.effects` for channels and te
 
 The kinds and where they are placed:
 
-===================  =========================================  =======================
-kind                 term (parameter ``theta`` >= 0 physical)   channels
-===================  =========================================  =======================
-mass                 ``dp = theta``  (mass / inertia params)    ``param:<p>``
-parameter            ``dp = theta``  (other prior params)       ``param:<p>``
-viscous_friction     ``-theta v``                               velocity states
-coulomb_friction     ``-theta tanh(v / v_s)``                   velocity states
-quadratic_drag       ``-theta v |v|``                           velocity states
-actuator_gain        ``du = theta u``                           ``input:<u>``
-actuator_offset      ``du = theta``                             ``input:<u>``
-bias                 ``ds' = theta``                            ``direct:<s>`` (residual states)
-===================  =========================================  =======================
+===================  =========================================  =======================  ===============
+kind                 term                                       channels                 physical range
+===================  =========================================  =======================  ===============
+mass                 ``dp = theta``  (mass / inertia params)    ``param:<p>``            ``p + theta > 0``
+parameter            ``dp = theta``  (other prior params)       ``param:<p>``            sign of ``p`` kept
+viscous_friction     ``-theta v``                               velocity states          ``theta >= 0``
+coulomb_friction     ``-theta tanh(v / v_s)``                   velocity states          ``theta >= 0``
+quadratic_drag       ``-theta v |v|``                           velocity states          ``theta >= 0``
+actuator_gain        ``du = theta u``                           ``input:<u>``            ``theta > -1``
+actuator_offset      ``du = theta``                             ``input:<u>``            any
+bias                 ``ds' = theta``                            ``direct:<s>``           any
+===================  =========================================  =======================  ===============
+
+The actuator dynamics (dead zone, saturation, back-EMF, input delay, first-order lag) are in
+:mod:`~learnest_codegen.diagnosis.actuator_effects`.
 
 *Velocity states* are the residual states whose unit is a rate (``.../s`` but not ``.../s^2``),
 or ``System.diagnosis.velocity_states`` when a system declares them. A velocity-dependent force
 on velocity ``v`` is offered directly on ``v'`` and through every input whose prior path reaches
-``v'`` (structurally, ``casadi.depends_on``); which one fits is for the data to decide.
+``v'`` with one sign (:func:`~learnest_codegen.diagnosis.effects.input_orientation`: a friction
+"as a force on ``u``" must oppose the motion whatever the state); which one fits is for the data
+to decide.
 *Mass parameters* are those named like masses or inertias (``m``, ``m_*``, ``mass*``, ``I*``,
 ``J*``, ``inertia*``) or listed in ``System.diagnosis.mass_params``.
 
@@ -37,7 +42,7 @@ import casadi as cs
 
 from ..systems import System
 from ..systems.backends import CasadiOps
-from .effects import Effect, LibraryContext, input_reach, mass_params, register_kind
+from .effects import Effect, LibraryContext, input_orientation, input_reach, mass_params, register_kind
 
 
 def _index(system: System, name: str) -> int:
@@ -58,20 +63,24 @@ def _velocity_kinds(system: System, ctx: LibraryContext, kind: str, shape, power
     ``shape(ctx, v)`` gives ``g(ops, v)``; the term is ``-theta g(v)``. ``power`` is the power of
     ``v``'s unit in ``g`` (1 viscous, 0 Coulomb, 2 drag), which fixes the parameter's unit.
     """
-    reach = input_reach(system)
+    reach, sign = input_reach(system), input_orientation(system)
     out = []
     for v in ctx.velocity_states:
         target = ctx.targets.get(v, v)
         i, vu, tu = _index(system, v), _unit(system, v), _unit(system, target)
         per_v = {0: "", 1: f"/({vu})", 2: f"/({vu})^2"}[power]
         shaped = shape(ctx, v)
-        term = lambda ops, x, u, th, i=i, shaped=shaped: -th * shaped(ops, x[i])  # noqa: E731
         text = kind.replace("_", " ")
+        term = lambda ops, x, u, th, i=i, shaped=shaped: -th * shaped(ops, x[i])  # noqa: E731
         out.append(Effect(kind, target, f"direct:{target}", label, f"({tu})/s{per_v}", term,
-                          f"{text} on {v}, acting on {target}' directly", v))
+                          f"{text} on {v}, acting on {target}' directly", v, lower=0.0))
         for name in reach[target]:
+            s = sign[(target, name)]
+            if s == 0:
+                continue  # the input pushes this velocity either way: no friction acts through it
+            flipped = lambda ops, x, u, th, i=i, shaped=shaped, s=s: -s * th * shaped(ops, x[i])  # noqa: E731
             out.append(Effect(kind, target, f"input:{name}", label, f"{_input_unit(system, name)}{per_v}",
-                              term, f"{text} on {v} as a force on input {name}", v))
+                              flipped, f"{text} on {v} as a force on input {name}", v, lower=0.0))
     return out
 
 
@@ -114,7 +123,8 @@ def _driving_inputs(system: System) -> list[tuple[int, str]]:
 @register_kind("actuator_gain")
 def _gain(system: System, ctx: LibraryContext) -> list:
     return [Effect("actuator_gain", _primary_state(system, n), f"input:{n}", "gain", "1",
-                   lambda ops, x, u, th, j=j: th * u[j], f"input {n} scaled by (1 + gain)")
+                   lambda ops, x, u, th, j=j: th * u[j], f"input {n} scaled by (1 + gain)",
+                   lower=-1.0 + 1e-3)  # the actuator keeps its direction
             for j, n in _driving_inputs(system)]
 
 
@@ -138,8 +148,13 @@ def _param_effects(system: System, kind: str, names: Sequence[str]) -> list:
     for p in names:
         if not reach.get(p):
             continue  # the prior does not depend on it: no signature to find
+        value = float(system.params[p])
+        # the parameter keeps its sign (a mass, an inertia, a length stay positive)
+        lower, upper = (-value, float("inf")) if value > 0 else (float("-inf"), -value) if value < 0 \
+            else (float("-inf"), float("inf"))
         out.append(Effect(kind, reach[p][0], f"param:{p}", f"d{p}", f"unit of {p}",
-                          lambda ops, x, u, th: th, f"prior parameter {p} changed by d{p}"))
+                          lambda ops, x, u, th: th, f"prior parameter {p} changed by d{p}",
+                          lower=lower, upper=upper))
     return out
 
 

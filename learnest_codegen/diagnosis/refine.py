@@ -10,7 +10,8 @@ with two safeguards, and it never raises:
   per step to ``max_step`` times the current value ``|p + theta|``, and in total to the range
   ``[p / bound, p * bound]`` (a parameter never changes sign); any other effect's step is
   limited to ``max_step`` times the larger of its value and its *scale*, the change that makes
-  its term as large as the whole residual;
+  its term as large as the whole residual; every parameter stays in its physical range
+  (``Effect.lower``, ``Effect.upper``: a friction never turns negative);
 * **damping**: a step is kept only if it lowers the weighted sum of squares, else the damping
   grows tenfold; non-finite residuals count as "not lower".
 
@@ -46,14 +47,16 @@ class Refined:
 
 
 def bounds(system: System, effects: Sequence[Effect], bound: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper limits of each effect's parameter (``-inf, inf`` unless a prior parameter)."""
-    lo, hi = np.full(len(effects), -np.inf), np.full(len(effects), np.inf)
+    """Lower and upper limits of each effect's parameter: its physical range (``Effect.lower``,
+    ``Effect.upper``), and for a prior parameter ``p`` also ``[p / bound, p * bound]``."""
+    lo = np.array([e.lower for e in effects], float)
+    hi = np.array([e.upper for e in effects], float)
     for k, e in enumerate(effects):
         how, target = e.channel.split(":", 1)
         if how == "param" and system.params[target] != 0:
             p = float(system.params[target])
             a, b = sorted((p / bound - p, p * bound - p))
-            lo[k], hi[k] = a, b
+            lo[k], hi[k] = max(lo[k], a), min(hi[k], b)
     return lo, hi
 
 

@@ -6,7 +6,8 @@ Figures (matplotlib, Agg):
   held-out data), the noise-floor band, and on the held-out data the corrected prior's residual;
 * ``regimes.png`` - per residual state, the binned mean residual over its three strongest
   drivers (the variables with the largest correlation ratio);
-* ``effects.png`` - the selected effects' held-out shares of the gap, and what is left;
+* ``effects.png`` - the selected effects' in-sample shares of the fit data's gap, and what is
+  left in-sample (the verdict follows the held-out figures of ``shrink.png``);
 * ``shrink.png`` - the gap before and after: one-step residual (RMS over the residual states, in
   units of the noise floor) and each estimator's MSE, with
   the KNODE model and (in simulation) the true dynamics alongside.
@@ -79,16 +80,18 @@ def plot_regimes(d: Diagnosis, path: Path) -> Path:
 
 def plot_effects(d: Diagnosis, path: Path) -> Path:
     effects = d.report["effects"]
-    names = [e["name"] for e in effects] + ["unexplained"]
-    values = [e["explained"] for e in effects] + [d.report["unexplained"]]
+    names = [e["name"] for e in effects] + ["left in-sample"]
+    values = [e["in_sample_share"] for e in effects] + [1.0 - d.report["explained_in_sample"]]
     fig, ax = plt.subplots(figsize=(8, 0.5 * len(names) + 1.5))
     colours = ["tab:orange"] * len(effects) + ["0.6"]
     ax.barh(names[::-1], values[::-1], color=colours[::-1])
     for y, v in enumerate(values[::-1]):
         ax.text(v, y, f" {v:.0%}", va="center", fontsize=8)
     ax.set_xlim(0, 1.15)
-    ax.set_xlabel("held-out share of the gap")
-    ax.set_title(f"{d.system.name}: {d.report['verdict']}")
+    ax.set_xlabel("in-sample share of the fit data's gap")
+    closed = d.report.get("heldout_gap_closed")
+    ax.set_title(f"{d.system.name}: {d.report['verdict']} (held-out gap closed "
+                 f"{'-' if closed is None else format(closed, '.0%')})", fontsize=9)
     return _save(fig, path)
 
 
@@ -124,13 +127,21 @@ def _f(v, fmt=".3g") -> str:
 
 def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
     r = d.report
+    closed = r.get("heldout_gap_closed")
     lines = [f"# Diagnosis of the `{r['system']}` prior", "",
-             f"**Verdict: {r['verdict']}** - unexplained share of the gap {r['unexplained']:.0%}"
-             + "".join(f"; {n.upper()}: {v}" for n, v in r.get("estimator_verdicts", {}).items()) + ". "
+             f"**Verdict: {r['verdict']}**: {r['verdict_reason']}."
+             + "".join(f" {n.upper()}: {v}." for n, v in r.get("estimator_verdicts", {}).items()), "",
+             f"Two figures: the **held-out gap closed** {_f(closed, '.1%')} (the verdict follows it) and "
+             f"the **in-sample share explained** {r['explained_in_sample']:.1%} (of the fit data's gap).", "",
+             f"Data: {r['basis']}; {r['fit_pairs']} pairs fitted, {r['heldout_pairs']} held out. "
              f"Source: {r['source']}" + (f" (observer `{r['observer']}`)" if r.get("observer") else "")
-             + f"; {r['runs']} run(s){' pooled, each held out in turn' if r.get('pooled') else ''}, "
-             f"{r['fit_pairs']} pairs fitted, {r['heldout_pairs']} held out. "
-             f"Noise floor: {r['noise_floor']['method']}.", "", "## 1. Where the gap lies", "",
+             + f". Noise floor: {r['noise_floor']['method']}."
+             + (f" Estimators scored against {r['reference']}." if r.get("reference") else ""), ""]
+    lines += [f"Skipped `{k}`: {v}" for k, v in r.get("skipped", {}).items()]
+    if any(r.get("missing", {}).values()):
+        lines.append("Missing cells: " + ", ".join(f"{v} {k}" for k, v in r["missing"].items() if v)
+                     + " (inputs held, measurements interpolated, pairs without truth left out).")
+    lines += ["", "## 1. Where the gap lies", "",
              "| state | share | snr | RMS residual | floor | unit |", "|---|---|---|---|---|---|"]
     for s in r["where"]:
         mark = "" if s["residual_state"] else " (kinematic)"
@@ -147,7 +158,8 @@ def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
                          f"{_f(k['measured_rms'])} |")
     lines += ["", f"![residual]({figures['residual']})", "", f"![regimes]({figures['regimes']})", "",
               "## 2. Which effect causes it", "",
-              "| effect | parameters | +- (block bootstrap) | explained (held out) | score alone | aliases |",
+              "| effect | parameters | +- (block bootstrap) | in-sample share | held-out score alone "
+              "| aliases |",
               "|---|---|---|---|---|---|"]
     for e in r["effects"] + r.get("rejected_effects", []):
         params = ", ".join(f"{k} = {v:.4g}" for k, v in {**e["params"], **e.get("derived", {})}.items())
@@ -155,13 +167,19 @@ def markdown(d: Diagnosis, figures: dict[str, str]) -> str:
                           for n, q in e.get("equivalent", {}).items())
         unc = ", ".join(f"{k}: {v:.2g} {e['units'][k]}" for k, v in e["uncertainty"].items())
         name = e["name"] + (" (REJECTED: worse held out)" if e in r.get("rejected_effects", []) else "")
-        lines.append(f"| {name} | {params} | {unc} | {e['explained']:.0%} | {e['score']:.0%} | "
+        lines.append(f"| {name} | {params} | {unc} | {e['in_sample_share']:.0%} | {e['score']:.0%} | "
                      f"{', '.join(e['aliases']) or '-'} |")
     if not r["effects"] and not r.get("rejected_effects"):
         lines.append("| (none selected) | | | | | |")
     sel = r["selection"]
-    for d in sel.get("dropped", []):
-        lines.append(f"\nDropped after others entered: `{d['effect']}` (t = {d['t']:.2g}).")
+    for dr in sel.get("dropped", []):
+        lines.append(f"\nDropped after others entered: `{dr['effect']}` (t = {dr['t']:.2g}).")
+    for w in sel.get("exchanged", []):
+        lines.append(f"\nExchanged on re-test ({w['why']}): {', '.join(f'`{a}`' for a in w['added'])} "
+                     f"instead of `{w['removed']}`.")
+    for b in sel.get("blocked", []):
+        lines.append(f"\nNot entered, its parameter differs between runs: `{b['effect']}` (per run "
+                     + ", ".join(", ".join(f"{v:.3g}" for v in col) for col in b.get("per_run", [])) + ").")
     for w in sel.get("swapped", []):
         lines.append(f"\nEquivalent on these data, the prior's own parameter kept: `{w['added']}` "
                      f"instead of `{w['removed']}`.")

@@ -1,4 +1,10 @@
-"""State observations of each run, and how runs are split into fitted and held-out data."""
+"""State observations of each run, and how runs are split into fitted and held-out data.
+
+Missing samples (empty or NaN cells of a run) are tolerated: an input cell holds the last
+command (what a held command is), a measurement cell is interpolated linearly in time for the
+observer and the estimators (neither takes a gap), and a pair with a missing truth state is left
+out of every fit. :func:`missing` counts them for the report.
+"""
 
 from __future__ import annotations
 
@@ -16,17 +22,72 @@ from .settings import DiagnosisSettings
 
 @dataclass
 class Segment:
-    """A stretch of one run with its state observations ``z`` and observer variances ``var``."""
+    """A stretch of one run with its state observations ``z`` and observer variances ``var``.
+
+    ``reference`` is what estimators are scored against (the truth, a recording's own reference
+    such as the quadrotor study's, or ``z``); ``start`` where they start (default its first row).
+    """
 
     run: Run
     z: np.ndarray
     var: np.ndarray | None
-    reference: np.ndarray  # what estimators are scored against: truth, or z
+    reference: np.ndarray
+    start: np.ndarray | None = None
+
+    @property
+    def x0(self) -> np.ndarray:
+        return self.reference[0] if self.start is None else self.start
 
 
-def observations(system: System, runs: Sequence[Run],
-                 settings: DiagnosisSettings) -> tuple[str, list[Segment]]:
-    """The source used (``"truth"`` or ``"observer"``) and one :class:`Segment` per run."""
+def missing(runs: Sequence[Run]) -> dict:
+    """Non-finite cells of the runs' inputs, measurements and truth (counts)."""
+    out = {"inputs": 0, "measurements": 0, "truth": 0}
+    for r in runs:
+        out["inputs"] += int(np.sum(~np.isfinite(r.u)))
+        out["measurements"] += int(np.sum(~np.isfinite(r.y)))
+        out["truth"] += 0 if r.x is None else int(np.sum(~np.isfinite(r.x)))
+    return out
+
+
+def complete(run: Run, where: str = "run") -> Run:
+    """``run`` with missing inputs held and missing measurements interpolated (see the module
+    docstring); the truth is kept as it is. ``run`` itself when nothing is missing."""
+    if np.isfinite(run.u).all() and np.isfinite(run.y).all():
+        return run
+    u = _hold(run.u, where, "input")
+    y = np.array(run.y, dtype=float, copy=True)
+    for j in range(y.shape[1]):
+        ok = np.isfinite(y[:, j])
+        if not ok.any():
+            raise DataError(f"{where}: measurement column {j} has no finite value")
+        if not ok.all():
+            y[:, j] = np.interp(run.t, run.t[ok], y[ok, j])
+    return Run(run.t, u, y, run.x, run.system)
+
+
+def _hold(u: np.ndarray, where: str, what: str) -> np.ndarray:
+    u = np.array(u, dtype=float, copy=True)
+    for j in range(u.shape[1]):
+        ok = np.isfinite(u[:, j])
+        if not ok.any():
+            raise DataError(f"{where}: {what} column {j} has no finite value")
+        if ok.all():
+            continue
+        idx = np.where(ok, np.arange(len(ok)), 0)
+        np.maximum.accumulate(idx, out=idx)
+        idx[:int(np.argmax(ok))] = int(np.argmax(ok))
+        u[:, j] = u[idx, j]
+    return u
+
+
+def observations(system: System, runs: Sequence[Run], settings: DiagnosisSettings,
+                 references: Sequence[np.ndarray] | None = None,
+                 starts: Sequence[np.ndarray] | None = None) -> tuple[str, list[Segment]]:
+    """The source used (``"truth"`` or ``"observer"``) and one :class:`Segment` per run.
+
+    ``references`` / ``starts``: per run, what the estimators are scored against and where they
+    start (a recording's own, e.g. the quadrotor study's); default the truth or ``z``.
+    """
     source = settings.source
     if source == "auto":
         source = "truth" if all(r.x is not None for r in runs) else "observer"
@@ -35,19 +96,25 @@ def observations(system: System, runs: Sequence[Run],
     from ..observers import observe
 
     segments = []
-    for run in runs:
+    for i, raw in enumerate(runs):
+        run = complete(raw, f"run {i}")
         if source == "truth":
-            segments.append(Segment(run, run.x, None, run.x))
+            z, var = run.x, None
         else:
             obs = observe(run, system, settings.observer)
-            segments.append(Segment(run, obs.zeta, obs.variance, run.x if run.x is not None else obs.zeta))
+            z, var = obs.zeta, obs.variance
+        ref = references[i] if references is not None else run.x if run.x is not None else z
+        segments.append(Segment(run, z, var, np.asarray(ref, float),
+                                None if starts is None else np.asarray(starts[i], float)))
     return source, segments
 
 
 def cut_segment(seg: Segment, lo: int, hi: int) -> Segment:
     r = seg.run
     run = Run(r.t[lo:hi], r.u[lo:hi], r.y[lo:hi], None if r.x is None else r.x[lo:hi], r.system)
-    return Segment(run, seg.z[lo:hi], None if seg.var is None else seg.var[lo:hi], seg.reference[lo:hi])
+    start = seg.start if lo == 0 else None
+    return Segment(run, seg.z[lo:hi], None if seg.var is None else seg.var[lo:hi], seg.reference[lo:hi],
+                   start)
 
 
 def split(segments: list[Segment], holdout: float) -> tuple[list[Segment], list[Segment]]:

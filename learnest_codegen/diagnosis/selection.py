@@ -1,28 +1,35 @@
-"""Sparse, cross-validated selection of effects against the gap that remains.
+"""Sparse, cross-validated selection of effects, re-tested until no single move improves it.
 
-Forward stepwise selection over the library with K-fold cross-validation (folds from
-:func:`~learnest_codegen.diagnosis.fit.fold_labels`). At every step each candidate is scored
-against the gap that *remains* after the effects already chosen (refitted jointly and
-relinearised there), not against the prior's gap: a dominant effect (an actuator gain standing in
-for two wrong parameters) must not set the bar for a small one (a friction) that explains most
-of what is left. A candidate enters only if all of these hold:
+A greedy forward pass alone can be captured by its first pick: on a pendulum swing-up whose
+torque correlates with ``sign(qdot)``, an actuator gain entered first absorbs the Coulomb
+friction, and the friction then explains too little of what is left to enter. So the selection
+(folds from :func:`~learnest_codegen.diagnosis.cv.fold_labels`; moves and tests in
+:mod:`~learnest_codegen.diagnosis.search`) runs in rounds until the set no longer changes:
 
-* its held-out improvement is consistent over folds: the t statistic of the folds' relative
-  held-out SSE reductions exceeds ``t_min`` (paired, relative differences: a drag that grows
-  with v^2 gains different absolute amounts in slow and fast folds, but a similar fraction);
-* its held-out gain exceeds ``min_gain`` of the remaining gap and ``gap_noise`` standard
-  deviations of a pure-noise sum of squares, ``sqrt(2 n)`` for ``n`` weighted rows (the remaining
-  gap's own noise floor: a remainder at the floor has nothing left to explain);
-* its size (RMS of its fitted term, in noise units) exceeds ``min_size`` and ``spurious_factor``
-  times what the same feature "explains" of pure observer error (``FitData.spurious``).
+1. **forward**: enter the best candidate that passes the entry tests, scored against the gap that
+   *remains* after the effects already chosen (refitted jointly and relinearised there), then
+   drop any chosen effect that no longer earns its place (**backward**: its held-out loss when
+   dropped is below the entry's gain threshold, or consistent over folds only at ``t <=
+   t_drop``, lower than the entry's ``t_min``: a hysteresis, so an effect does not flip in and out
+   on a borderline statistic);
+2. **swap**: replace a generic effect by a parameter of the system's own prior when the two sets
+   are exactly equivalent on the data (an actuator gain plus a gravity torque describe a pendulum
+   as well as its inertia plus the gravity torque; the user's model names the latter);
+3. **re-test**: drop what no longer earns its place against the others, retry every candidate
+   not chosen (also those blocked or dropped before) against the new set, **exchange** one
+   chosen effect for one not chosen when the held-out fit is significantly better, and
+   **restart** without an effect pinned at the edge of its physical range (a boundary solution
+   stands for something else: an actuator gain of -0.996 switches a drive off where a drive curve
+   with a dead zone and a back-EMF is the physical reading), keeping the new set when it fits
+   held out as well.
 
-After each entry the chosen parameters are refined together on the nonlinear residual
-(:mod:`~learnest_codegen.diagnosis.refine`), then a **backward pass** drops any chosen effect
-whose removal would fail the same tests (its loss judged against the gap of the smaller model).
-A **swap pass** then replaces a generic effect by a parameter of the system's own prior when the
-two sets are exactly equivalent on the data (an actuator gain plus a gravity torque describe a
-pendulum as well as its inertia plus the gravity torque; the user's model names the latter).
-Last, all chosen effects are refitted jointly.
+A set is never entered twice, so the rounds cannot cycle. Every fit is bounded: each parameter
+stays in its physical range. Last, all chosen effects are refitted jointly.
+
+The two figures reported for the fit data are the **in-sample share explained** (of the sum of
+squares above the floor, by the final refit) and, per effect, its part of it (the in-sample loss
+when it is dropped and the others refitted). The held-out evidence is in
+:mod:`~learnest_codegen.diagnosis.shrink`.
 """
 
 from __future__ import annotations
@@ -33,38 +40,31 @@ from typing import Sequence
 import numpy as np
 
 from ..systems import System
+from .cv import FitData, aliases, baseline, block_bootstrap, cv_sse, fit_step, grams, weighted
 from .effects import Effect
-from .fit import (
-    FitData,
-    FitSettings,
-    Pairs,
-    _cv_sse,
-    _grams,
-    _term_size,
-    aliases,
-    baseline,
-    block_bootstrap,
-    one_step,
-    weighted,
-)
+from .fit import FitSettings, Pairs, one_step
 from .refine import Refined, bounds, refine
+from .search import Search
 
 
 @dataclass
 class EffectFit:
-    """Selected effects with their parameters, uncertainty and held-out shares.
+    """Selected effects with their parameters, uncertainty and shares of the gap.
 
     Attributes
     ----------
     chosen : indices into the library, in the order selected.
     theta : (len(chosen),) fitted parameters; ``theta_std`` their block-bootstrap stds.
-    explained : (len(chosen),) held-out share of the gap each explains: ``explained_total`` split in
-        proportion to the held-out loss when the effect is dropped from the final set.
+    explained : (len(chosen),) in-sample share of the gap each explains: ``explained_total`` split
+        in proportion to the in-sample loss when the effect is dropped from the final set.
     scores : (len(chosen),) held-out share each explains alone (at the prior).
-    explained_total : held-out share of the gap explained by all of them together.
+    explained_total : in-sample share of the fit data's gap (sum of squares above the floor)
+        explained by the final refit.
+    cv_explained : the cross-validated share (folds held out in turn), for diagnostics.
     gap, total : held-out sums of squares of the prior's residual above the floor, and in all.
-    steps, rejected : the selection path (diagnostics); ``dropped`` and ``swapped`` record the
-        backward and swap passes.
+    steps, rejected : the selection path (diagnostics); ``dropped``, ``swapped`` and
+        ``exchanged`` record the other moves; ``blocked`` the candidates refused only because
+        their parameter differs between runs.
     aliases : per chosen effect, library indices indistinguishable from it on these data.
     duplicates : library index -> the index it duplicates exactly on these data.
     refit : status of the final joint refinement (``"failed: ..."`` is a verdict).
@@ -89,6 +89,9 @@ class EffectFit:
     dropped: list[dict] = field(default_factory=list)
     swapped: list[dict] = field(default_factory=list)
     equivalents: list[dict[int, float]] = field(default_factory=list)
+    exchanged: list[dict] = field(default_factory=list)
+    blocked: list[dict] = field(default_factory=list)
+    cv_explained: float = 0.0
 
 
 class _Problem:
@@ -99,18 +102,32 @@ class _Problem:
         self.system, self.effects, self.pairs = system, list(effects), pairs
         self.rows, self.sigma, self.spurious, self.labels = list(rows), sigma, spurious, labels
         self.settings = settings
+        self.lo, self.hi = bounds(system, self.effects, settings.bound)
 
     def data(self, theta: np.ndarray) -> FitData:
         r, J = one_step(self.system, self.effects, theta, self.pairs)
-        return weighted(r, J, self.rows, self.sigma, self.spurious, self.labels)
+        return weighted(r, J, self.rows, self.sigma, self.spurious, self.labels, self.lo - theta,
+                        self.hi - theta, self.pairs.segment)
 
-    def refit(self, theta: np.ndarray, chosen: list[int]) -> tuple[np.ndarray, Refined]:
-        """Refine ``theta[chosen]`` jointly (others stay 0) with the damped, bounded LM."""
+    def local(self, cols: list[int], values: np.ndarray, mirror: bool = False) -> FitData:
+        """The columns ``cols`` alone at ``values``; with ``mirror`` the last one is a filter run
+        backwards in time (see :mod:`~learnest_codegen.diagnosis.search`)."""
+        effects = [self.effects[j] for j in cols]
+        if mirror:
+            effects[-1] = _mirrored(effects[-1])
+        r, J = one_step(self.system, effects, values, self.pairs)
+        return weighted(r, J, self.rows, self.sigma, self.spurious[cols], self.labels,
+                        self.lo[cols] - values, self.hi[cols] - values, self.pairs.segment)
+
+    def refit(self, theta: np.ndarray, chosen: list[int]) -> tuple[np.ndarray, str]:
+        """Refine ``theta[chosen]`` jointly (others 0) with the damped, bounded LM."""
+        full = np.zeros_like(theta)
+        if not chosen:
+            return full, "converged"
         out = refit(self.system, [self.effects[j] for j in chosen], theta[chosen], self.pairs, self.rows,
                     self.sigma, self.settings)
-        full = np.zeros_like(theta)
         full[chosen] = out.theta
-        return full, out
+        return full, out.status
 
 
 def refit(system: System, effects: Sequence[Effect], theta: np.ndarray, pairs: Pairs, rows, sigma,
@@ -146,57 +163,77 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
     settings : :class:`~learnest_codegen.diagnosis.fit.FitSettings`.
     labels : cross-validation fold of each pair (default: contiguous time blocks).
     """
-    prob = _Problem(system, effects, pairs, rows, sigma,
-                    np.zeros(len(effects)) if spurious is None else spurious, labels, settings)
-    theta = np.zeros(len(effects))
-    data0 = prob.data(theta)
-    first = baseline(data0, settings)
+    spurious = np.zeros(len(effects)) if spurious is None else np.asarray(spurious, float)
+    prob = _Problem(system, effects, pairs, rows, sigma, spurious, labels, settings)
+    data0 = prob.data(np.zeros(len(effects)))
+    first = baseline(data0, settings, [j for j, e in enumerate(effects) if e.starts])
     groups = _groups(effects)
     # a multi-parameter effect (a group) is a candidate as a whole, through its first column
     pool = [j for j in first.pool if groups[j][0] == j and all(k in first.pool for k in groups[j])]
-    chosen, steps, rejected, dropped, out_of_pool, status = [], [], None, [], set(), "converged"
-    data = data0
-    while len(chosen) < settings.max_effects:
-        sel = _next(data, chosen, [j for j in pool if j not in out_of_pool], settings, groups)
-        if sel["accept"] is False:
-            rejected = sel
-            break
-        chosen.extend(groups[sel["index"]])
-        steps.append(sel)
-        theta, res = prob.refit(theta, chosen)
-        status = res.status
-        data = prob.data(theta)
-        while (drop := _superseded(data, theta, chosen, settings, groups)) is not None:
-            j, why = drop
-            chosen.remove(j)
-            out_of_pool.add(j)  # never re-entered: no add/drop cycles
-            dropped.append({"index": j, "effect": effects[j].name, **why})
-            steps = [st for st in steps if st["index"] != j]
-            theta[j] = 0.0
-            theta, res = prob.refit(theta, chosen)
-            status = res.status
-            data = prob.data(theta)
+    search = Search(effects, prob.data, prob.local, prob.refit, pool, groups, first, settings)
     swapped = []
-    if chosen:
-        chosen, theta, swapped = _swap(prob, data, theta, chosen, pool, settings, groups)
-        theta, res = prob.refit(theta, chosen)  # the final joint refit
-        status = res.status
-        data = prob.data(theta)
-    G, b, c = _grams(data, settings=settings)
-    explained_total = float(np.clip((first.total - _cv_sse(G, b, c, chosen).sum()) / first.gap, 0.0, 1.0)) \
-        if chosen else 0.0
-    # a group's columns share the loss of dropping the whole group
-    losses = np.array([max(_drop_loss(data, theta, chosen, groups[j], settings).sum(), 0.0)
-                       / len(groups[j]) for j in chosen])
-    explained = (losses * explained_total / losses.sum() if losses.sum() > 0
-                 else np.full(len(chosen), explained_total / max(len(chosen), 1)))
+    search.forward()
+    for _ in range(settings.rounds):
+        moved = False
+        if search.chosen:
+            moved |= _swap(search, swapped)
+        moved |= search.backward()
+        moved |= search.forward()
+        moved |= search.exchange()
+        moved |= search.restart()
+        if not moved:
+            break
+    chosen, theta, data = search.chosen, search.theta, search.data
+    G, b, c = grams(data, settings=settings)
+    cv_share = float(np.clip((first.total - cv_sse(G, b, c, chosen, data.lo, data.hi).sum()) / first.gap,
+                             0.0, 1.0)) if chosen else 0.0
+    total_in, sse_in = float(np.sum(data0.R ** 2)), float(np.sum(data.R ** 2))
+    gap_in = max(total_in - data0.floor, 0.01 * data0.floor)
+    share_in = float(np.clip((total_in - sse_in) / gap_in, 0.0, 1.0)) if chosen else 0.0
+    losses = np.array([_in_sample_loss(data, theta, chosen, groups[j]) / len(groups[j]) for j in chosen])
+    explained = (losses * share_in / losses.sum() if losses.sum() > 0
+                 else np.full(len(chosen), share_in / max(len(chosen), 1)))
     std = block_bootstrap(data.columns(chosen), settings).std(axis=0) if chosen else np.zeros(0)
+    name = lambda j: effects[j].name  # noqa: E731
     return EffectFit(chosen, theta[chosen], std, explained,
-                     np.array([first.single.get(j, 0.0) for j in chosen]), explained_total,
-                     first.gap, first.total, steps, rejected,
-                     [aliases(data0, j, pool, settings) + [k for k, v in first.duplicates.items() if v == j]
-                      for j in chosen], first.duplicates, status, dropped, swapped,
-                     [_equivalents(data, j, theta[j], first.duplicates) for j in chosen])
+                     np.array([first.single.get(j, 0.0) for j in chosen]), share_in,
+                     first.gap, first.total, [{**st, "effect": name(st["index"]),
+                                               **({"with": name(st["with"])} if "with" in st else {})}
+                                              for st in search.steps if st["index"] in chosen],
+                     search.rejected, [aliases(data0, j, pool, settings)
+                                       + [k for k, v in first.duplicates.items() if v == j] for j in chosen],
+                     first.duplicates, search.status,
+                     [{**d, "effect": name(d["index"])} for d in search.dropped], swapped,
+                     [_equivalents(data, j, theta[j], first.duplicates) for j in chosen],
+                     [{**e, "removed": name(e["removed"]), "added": [name(a) for a in e["added"]]}
+                      for e in search.exchanged],
+                     [{**st, "effect": name(j)} for j, st in search.blocked.items() if j not in chosen],
+                     cv_share)
+
+
+def _mirrored(effect: Effect) -> Effect:
+    """A ``filter:<u>`` effect run backwards in time (a delay becomes an advance)."""
+    import dataclasses
+
+    forward = effect.transform
+    return dataclasses.replace(effect, transform=lambda u, dt, th: forward(u[::-1], dt, th)[::-1])
+
+
+def _in_sample_loss(data: FitData, theta: np.ndarray, chosen: list[int], js: list[int]) -> float:
+    """In-sample sum of squares added when the columns ``js`` leave the final set (the others
+    refitted, linearised)."""
+    R = data.R + sum(data.Phi[:, :, k] * theta[k] for k in js)
+    rest = [i for i in chosen if i not in js]
+    if not rest:
+        return float(np.sum(R ** 2) - np.sum(data.R ** 2))
+    lo, hi = data.lo.copy(), data.hi.copy()
+    lo[js] += theta[js]
+    hi[js] += theta[js]
+    without = FitData(R, data.Phi, data.sigma, data.spurious, data.labels, lo, hi, data.runs)
+    d = fit_step(without, rest)
+    P = data.Phi[:, :, rest].reshape(-1, len(rest))
+    e = R.ravel() - P @ d
+    return float(e @ e - np.sum(data.R ** 2))
 
 
 def _equivalents(data: FitData, j: int, value: float, duplicates: dict[int, int]) -> dict[int, float]:
@@ -219,88 +256,8 @@ def _groups(effects: Sequence[Effect]) -> list[list[int]]:
     return [by_name[e.group] if e.group else [j] for j, e in enumerate(effects)]
 
 
-def _noise(data: FitData, settings: FitSettings) -> float:
-    """``gap_noise`` standard deviations of a pure-noise sum of squares over the rows."""
-    return settings.gap_noise * float(np.sqrt(2.0 * data.R.size))
-
-
-def _drop_loss(data: FitData, theta: np.ndarray, chosen: list[int], j: int | list[int],
-               settings: FitSettings) -> np.ndarray:
-    """Per-fold increase of the held-out SSE when effect ``j`` (or the columns ``j``) is dropped
-    (linearised at theta)."""
-    js = [j] if isinstance(j, (int, np.integer)) else list(j)
-    G, b, c = _grams(data, settings=settings)
-    without = data.with_R(data.R + sum(data.Phi[:, :, k] * theta[k] for k in js))
-    Gj, bj, cj = _grams(without, settings=settings)
-    return _cv_sse(Gj, bj, cj, [i for i in chosen if i not in js]) - _cv_sse(G, b, c, chosen)
-
-
-def _t(rel: np.ndarray) -> float:
-    return float(rel.mean() / max(rel.std(ddof=1) / np.sqrt(len(rel)), 1e-300))
-
-
-def _superseded(data: FitData, theta: np.ndarray, chosen: list[int], settings: FitSettings,
-                groups: list[list[int]]) -> tuple[int, dict] | None:
-    """The chosen effect whose removal costs least, if that cost fails the entry tests against
-    the gap of the model without it (the columns of a multi-parameter effect stay together)."""
-    if len(chosen) < 2:
-        return None
-    G, b, c = _grams(data, settings=settings)
-    full = _cv_sse(G, b, c, chosen)
-    costs = {}
-    for j in chosen:
-        if len(groups[j]) > 1:
-            continue
-        loss = _drop_loss(data, theta, chosen, j, settings)
-        remaining = max(float((full + loss).sum()) - data.floor, 0.0)
-        need = max(settings.min_gain * remaining, _noise(data, settings))
-        costs[j] = (float(loss.sum()), need, _t(loss / np.maximum(full + loss, 1e-300)))
-    if not costs:
-        return None
-    j = min(costs, key=lambda k: costs[k][0] / max(costs[k][1], 1e-300))
-    loss, need, t_stat = costs[j]
-    if t_stat <= settings.t_min or loss <= need:
-        return j, {"loss": loss, "needed": need, "t": t_stat}
-    return None
-
-
-def _next(data: FitData, chosen: list[int], pool: list[int], settings: FitSettings,
-          groups: list[list[int]]) -> dict:
-    """The next candidate: of the ``settings.scan`` best by held-out SSE, the first that passes the
-    tests of the module docstring; else the best one, marked not accepted."""
-    G, b, c = _grams(data, settings=settings)
-    base = _cv_sse(G, b, c, chosen)
-    trials = {j: _cv_sse(G, b, c, chosen + groups[j]) for j in pool if j not in chosen}
-    if not trials:
-        return {"accept": False, "index": None, "reason": "library exhausted"}
-    remaining = max(float(base.sum()) - data.floor, 0.0)
-    ranked = sorted(trials, key=lambda k: trials[k].sum())[:settings.scan]
-    steps = [_test(data, chosen, j, base, trials[j], remaining, settings, groups[j]) for j in ranked]
-    return next((st for st in steps if st["accept"]), steps[0])
-
-
-def _test(data: FitData, chosen: list[int], j: int, base: np.ndarray, trial: np.ndarray,
-          remaining: float, settings: FitSettings, cols: list[int]) -> dict:
-    gains = base - trial
-    t_stat = _t(gains / np.maximum(base, 1e-300))
-    if len(cols) == 1:
-        size = float(_term_size(data, chosen + [j])[-1])
-    else:  # the size of the group's combined term (its columns may nearly cancel)
-        P = data.Phi[:, :, chosen + cols].reshape(-1, len(chosen) + len(cols))
-        th = np.linalg.lstsq(P, data.R.ravel(), rcond=None)[0]
-        size = float(np.sqrt(np.mean((P[:, len(chosen):] @ th[len(chosen):]) ** 2)))
-    need = max(settings.min_size, settings.spurious_factor * float(max(data.spurious[k] for k in cols)))
-    gain = float(gains.sum())
-    need_gain = max(settings.min_gain * remaining, _noise(data, settings))
-    step = {"index": j, "t": t_stat, "gain": gain / remaining if remaining > 0 else None, "gain_abs": gain,
-            "gain_needed": need_gain, "remaining_gap": remaining, "size": size, "size_needed": need}
-    reasons = [why for ok, why in ((t_stat > settings.t_min, "not consistent across folds"),
-                                   (gain > need_gain, "explains too little of the remaining gap"),
-                                   (size > need, "below the noise / observer-artefact level"))
-               if not ok]
-    step["accept"] = not reasons
-    step["reason"] = "; ".join(reasons)
-    return step
+def _bounded(effect: Effect) -> bool:
+    return bool(np.isfinite(effect.lower) or np.isfinite(effect.upper))
 
 
 def _preference(effect: Effect) -> int:
@@ -308,12 +265,12 @@ def _preference(effect: Effect) -> int:
     return 1 if effect.channel.startswith("param:") else 0
 
 
-def _swap(prob: _Problem, data: FitData, theta: np.ndarray, chosen: list[int], pool: list[int],
-          settings: FitSettings, groups: list[list[int]]):
+def _swap(search: Search, swapped: list[dict]) -> bool:
     """Replace a chosen generic effect by an unchosen prior parameter when the two sets fit the
-    data equally well (in-sample SSE within ``swap_tol`` of the total, linearised at ``theta``)."""
-    swapped = []
-    effects = prob.effects
+    data equally well (in-sample SSE within ``swap_tol`` of the total, linearised at ``theta``) and
+    its range is bounded too (a prior parameter of value 0 has no sign to keep: the ground robot's
+    ``C_D`` stays an alias of a quadratic drag >= 0)."""
+    effects, data, theta, chosen = search.effects, search.data, search.theta, list(search.chosen)
     P = data.Phi.reshape(-1, data.Phi.shape[2])
     R = data.R.ravel() + P[:, chosen] @ theta[chosen]  # the residual with the chosen effects removed
 
@@ -323,21 +280,23 @@ def _swap(prob: _Problem, data: FitData, theta: np.ndarray, chosen: list[int], p
         return float(e @ e)
 
     current = sse(chosen)
-    tol = settings.swap_tol * float(R @ R)
+    tol = search.settings.swap_tol * float(R @ R)
+    new, theta = list(chosen), theta.copy()
     for j in list(chosen):
-        if len(groups[j]) > 1 or _preference(effects[j]) == 1:
+        if len(search.groups[j]) > 1 or _preference(effects[j]) == 1:
             continue
-        for c in pool:
-            if c in chosen or len(groups[c]) > 1 or _preference(effects[c]) <= _preference(effects[j]):
-                continue
-            cols = [c if k == j else k for k in chosen]
+        for c in search.pool:
+            if c in new or len(search.groups[c]) > 1 or _preference(effects[c]) <= _preference(effects[j]) \
+                    or not _bounded(effects[c]) and _bounded(effects[j]):
+                continue  # a parameter without a sign (a prior's 0) would lose the effect's physical range
+            cols = [c if k == j else k for k in new]
             value = sse(cols)
-            if value <= current + tol:
+            if abs(value - current) <= tol:  # the same model on these data, not a better one
                 swapped.append({"removed": effects[j].name, "added": effects[c].name,
                                 "sse": value, "sse_before": current})
-                theta = theta.copy()
                 theta[j] = 0.0
-                chosen = cols
-                current = value
+                new, current = cols, value
                 break
-    return chosen, theta, swapped
+    if new == chosen:
+        return False
+    return search._apply(new, theta, new=False)

@@ -1,5 +1,9 @@
 """Systems the self-test diagnoses besides the built-in ones, written as a user would write them.
 
+``pendulum_swingup``, ``cart`` and ``rc_car_damped`` follow at the end: a torque-limited
+swing-up (the situation of a real pendulum), a cart with sharp Coulomb friction, and the DART car
+with a known rolling drag (for actuator dynamics on held commands).
+
 ``pendulum``: a torque-driven physical pendulum, ``J q'' = tau - mgl sin q``, with the inertia
 ``J`` [kg m^2] and the gravity torque ``mgl`` [N m] as separate parameters (as a user's system
 file declares them), the angle measured by an encoder (std 2 mrad) and the motor torque known.
@@ -58,3 +62,112 @@ def pendulum(friction: float = PENDULUM_FRICTION) -> System:
 
 SMALL_FRICTION = 0.05  # [N m], a quarter of PENDULUM_FRICTION
 SYSTEMS = {"pendulum": pendulum, "pendulum_small_friction": lambda: pendulum(SMALL_FRICTION)}
+
+
+# -- a torque-limited swing-up (the real pendulum's situation) ------------------------------------
+SWINGUP_TRUE = {"J": 0.2, "mgl": 1.6}  # [kg m^2], [N m]
+SWINGUP_PRIOR = {"J": 0.07, "mgl": 0.5}  # both about 3x too small, as a user's first guess was
+SWINGUP_FRICTION = 0.2  # Coulomb friction of the real joint [N m]
+SWINGUP_TORQUE = 0.8  # the motor's torque limit [N m], half the gravity torque: it must pump
+
+
+def _swingup(system: System):
+    """The energy-pumping swing-up of a torque-limited motor, in closed loop on the true pendulum.
+
+    ``tau = clip(k (E_ref - E) qdot + d(t), +-0.8 N m)`` with ``E = J qdot^2 / 2 + mgl (1 - cos q)``:
+    the torque pushes along the motion while the energy is below its target and brakes above it;
+    the target moves every 3 s between 50 % and 95 % of the energy at the top, and a small
+    multisine ``d`` dithers it. ``k`` is drawn per run (10-20), so the torque saturates in the
+    pumping phases and correlates with ``sign(qdot)`` by about +0.5-0.65: a gain on the torque and
+    a Coulomb friction nearly alias. The loop is simulated with the true pendulum at the
+    simulation's own accuracy, so replaying the torque open loop (what :func:`simulate` does)
+    flies the same swing-up.
+    """
+    from ..simulation import _integrate
+
+    def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        dt = float(t[1] - t[0])
+        k = rng.uniform(10.0, 20.0)
+        top = 2.0 * SWINGUP_TRUE["mgl"]
+        targets = rng.uniform(0.5, 0.95, size=int(t[-1] / 3.0) + 2) * top
+        freqs, phases = np.array([0.3, 0.8, 1.7]) * rng.uniform(0.9, 1.1, 3), rng.uniform(0, 2 * np.pi, 3)
+        dither = 0.05 * np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)
+        x, u = np.array(system.x0, dtype=float), np.zeros((len(t), 1))
+        for i in range(len(t)):
+            energy = 0.5 * SWINGUP_TRUE["J"] * x[1] ** 2 + SWINGUP_TRUE["mgl"] * (1.0 - np.cos(x[0]))
+            u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + dither[i],
+                              -SWINGUP_TORQUE, SWINGUP_TORQUE)
+            if i < len(t) - 1:
+                x = _integrate(system, "true", x, u[i], dt)
+        return u
+
+    return excitation
+
+
+def swingup_pendulum() -> System:
+    """A pendulum swung up by a torque-limited motor (:func:`_swingup`); its prior has ``J`` and
+    ``mgl`` about 3x too small and no friction, the truth has :data:`SWINGUP_FRICTION`."""
+    import dataclasses
+
+    def true_dynamics(ops, x, u, p):
+        return _dynamics(ops, x, [u[0] - SWINGUP_FRICTION * ops.tanh(x[1] / FRICTION_SPEED)], p)
+
+    base = dataclasses.replace(pendulum(), name="pendulum_swingup", params=SWINGUP_PRIOR,
+                               true_params=SWINGUP_TRUE, true_dynamics=true_dynamics, duration=12.0,
+                               x0=(0.1, 0.0))
+    return dataclasses.replace(base, excitation=_swingup(base))
+
+
+# -- a cart on a track with Coulomb friction ------------------------------------------------------
+CART_FRICTION = 1.0  # [N], a sharp Coulomb friction: tanh(pdot / 1 mm/s)
+
+
+def _cart_dynamics(ops, x, u, p):
+    return [x[1], u[0] / p["m"]]
+
+
+def _cart_excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    freqs = np.array([0.2, 0.5, 1.1, 2.3]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
+    amps = np.array([3.0, 2.1, 1.5, 0.9])  # [N]
+    phases = rng.uniform(0, 2 * np.pi, 4)
+    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+
+
+def cart() -> System:
+    """A 1 kg cart pushed by a force [N] along a track, position measured (1 mm); the prior is
+    ``m pdot' = F``, the truth adds :data:`CART_FRICTION` of sharp Coulomb friction."""
+    def true_dynamics(ops, x, u, p):
+        return _cart_dynamics(ops, x, [u[0] - CART_FRICTION * ops.tanh(x[1] / 1e-3)], p)
+
+    return System(
+        name="cart", states=(Signal("p", "m"), Signal("pdot", "m/s")), inputs=(Signal("F", "N"),),
+        outputs=(Signal("p", "m"),), params={"m": 1.0}, true_params={"m": 1.0},
+        dynamics=_cart_dynamics, true_dynamics=true_dynamics, measurement=lambda ops, x, u, p: [x[0]],
+        noise=NoiseModel(measurement_std=(1e-3,), state_std=(1e-3, 0.01), process_std=(1e-4, 1e-2),
+                         initial_std=(0.01, 0.1)),
+        dt=0.01, duration=20.0, x0=(0.0, 0.0), excitation=_cart_excitation,
+        kinematic_chains=(KinematicChain("p", ("p", "pdot")),))
+
+
+# -- the DART car with a known rolling drag, for actuator dynamics on held commands ---------------
+def _car_dynamics(ops, x, u, p):
+    from ..systems.rc_car import bicycle
+
+    throttle, steering = u
+    return bicycle(ops, x, p["a_max"] * throttle - p["c_v"] * x[2], p["delta_max"] * steering, p)
+
+
+def rc_car_damped() -> System:
+    """The ``rc_car`` whose prior (and truth) has a rolling drag ``c_v v`` (2 1/s): it cruises
+    at 2-4 m/s on its 10 Hz held commands instead of speeding up for ever, so the actuator
+    dynamics of its throttle and steering (delay, lag, back-EMF) can be injected alone."""
+    import dataclasses
+
+    from ..systems.rc_car import RC_CAR
+
+    params = {**RC_CAR.params, "c_v": 2.0}
+    return dataclasses.replace(RC_CAR, name="rc_car_damped", params=params, true_params=params,
+                               dynamics=_car_dynamics, true_dynamics=_car_dynamics)
+
+
+SYSTEMS.update({"pendulum_swingup": swingup_pendulum, "cart": cart, "rc_car_damped": rc_car_damped})

@@ -18,13 +18,11 @@ class DiagnosisSettings:
     ----------
     source : ``"auto"`` (truth when every run has it), ``"truth"`` or ``"observer"``.
     observer : pre-training observer (default: the system's).
-    holdout : share of a single run held out at its end for the shrink step (several runs, not
-        pooled: the last run is held out).
-    pool : fit every run together, with cross-validation folds by run and each run held out in
-        turn (leave-one-run-out) for the shrink step; ``None``: pool when there are at least
-        ``fit.by_run`` runs.
-    estimator_runs : with pooling, the estimators run on this many held-out runs (the last ones),
-        each with the correction fitted without it.
+    holdout : share of a single run held out at its end for the shrink step (two runs or more
+        are always pooled: fitted together, each held out in turn with the correction fitted on
+        the others).
+    estimator_runs : with two runs or more, the estimators run on this many held-out runs (the
+        last ones), each with the correction fitted without it.
     explained_gap : "explained" needs the corrected prior's held-out residual within the floor:
         its mean square above the floor at most this (noise units^2; 0.25: RMS within 12 %).
     worse_tolerance : an estimator whose held-out MSE rises by more than this fraction with the
@@ -41,7 +39,6 @@ class DiagnosisSettings:
     source: str = "auto"
     observer: str | None = None
     holdout: float = 0.3
-    pool: bool | None = None
     estimator_runs: int = 2
     explained_gap: float = 0.25
     worse_tolerance: float = 0.01

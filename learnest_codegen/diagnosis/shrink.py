@@ -21,10 +21,15 @@ than ``worse_tolerance``). Overall:
 * ``partly explained`` - it closes at least a quarter of the held-out gap but is not at the floor,
   or an estimator rejects it;
 * ``unexplained`` - nothing selected, or less than a quarter closed.
+
+The verdict follows the held-out figures only (the held-out gap closed, the corrected residual
+against the floor, the estimators' held-out MSE); the in-sample share explained, reported beside
+it, never decides it. :func:`verdict_and_reason` gives the sentence that says which rule applied.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
@@ -34,7 +39,7 @@ from typing import Sequence
 import numpy as np
 
 from ..systems import System
-from .effects import Effect, corrected_system
+from .effects import Effect, corrected_system, filter_inputs
 from .fit import Pairs
 from .segments import Segment, pairs_of
 from .settings import DiagnosisSettings
@@ -54,10 +59,13 @@ def has_truth_model(system: System) -> bool:
 
 
 def shrink(system: System, chosen: Sequence[Effect], held: Sequence[HeldOut], model, sigma, rows,
-           settings: DiagnosisSettings, work_dir, run_estimators: Sequence[int] | None = None):
+           settings: DiagnosisSettings, work_dir, run_estimators: Sequence[int] | None = None,
+           reference: str | None = None):
     """Held-out one-step gaps and estimator MSEs; returns ``(shrink, residuals, estimates, pairs)``.
 
     ``run_estimators``: indices into ``held`` the estimators run on (default: all).
+    ``reference``: what the segments' references are, for the report (default: the truth, or
+    the observer's state observations).
     """
     simulated = all(h.segment.run.x is not None for h in held) and has_truth_model(system)
     fixed = {"prior": lambda x, u: system.f(x, u)}
@@ -70,7 +78,11 @@ def shrink(system: System, chosen: Sequence[Effect], held: Sequence[HeldOut], mo
     corrected = []
     for h in held:
         c = corrected_system(system, chosen, h.theta)
-        corrected.append(model_residual(system, lambda x, u, c=c: c.f(x, u), pairs_of([h.segment])))
+        own = pairs_of([h.segment])
+        if any(e.is_filter for e in chosen):  # the corrected prior sees the filtered commands
+            filters = [(e, t) for e, t in zip(chosen, h.theta) if e.is_filter]
+            own = dataclasses.replace(own, u=own.filtered(system, *zip(*filters))[0])
+        corrected.append(model_residual(system, lambda x, u, c=c: c.f(x, u), own))
     residuals["corrected"] = np.concatenate(corrected)
     gaps = {k: gap_size(r, sigma, rows) for k, r in residuals.items()}
     one = {"metric": "mean square of the residual-state residual above the noise floor [noise units^2]",
@@ -87,7 +99,7 @@ def shrink(system: System, chosen: Sequence[Effect], held: Sequence[HeldOut], mo
     if settings.estimators:
         picked = list(range(len(held))) if run_estimators is None else list(run_estimators)
         est, estimates = _estimators(system, chosen, model, [held[i] for i in picked], simulated, settings,
-                                     work_dir)
+                                     work_dir, reference)
         out.update(est)
     return out, residuals, estimates, pairs
 
@@ -108,11 +120,12 @@ def _key(chosen: Sequence[Effect], theta: np.ndarray) -> str:
     return "corrected-" + hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, settings, work_dir):
+def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, settings, work_dir,
+                reference=None):
     """Run each nominal estimator with each model on the held-out segments; mean MSE per model."""
     import tempfile
 
-    from ..evaluation import mse, run_estimator
+    from ..evaluation import run_estimator
     from ..export import hybrid_model, prior_model, true_model
     from ..pipeline import ResolvedModel, make_estimator
 
@@ -139,9 +152,13 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
                                                       key, key)}
             seg = h.segment
             for label, estimator in estimators.items():
+                run = seg.run
+                if label == "corrected" and any(e.is_filter for e in chosen):
+                    run = dataclasses.replace(run, u=filter_inputs(system, chosen, h.theta, run.u,
+                                                                   float(np.median(np.diff(run.t)))))
                 try:
-                    res = run_estimator(estimator, seg.run, seg.reference[0], f"{name}:{label}")
-                    value, x_hat = mse(res.x_hat, seg.reference), res.x_hat
+                    res = run_estimator(estimator, run, seg.x0, f"{name}:{label}")
+                    value, x_hat = _mse(res.x_hat, seg.reference), res.x_hat
                 except Exception as exc:  # noqa: BLE001 - a diverging estimator is evidence, not a crash
                     value, x_hat = float("inf"), np.full_like(seg.reference, np.nan)
                     out.setdefault("failures", []).append(f"{name}:{label}: {exc}")
@@ -149,8 +166,9 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
                 x_hats[label].append(x_hat)
         scores = {k: float(np.mean(v)) for k, v in errors.items()}
         estimates[name] = {k: np.concatenate(v) for k, v in x_hats.items()}
-        entry = {"metric": "MSE against " + ("the truth" if simulated or held[0].segment.run.x is not None
-                                             else "the observer's state observations"),
+        truth = simulated or held[0].segment.run.x is not None
+        entry = {"metric": "MSE against " + (reference or ("the truth" if truth else
+                                                           "the observer's state observations")),
                  **scores, "before": scores["prior"], "after": scores["corrected"],
                  "closed": closed(scores["prior"], scores["corrected"], scores.get("true")),
                  "per_segment": {k: [float(x) for x in v] for k, v in errors.items()},
@@ -159,6 +177,13 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
             entry["closed_knode"] = closed(scores["prior"], scores["knode"], scores.get("true"))
         out[name] = entry
     return out, estimates
+
+
+def _mse(x_hat: np.ndarray, reference: np.ndarray) -> float:
+    """Mean square error over samples and states, over the reference's finite cells."""
+    err = (np.asarray(x_hat) - reference) ** 2
+    ok = np.isfinite(reference)
+    return float(np.mean(err[ok])) if ok.all() else float(np.nanmean(np.where(ok, err, np.nan)))
 
 
 def estimator_verdict(before: float, after: float, tolerance: float) -> str:
@@ -186,18 +211,34 @@ def by_estimator(names: Sequence[str], result: dict, estimators: Sequence[str]) 
 
 def verdict(gap_present: bool, chosen: bool, refit: str, result: dict, settings: DiagnosisSettings) -> str:
     """The overall verdict from the held-out evidence (see the module docstring)."""
+    return verdict_and_reason(gap_present, chosen, refit, result, settings)[0]
+
+
+def verdict_and_reason(gap_present: bool, chosen: bool, refit: str, result: dict,
+                       settings: DiagnosisSettings) -> tuple[str, str]:
+    """The overall verdict (see the module docstring) and the sentence that states why, in terms
+    of the held-out figures only."""
     if not gap_present:
-        return "no gap"
+        return "no gap", "no residual state is above the noise floor and no effect passes the tests"
     if refit.startswith("failed"):
-        return "refit failed"
+        return "refit failed", f"the joint refit of the selected effects failed ({refit})"
     if not chosen:
-        return "unexplained"
+        return "unexplained", "no effect of the library passes the selection's tests"
     one = result["one_step"]
-    ests = [result[n]["verdict"] for n in settings.estimators if n in result]
-    if one["after"] > one["before"] or (ests and all(v == "rejected" for v in ests)):
-        return "rejected"
+    ests = {n: result[n]["verdict"] for n in settings.estimators if n in result}
+    if one["after"] > one["before"]:
+        return "rejected", "the correction makes the held-out one-step residual worse"
+    if ests and all(v == "rejected" for v in ests.values()):
+        return "rejected", "every estimator's held-out MSE gets worse with the correction"
+    against = [n.upper() for n, v in ests.items() if v == "rejected"]
     floor = settings.explained_gap + (one["true"] if "true" in one else 0.0)
-    if one["after"] <= floor and "rejected" not in ests:
-        return "explained"
     share = one["closed"] if one["closed"] is not None else 0.0
-    return "partly explained" if share >= 0.25 else "unexplained"
+    if one["after"] <= floor and not against:
+        return "explained", (f"the corrected prior's held-out residual is within the noise floor "
+                             f"({one['after']:.3g} noise units^2 above it, at most {floor:.3g} allowed)")
+    if share >= 0.25:
+        why = (f"the {' and the '.join(against)} held-out MSE gets worse with the correction" if against else
+               f"the corrected residual stays above the noise floor ({one['after']:.3g} noise units^2 above "
+               f"it; 'explained' needs at most {floor:.3g})")
+        return "partly explained", f"it closes {share:.1%} of the held-out gap (at least 25 %), but {why}"
+    return "unexplained", f"the correction closes only {share:.1%} of the held-out gap (less than 25 %)"

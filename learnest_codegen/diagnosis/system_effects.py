@@ -35,6 +35,9 @@ def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
       lands on the degenerate direction ``k_T/tau ~ k_T (1/tau)`` (seen on the simulated
       quadrotor: ``k/tau = -35``, ``1/tau = -3``). The drag's own ``-k_D a`` is absorbed in
       ``1/tau`` (``1/tau + k_D``, 0.35 of 20 1/s in the simulation).
+
+    Every parameter is >= 0: a thrust gain, a time constant and a drag are positive, and thrust
+    per command rises with the battery voltage.
     """
     try:
         from ..systems.quadrotor import GRAVITY, V_NOM
@@ -51,12 +54,12 @@ def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
         i, j = names.index(s), system.input_names.index(t)
         out += [
             Effect("thrust", s, f"direct:{s}", "k", "(m/s^2)/s", lambda ops, x, u, th, j=j: th * u[j],
-                   f"commanded thrust {t} on {s}'", t),
+                   f"commanded thrust {t} on {s}'", t, lower=0.0),
             Effect("battery_thrust_loss", s, f"direct:{s}", "k_V", "(m/s^2)/s/V",
                    lambda ops, x, u, th, j=j: th * u[j] * (u[jb] - V_NOM),
-                   f"thrust {t} scaled by the battery voltage's deviation from {V_NOM} V", "vbat"),
+                   f"thrust {t} scaled by the battery voltage's deviation from {V_NOM} V", "vbat", lower=0.0),
             Effect("motor_lag", s, f"direct:{s}", "1/tau", "1/s", lambda ops, x, u, th, i=i: -th * x[i],
-                   f"{s} relaxes with the motors' time constant"),
+                   f"{s} relaxes with the motors' time constant", lower=0.0),
         ]
     acc = [names.index(s) for s, _ in axes]
     thr = [system.input_names.index(t) for _, t in axes]
@@ -65,16 +68,16 @@ def _quadrotor_effects(system: System, ctx: LibraryContext) -> list:
         Effect("thrust_response", "az", target, "k/tau", "(m/s^2)/s",
                lambda ops, x, u, th: [th * u[j] * u[jb] / V_NOM for j in thr],
                "thrust response: gain over time constant on the commanded thrust (vbat / V_NOM) T",
-               "T", group="thrust_response"),
+               "T", group="thrust_response", lower=0.0),
         Effect("thrust_response", "az", target, "1/tau", "1/s",
                lambda ops, x, u, th: [-th * x[i] - (th * GRAVITY if k == 2 else 0.0)
                                       for k, i in enumerate(acc)],
                "thrust response: the acceleration (plus gravity) relaxing at rate 1/tau",
-               "a", group="thrust_response"),
+               "a", group="thrust_response", lower=0.0),
         Effect("thrust_response", "az", target, "k_D/tau", "1/s^2",
                lambda ops, x, u, th: [-th * x[i - 3] for i in acc],
                "thrust response: rotor drag k_D v in the thrust balance, over tau",
-               "v", group="thrust_response"),
+               "v", group="thrust_response", lower=0.0),
     ]
     return out
 

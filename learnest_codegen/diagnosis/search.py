@@ -1,0 +1,421 @@
+"""The moves of the effect selection and the tests every move must pass.
+
+A :class:`Search` holds the chosen set, its parameters and the data linearised there, and moves
+it: ``enter`` (forward), ``drop`` (backward), ``exchange`` (one chosen effect for one not chosen),
+``restart`` (select again without an effect whose parameter is pinned at the edge of its range,
+such as an actuator gain of -0.996 that switches a drive off and stands for a drive curve; the
+new set is kept if it fits held out as well) and ``swap`` (a generic effect for an exactly
+equivalent parameter of the prior). Each move is
+scored by cross-validated, bounded least squares (:mod:`~learnest_codegen.diagnosis.cv`) and
+followed by a joint nonlinear refit. The tests a candidate must pass to enter (or an exchange to
+be made), with ``base`` the held-out SSE per fold of the set it joins and ``trial`` that with it:
+
+* **consistent over folds**: the t statistic of the folds' relative gains ``(base - trial) /
+  base`` exceeds ``t_min``, over the folds in which the candidate is excited at all (at least 1 %
+  of its mean energy per fold: a saturation says nothing in a fold that never reaches it);
+* **large against what is left**: the held-out gain exceeds ``min_gain`` of the remaining gap and
+  ``gap_noise`` standard deviations of a pure-noise sum of squares (``sqrt(2 n)`` for ``n``
+  weighted rows);
+* **large against the prior's gap**: the gain exceeds ``min_share`` of the prior's held-out gap
+  (with noise-free states the remaining gap after the right effects is a mismatch of form, such
+  as a Coulomb friction's smoothing; a cascade of small terms fitting it is not a finding);
+* **above the noise**: its term's RMS exceeds ``min_size`` and ``spurious_factor`` times what the
+  same feature explains of pure observer error;
+* **causal** (a delay or a lag): it must fit significantly better than its time mirror (the same
+  filter run backwards in time, an advance): a smoother blurs an input's steps symmetrically in
+  time, which a delay bounded to be >= 0 would otherwise half fit;
+* **jointly** (small subsets): when no candidate passes alone, or a pair fits significantly
+  better than the best single one, two candidates enter together, each passing the tests
+  against the other alone;
+* **the same on every run** (two runs or more): fitted with the others on each run alone, every
+  parameter has the sign of the pooled fit on every run and a robust spread (1.4826 MAD) below
+  half the median's size. A candidate failing only this is *blocked*, and the report says so.
+
+Every parameter stays in its physical range throughout (the bounds of the effects), so no move
+can select a friction with the wrong sign. An effect nonlinear in its parameter (a delay) is also
+linearised at its ``starts``; per fold, the start that fits the training folds best is scored.
+
+Length: the moves share one state (the chosen set, its parameters, the linearised data and the
+sets already seen, which keep moves from cycling) and one set of entry tests; split across
+modules they would pass that state back and forth.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .cv import FitData, box_solve, cv_sse, grams, term_size
+from .fit import FitSettings
+
+
+def _t(rel: np.ndarray) -> float:
+    return float(rel.mean() / max(rel.std(ddof=1) / np.sqrt(len(rel)), 1e-300))
+
+
+def _rel(gain: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """``gain / base`` per fold, a fold without residual (an empty one) counting as no gain."""
+    live = base > 1e-12 * max(float(base.max()), 1e-300)
+    return np.divide(gain, base, out=np.zeros_like(gain, dtype=float), where=live)
+
+
+def excited(data: FitData, cols: list[int], settings: FitSettings, share: float = 0.01) -> np.ndarray:
+    """(folds,) whether the columns ``cols`` carry at least ``share`` of the mean energy per fold
+    (a saturation is silent in a fold where the input stays below it: no evidence either way)."""
+    labels, k = data.folds(settings.folds)
+    energy = np.bincount(labels, weights=np.sum(data.Phi[:, :, cols] ** 2, axis=(1, 2)), minlength=k)
+    return energy >= share * max(float(energy.mean()), 1e-300)
+
+
+def cv_detail(G, b, c, idx, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Held-out SSE and training objective per fold of bounded least squares on ``idx``."""
+    idx = list(idx)
+    Gt, bt, ct = G.sum(0), b.sum(0), c.sum()
+    held, train = np.empty(len(c)), np.empty(len(c))
+    for f in range(len(c)):
+        A, rhs = (Gt - G[f])[np.ix_(idx, idx)], (bt - b[f])[idx]
+        th = box_solve(A, rhs, lo[idx], hi[idx])
+        held[f] = c[f] - 2 * th @ b[f][idx] + th @ G[f][np.ix_(idx, idx)] @ th
+        train[f] = (ct - c[f]) - 2 * th @ rhs + th @ A @ th
+    return held, train
+
+
+def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray) -> np.ndarray:
+    """(runs, len(cols)) parameters of ``cols`` fitted on each run alone (bounded, linearised)."""
+    runs = np.unique(data.runs)
+    G, b, _ = grams(data, np.searchsorted(runs, data.runs), len(runs))
+    out = np.empty((len(runs), len(cols)))
+    for r in range(len(runs)):
+        out[r] = theta_cols + box_solve(G[r][np.ix_(cols, cols)], b[r][cols], data.lo[cols], data.hi[cols])
+    return out
+
+
+def consistent(values: np.ndarray, pooled: float) -> dict:
+    """Per-run values of one parameter against the pooled one (see the module docstring)."""
+    median = float(np.median(values))
+    spread = float(1.4826 * np.median(np.abs(values - median)))
+    tiny = 1e-6 * max(abs(pooled), 1e-300)
+    agree = float(np.mean(values * np.sign(pooled) > tiny)) if pooled != 0 else 0.0
+    return {"per_run": [float(v) for v in values], "median": median, "spread": spread,
+            "sign_agreement": agree, "consistent": bool(agree == 1.0 and spread < 0.5 * abs(median))}
+
+
+class Search:
+    """The state of a selection (see the module docstring).
+
+    ``local(cols, values)`` evaluates the weighted data of the library columns ``cols`` alone with
+    their parameters at ``values`` (for a candidate linearised at one of its starts);
+    ``refit(theta, chosen)`` refines the chosen parameters jointly on the nonlinear residual and
+    returns ``(theta, status)``; ``data(theta)`` linearises every column at ``theta``.
+    """
+
+    def __init__(self, effects, data: Callable, local: Callable, refit: Callable, pool: list[int],
+                 groups: list[list[int]], first, settings: FitSettings):
+        self.effects, self._data, self._local, self._refit = effects, data, local, refit
+        self.pool, self.groups, self.first, self.settings = pool, groups, first, settings
+        self.theta = np.zeros(len(effects))
+        self.chosen: list[int] = []
+        self.data = data(self.theta)
+        self.status = "converged"
+        self.steps, self.dropped, self.exchanged, self.blocked = [], [], [], {}
+        self.rejected: dict | None = None
+        self.seen = {frozenset()}
+        self.restarted: set = set()
+
+    # -- scoring --------------------------------------------------------------------------------
+    def _noise(self, data: FitData) -> float:
+        return self.settings.gap_noise * float(np.sqrt(2.0 * data.R.size))
+
+    def _trial(self, G, b, c, base_cols: list[int], j: int, data: FitData,
+               mirror: bool = False) -> tuple[np.ndarray, float, FitData | None]:
+        """Held-out SSE per fold with candidate ``j`` added to ``base_cols``; its start; the local
+        data at that start (``None``: linearised at 0 on ``data``). With ``mirror``, the same for
+        the candidate's time mirror (a filter run backwards in time)."""
+        cols = base_cols + self.groups[j]
+        options = []
+        if not mirror:
+            held, train = cv_detail(G, b, c, cols, data.lo, data.hi)
+            options.append((held, train, 0.0, None))
+        for start in ((0.0,) if mirror else ()) + tuple(self.effects[j].starts):
+            local = self._local(base_cols + [j], np.concatenate([self.theta[base_cols], [start]]), mirror)
+            Gs, bs, cs_ = grams(local, settings=self.settings)
+            h, t = cv_detail(Gs, bs, cs_, list(range(len(base_cols) + 1)), local.lo, local.hi)
+            options.append((h, t, start, local))
+        if len(options) == 1 and not mirror:
+            return options[0][0], 0.0, None
+        pick = np.argmin(np.stack([o[1] for o in options]), axis=0)  # per fold, by training fit
+        trial = np.array([options[p][0][f] for f, p in enumerate(pick)])
+        best = min(options, key=lambda o: o[1].sum() + o[0].sum())
+        return trial, best[2], best[3]
+
+    def test(self, data: FitData, base_cols: list[int], j: int, base: np.ndarray, trial: np.ndarray,
+             start: float, local: FitData | None, cols: list[int] | None = None) -> dict:
+        """The entry tests of the module docstring for ``j`` (or the columns ``cols``, each
+        judged for its size) joining ``base_cols``."""
+        s = self.settings
+        single = cols is None
+        cols = self.groups[j] if cols is None else cols
+        remaining = max(float(base.sum()) - data.floor, 0.0)
+        gains = base - trial
+        src, idx = (local, list(range(len(base_cols) + 1))) if local is not None else (data, base_cols + cols)
+        k = len(base_cols)
+        live = excited(src, idx[k:], s)  # folds without excitation carry no evidence either way
+        t_stat = _t(_rel(gains, base)[live]) if live.sum() >= 3 else -np.inf
+        if local is not None:  # the whole term from 0: the start's own part and the fitted step
+            P = local.Phi[:, :, idx].reshape(-1, len(idx))
+            th = box_solve(P.T @ P, P.T @ local.R.ravel(), local.lo[idx], local.hi[idx])
+            term = (data.R - local.R).ravel() + P[:, k:] @ th[k:]
+            size = float(np.sqrt(np.mean(term ** 2)))
+        elif len(cols) == 1 or not single:
+            size = float(np.min(term_size(src, idx)[k:]))
+        else:  # the size of the group's combined term (its columns may nearly cancel)
+            P = src.Phi[:, :, idx].reshape(-1, len(idx))
+            th = box_solve(P.T @ P, P.T @ src.R.ravel(), src.lo[idx], src.hi[idx])
+            size = float(np.sqrt(np.mean((P[:, k:] @ th[k:]) ** 2)))
+        need = max(s.min_size, s.spurious_factor * float(max(data.spurious[c] for c in cols)))
+        gain = float(gains.sum())
+        need_gain = max(s.min_gain * remaining, self._noise(data), s.min_share * self.first.gap)
+        step = {"index": j, "t": t_stat, "gain": gain / remaining if remaining > 0 else None,
+                "gain_abs": gain, "gain_needed": need_gain, "remaining_gap": remaining,
+                "share_of_prior_gap": gain / self.first.gap,
+                "size": size, "size_needed": need, "start": start}
+        reasons = [why for ok, why in ((t_stat > s.t_min, "not consistent across folds"),
+                                       (gain > need_gain, "explains too little of the gap"),
+                                       (size > need, "below the noise / observer-artefact level"))
+                   if not ok]
+        if not reasons and single and self.effects[j].is_filter:
+            G, b, c = grams(data, settings=s)
+            mirrored = self._trial(G, b, c, base_cols, j, data, mirror=True)[0]
+            edge = mirrored - trial
+            step["gain_over_mirror"] = float(edge.sum())
+            if edge.sum() <= need_gain or _t(_rel(edge, mirrored)) <= s.t_min:
+                reasons.append("no better than its time mirror (a smoother's blur, not a lag)")
+        if not reasons and src.runs is not None and len(np.unique(src.runs)) >= 2:
+            theta_idx = np.concatenate([self.theta[base_cols], [start] if local is not None
+                                        else self.theta[cols]])
+            P = src.Phi[:, :, idx].reshape(-1, len(idx))
+            pooled = theta_idx + box_solve(P.T @ P, P.T @ src.R.ravel(), src.lo[idx], src.hi[idx])
+            values = per_run_values(src, idx, theta_idx)
+            checks = [consistent(values[:, k + i], pooled[k + i]) for i in range(len(idx) - k)]
+            step["per_run"] = [c["per_run"] for c in checks]
+            if not all(c["consistent"] for c in checks):
+                reasons.append("not the same on every run")
+        step["accept"] = not reasons
+        step["reason"] = "; ".join(reasons)
+        return step
+
+    def candidates(self, exclude=()) -> dict:
+        """The next candidate: of the ``scan`` best by held-out SSE, the first that passes the tests;
+        else the best one, marked not accepted."""
+        data = self.data
+        G, b, c = grams(data, settings=self.settings)
+        base = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+        trials = {}
+        for j in self.pool:
+            if j in self.chosen or j in exclude:
+                continue
+            trials[j] = self._trial(G, b, c, list(self.chosen), j, data)
+        if not trials:
+            return {"accept": False, "index": None, "reason": "library exhausted"}
+        ranked = sorted(trials, key=lambda k: trials[k][0].sum())
+        steps = [self.test(data, list(self.chosen), j, base, *trials[j]) for j in ranked[:self.settings.scan]]
+        for st in steps:
+            if st["reason"] == "not the same on every run":
+                self.blocked[st["index"]] = st
+        accepted = next((st for st in steps if st["accept"]), None)
+        if len(self.chosen) + 2 <= self.settings.max_effects:
+            pair = self.pair(G, b, c, base, {j: trials[j][0] for j in ranked[:self.settings.pair_pool]})
+            if pair is not None and (accepted is None or self._better(trials[accepted["index"]][0], pair[1])):
+                return pair[0]
+        return accepted or steps[0]
+
+    def _better(self, single: np.ndarray, pair: np.ndarray) -> bool:
+        """Whether a pair fits held out significantly better than the best single entry: by more
+        than the entry tests' gain threshold, consistently over the folds."""
+        remaining = max(float(single.sum()) - self.data.floor, 0.0)
+        need = max(self.settings.min_gain * remaining, self._noise(self.data))
+        edge = single - pair
+        return bool(edge.sum() > need and _t(_rel(edge, single)) > self.settings.t_min)
+
+    def pair(self, G, b, c, base: np.ndarray, singles: dict) -> tuple[dict, np.ndarray] | None:
+        """Two candidates entering together, when neither passes alone (a friction that an actuator
+        gain absorbed, together with the parameter error the gain also stood for) or together they
+        fit significantly better than the best single one (a Coulomb friction and a back-EMF
+        against a gain that switches a drive off): the pair must pass the entry tests, and each
+        member must pass them against the other alone. Returns the step and its held-out SSE."""
+        data, chosen, best = self.data, list(self.chosen), None
+        names = sorted(singles)
+        for a_i, j in enumerate(names):
+            for k in names[a_i + 1:]:
+                if self.groups[j][0] != j or self.groups[k][0] != k:
+                    continue
+                cols = self.groups[j] + self.groups[k]
+                trial = cv_sse(G, b, c, chosen + cols, data.lo, data.hi)
+                step = self.test(data, chosen, j, base, trial, 0.0, None, cols=cols)
+                if not step["accept"]:
+                    continue
+                # each member against the other alone
+                if not all(self.test(data, chosen + self.groups[o], m, singles[o], trial, 0.0, None)["accept"]
+                           for m, o in ((j, k), (k, j))):
+                    continue
+                if best is None or trial.sum() < best[0]:
+                    best = (trial.sum(), {**step, "index": j, "with": k}, trial)
+        return None if best is None else (best[1], best[2])
+
+    # -- moves ----------------------------------------------------------------------------------
+    def _apply(self, chosen: list[int], theta: np.ndarray, new: bool = True) -> bool:
+        """Refit on ``chosen`` from ``theta``; with ``new``, refused (``False``) if the set was
+        chosen before: entries and exchanges never cycle (a drop is always allowed)."""
+        key = frozenset(chosen)
+        if new and key in self.seen:
+            return False
+        self.seen.add(key)
+        self.theta, self.status = self._refit(theta, chosen)
+        self.chosen = list(chosen)
+        self.data = self._data(self.theta)
+        return True
+
+    def forward(self) -> bool:
+        """Enter candidates while one passes (each followed by the backward pass)."""
+        moved = False
+        while len(self.chosen) < self.settings.max_effects:
+            sel = self.candidates()
+            if not sel["accept"]:
+                self.rejected = sel
+                break
+            theta = self.theta.copy()
+            theta[sel["index"]] = sel.get("start", 0.0)
+            cols = self.groups[sel["index"]] + (self.groups[sel["with"]] if "with" in sel else [])
+            if not self._apply(self.chosen + cols, theta):
+                self.rejected = {**sel, "accept": False, "reason": "would repeat an earlier set"}
+                break
+            self.steps.append(sel)
+            self.backward()
+            moved = True
+        return moved
+
+    def _drop_loss(self, js: list[int]) -> np.ndarray:
+        data = self.data
+        G, b, c = grams(data, settings=self.settings)
+        without = self._without(js)
+        Gw, bw, cw = grams(without, settings=self.settings)
+        rest = [i for i in self.chosen if i not in js]
+        full = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+        return cv_sse(Gw, bw, cw, rest, without.lo, without.hi) - full
+
+    def _without(self, js: list[int]) -> FitData:
+        """The data with the columns ``js`` taken out of the model (their terms back in ``R``)."""
+        d = self.data
+        lo, hi = d.lo.copy(), d.hi.copy()
+        lo[js] += self.theta[js]
+        hi[js] += self.theta[js]
+        return FitData(d.R + sum(d.Phi[:, :, k] * self.theta[k] for k in js), d.Phi, d.sigma, d.spurious,
+                       d.labels, lo, hi, d.runs)
+
+    def backward(self) -> bool:
+        """Drop, one at a time, the chosen effect whose loss fails the entry tests."""
+        moved = False
+        while len(self.chosen) >= 2:
+            data = self.data
+            G, b, c = grams(data, settings=self.settings)
+            full = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+            costs = {}
+            for j in self.chosen:
+                if len(self.groups[j]) > 1:
+                    continue
+                loss = self._drop_loss([j])
+                remaining = max(float((full + loss).sum()) - data.floor, 0.0)
+                need = max(self.settings.min_gain * remaining, self._noise(data),
+                           self.settings.min_share * self.first.gap)
+                costs[j] = (float(loss.sum()), need, _t(_rel(loss, full + loss)))
+            if not costs:
+                break
+            j = min(costs, key=lambda k: costs[k][0] / max(costs[k][1], 1e-300))
+            loss, need, t_stat = costs[j]
+            if t_stat > self.settings.t_drop and loss > need:
+                break
+            theta = self.theta.copy()
+            theta[j] = 0.0
+            self._apply([i for i in self.chosen if i != j], theta, new=False)
+            self.dropped.append({"index": j, "loss": loss, "needed": need, "t": t_stat})
+            moved = True
+        return moved
+
+    def at_edge(self, j: int, share: float = 0.01) -> bool:
+        """Whether ``j``'s parameter sits within ``share`` of a finite, non-zero edge of its range
+        (an actuator gain of -0.996 switches the drive off: it stands for something else)."""
+        lo, hi = self.data.lo[j] + self.theta[j], self.data.hi[j] + self.theta[j]
+        return any(np.isfinite(b) and b != 0 and abs(self.theta[j] - b) <= share * abs(b) for b in (lo, hi))
+
+    def _state(self):
+        return (list(self.chosen), self.theta.copy(), self.data, self.status, list(self.steps),
+                list(self.dropped), self.rejected)
+
+    def _restore(self, state) -> None:
+        (self.chosen, self.theta, self.data, self.status, self.steps, self.dropped, self.rejected) = state
+
+    def cv_total(self) -> float:
+        G, b, c = grams(self.data, settings=self.settings)
+        return float(cv_sse(G, b, c, self.chosen, self.data.lo, self.data.hi).sum())
+
+    def restart(self) -> bool:
+        """For a chosen effect pinned at the edge of its range: select again without it (it may not
+        come back); keep the new set if it fits held out as well, within the noise of the sums."""
+        for j in [i for i in self.chosen if len(self.groups[i]) == 1 and self.at_edge(i)]:
+            key = (j, frozenset(self.chosen))
+            if key in self.restarted:
+                continue
+            self.restarted.add(key)
+            before, current = self._state(), self.cv_total()
+            theta = self.theta.copy()
+            theta[j] = 0.0
+            self._apply([i for i in self.chosen if i != j], theta, new=False)
+            saved_pool = self.pool
+            self.pool = [i for i in self.pool if i != j]
+            self.forward()
+            self.pool = saved_pool
+            if j not in self.chosen and self.chosen and self.cv_total() <= current + self._noise(self.data):
+                self.exchanged.append({"removed": j, "added": [i for i in self.chosen if i not in before[0]],
+                                       "sse": self.cv_total(), "sse_before": current,
+                                       "why": "at the edge of its range"})
+                return True
+            self._restore(before)
+        return False
+
+    def exchange(self) -> bool:
+        """Replace one chosen effect by one not chosen when that is significantly better held out."""
+        data = self.data
+        G, b, c = grams(data, settings=self.settings)
+        full = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+        remaining = max(float(full.sum()) - data.floor, 0.0)
+        need = max(self.settings.min_gain * remaining, self._noise(data))
+        best = None
+        for j in {self.groups[i][0] for i in self.chosen}:
+            js = self.groups[j]
+            without = self._without(js)
+            Gw, bw, cw = grams(without, settings=self.settings)
+            rest = [i for i in self.chosen if i not in js]
+            base = cv_sse(Gw, bw, cw, rest, without.lo, without.hi)
+            for cand in self.pool:
+                if cand in self.chosen or cand == j or frozenset(rest + self.groups[cand]) in self.seen:
+                    continue
+                trial = cv_sse(Gw, bw, cw, rest + self.groups[cand], without.lo, without.hi)
+                gain = full - trial
+                if gain.sum() <= need or _t(_rel(gain, full)) <= self.settings.t_min:
+                    continue
+                if best is None or trial.sum() < best[0]:
+                    best = (trial.sum(), j, cand, without, rest, base, trial)
+        if best is None:
+            return False
+        _, j, cand, without, rest, base, trial = best
+        st = self.test(without, rest, cand, base, trial, 0.0, None)
+        if not st["accept"]:
+            return False
+        theta = self.theta.copy()
+        theta[self.groups[j]] = 0.0
+        if not self._apply(rest + self.groups[cand], theta):
+            return False
+        self.exchanged.append({"removed": j, "added": [cand], "sse": float(trial.sum()),
+                               "sse_before": float(full.sum()), "why": "significantly better held out"})
+        return True
