@@ -189,21 +189,3 @@ def test_qemu_knode_long_run(estimator, precision, machine, tmp_path):
     check_parity(gen, fw, host, steps, model.system)
     np.testing.assert_array_equal(host.X, bc.host_reference(gen))
     check_footprint(gen, paths, fw)
-
-
-@pytest.mark.slow
-def test_float_libm_knode_ukf(tmp_path):
-    """float32 KNODE UKF with CasADi's sin/cos/tanh as the float routines (src/float_libm.h):
-    newlib's and glibc's float routines differ in the last bit, so QEMU and host agree only to
-    float32 round-off (measured 6.5e-6 relative over 200 steps), not bit for bit."""
-    model = bc.untrained_knode(get_system("cartpole"))
-    gen = bc.generate(model, tmp_path / "gen", steps=STEPS, precision="float32")
-    paths = bc.build(gen.directory, tmp_path / "build", float_libm=True)
-    fw, host = bc.run_qemu(paths["elf"], 4), bc.run_host(paths["host"], 4)
-    assert fw.summary["status"] == host.summary["status"] and fw.summary["status"] >= 0
-    assert np.all(fw.status >= 0)
-    assert bc.relative_difference(fw.X, host.X).max() <= 1e-4
-    assert max(bc.tracking_error(model.system, fw.X, gen.X_true).values()) < TRACKING_STDS
-    # It is another computation than the double-libm build, close to it.
-    reference = bc.host_reference(gen)
-    assert 0 < bc.relative_difference(host.X, reference).max() <= 1e-4
