@@ -87,9 +87,10 @@ def check_footprint(gen, paths, fw, ram_bytes: int = 32 * 1024) -> None:
     # The deepest chain of -fstack-usage frames runs main -> the estimator's API (init or
     # step) -> the kit and CasADi's code, so the painted stack's high-water mark must cover it
     # (plus the library routines the .su files do not know) up to its last frame, which a run
-    # may use only in part (the RTI MHE's chain ends in learnest_spd_inverse, 96 B, whose
-    # diagonal case returns early: the painted peak covered the chain to 4 B), and stay inside
-    # the reserved stack (an overflow would run into .bss unnoticed).
+    # may use only in part (the float32 chains end in a kit routine whose rarely taken branch,
+    # a fallback call or a non-diagonal case, needs the whole frame: the painted peak fell 4 B
+    # short of the full chain), and stay inside the reserved stack (an overflow would run into
+    # .bss unnoticed).
     assert any(name.startswith(gen.prefix + "_") for name, _ in chain["path"])
     assert chain["bytes"] - chain["path"][-1][1] <= peak < sizes[".stack"]
     # The estimator's workspace is the static buffer in .bss; nothing else is big.
