@@ -188,16 +188,14 @@ def _check_machine(machine: str) -> str:
 
 
 def build(gen_dir: Path, build_dir: Path, *, machine: str = "mps2-an386",
-          float_libm: bool = False, jobs: int = 2) -> dict[str, Path]:
+          jobs: int = 2) -> dict[str, Path]:
     """``make`` the firmware ELF for ``machine`` and the host binary; returns their paths.
 
-    ``float_libm`` compiles every file with ``src/float_libm.h`` (sinf, tanhf, ... in a float32
-    build instead of the double routines; see README.md). Use one ``build_dir`` per machine
-    and generation: make does not rebuild objects when only flags change.
+    Use one ``build_dir`` per machine and generation: make does not rebuild objects when only
+    flags change.
     """
     _run(["make", "-C", str(EXAMPLE_DIR), f"-j{jobs}", f"GEN={Path(gen_dir).resolve()}",
           f"BUILD={Path(build_dir).resolve()}", f"MACHINE={_check_machine(machine)}",
-          *(["EXTRA_CFLAGS=-include src/float_libm.h"] if float_libm else []),
           "all"], what="make")
     return {"elf": Path(build_dir) / "arm" / "fw.elf", "host": Path(build_dir) / "host" / "loop"}
 
@@ -372,9 +370,6 @@ def main(argv: list[str] | None = None) -> int:
                              "(converged Gauss-Newton) (default: ukf)")
     parser.add_argument("--precision", choices=PRECISIONS, default="float64",
                         help="the C real type of the generated estimator (default: float64)")
-    parser.add_argument("--float-libm", action="store_true",
-                        help="float32 only: CasADi's sin/cos/tanh/exp/sqrt as the float routines "
-                             "(src/float_libm.h) instead of double ones")
     parser.add_argument("--out", type=Path, default=Path("build/cortex_m"))
     args = parser.parse_args(argv)
     missing = missing_tools()
@@ -385,21 +380,19 @@ def main(argv: list[str] | None = None) -> int:
 
     system = get_system(args.system)
     model = untrained_knode(system) if args.model == "untrained" else resolve_model(system, args.model)[0]
-    if args.float_libm and args.precision != "float32":
-        parser.error("--float-libm needs --precision float32")
-    tag = f"{args.estimator}_{args.precision}" + ("_float_libm" if args.float_libm else "")
+    tag = f"{args.estimator}_{args.precision}"
     tag = f"{system.name}_{tag}"
     gen = generate(model, args.out / "gen", steps=args.steps, seed=args.seed,
                    estimator=args.estimator, precision=args.precision)
     build_dir = args.out / f"build_{tag}_{args.machine}"
-    paths = build(gen.directory, build_dir, machine=args.machine, float_libm=args.float_libm)
+    paths = build(gen.directory, build_dir, machine=args.machine)
     fw = run_qemu(paths["elf"], model.nx, machine=args.machine)
     host = run_host(paths["host"], model.nx)
     rel = relative_difference(fw.X, host.X)
     report = {
         "system": system.name, "model": args.model, "machine": args.machine,
         "estimator": args.estimator,
-        "precision": args.precision, "float_libm": args.float_libm, "prefix": gen.prefix,
+        "precision": args.precision, "prefix": gen.prefix,
         "steps": args.steps,
         "workspace_bytes": gen.workspace_bytes,
         "max_relative_difference": float(rel.max()),

@@ -8,6 +8,7 @@
  *   LEARNEST_MODEL_STAGE  (x, u) -> (F(x, u), dF/dx)           learnest_model_stage
  *   LEARNEST_MODEL_NODE   (x, u) -> (h(x, u), dh/dx)           learnest_model_node
  *   LEARNEST_MODEL_F      (x, u) -> F(x, u)                    learnest_model_F
+ *   LEARNEST_MODEL_H      (x, u) -> h(x, u)                    learnest_model_h
  *   LEARNEST_MODEL_PREDICT, LEARNEST_MODEL_UPDATE               the UKF's two halves
  *   LEARNEST_MODEL_SOLVER (+ _CHECKOUT, _RELEASE)               the Ipopt MHE's nlpsol
  * and LEARNEST_CASADI_SZ_ARG, _RES, _IW, _W (the largest over them). Every hook is static.
@@ -66,6 +67,16 @@ LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_rea
   learnest_real* out[1];
   in[0] = x, in[1] = u, out[0] = F;
   (void)learnest_casadi_call(md, LEARNEST_MODEL_F, in, 2, out, 1);
+}
+#endif
+
+#ifdef LEARNEST_MODEL_H
+LEARNEST_KIT void learnest_model_h(struct learnest_model* md, const learnest_real* x,
+                                   const learnest_real* u, learnest_real* h) {
+  const learnest_real* in[2];
+  learnest_real* out[1];
+  in[0] = x, in[1] = u, out[0] = h;
+  (void)learnest_casadi_call(md, LEARNEST_MODEL_H, in, 2, out, 1);
 }
 #endif
 

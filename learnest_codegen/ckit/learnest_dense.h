@@ -13,15 +13,15 @@
  * M = L L^T. 0 (M partly overwritten) if a pivot is not positive. */
 LEARNEST_KIT int learnest_cholesky(learnest_real* M, int n) {
   int i, j, k;
-  for (j = 0; j < n; ++j) {
+  LEARNEST_UNROLL for (j = 0; j < n; ++j) {
     learnest_real d = M[j + j * n];
-    for (k = 0; k < j; ++k) d -= M[j + k * n] * M[j + k * n];
+    LEARNEST_UNROLL for (k = 0; k < j; ++k) d -= M[j + k * n] * M[j + k * n];
     if (!(d > 0)) return 0;
     d = LEARNEST_SQRT(d);
     M[j + j * n] = d;
-    for (i = j + 1; i < n; ++i) {
+    LEARNEST_UNROLL for (i = j + 1; i < n; ++i) {
       learnest_real v = M[i + j * n];
-      for (k = 0; k < j; ++k) v -= M[i + k * n] * M[j + k * n];
+      LEARNEST_UNROLL for (k = 0; k < j; ++k) v -= M[i + k * n] * M[j + k * n];
       M[i + j * n] = v / d;
     }
   }
@@ -31,9 +31,9 @@ LEARNEST_KIT int learnest_cholesky(learnest_real* M, int n) {
 /* b <- L^-1 b for the lower triangular n x n L (column-major). */
 LEARNEST_KIT void learnest_forward_subst(const learnest_real* L, int n, learnest_real* b) {
   int i, k;
-  for (i = 0; i < n; ++i) {
+  LEARNEST_UNROLL for (i = 0; i < n; ++i) {
     learnest_real v = b[i];
-    for (k = 0; k < i; ++k) v -= L[i + k * n] * b[k];
+    LEARNEST_UNROLL for (k = 0; k < i; ++k) v -= L[i + k * n] * b[k];
     b[i] = v / L[i + i * n];
   }
 }
@@ -41,9 +41,9 @@ LEARNEST_KIT void learnest_forward_subst(const learnest_real* L, int n, learnest
 /* b <- L^-T b for the lower triangular n x n L (column-major). */
 LEARNEST_KIT void learnest_backward_subst(const learnest_real* L, int n, learnest_real* b) {
   int i, k;
-  for (i = n - 1; i >= 0; --i) {
+  LEARNEST_UNROLL for (i = n - 1; i >= 0; --i) {
     learnest_real v = b[i];
-    for (k = i + 1; k < n; ++k) v -= L[k + i * n] * b[k];
+    LEARNEST_UNROLL for (k = i + 1; k < n; ++k) v -= L[k + i * n] * b[k];
     b[i] = v / L[i + i * n];
   }
 }
@@ -52,9 +52,9 @@ LEARNEST_KIT void learnest_backward_subst(const learnest_real* L, int n, learnes
 LEARNEST_KIT learnest_real learnest_quad(const learnest_real* W, const learnest_real* r, int n) {
   learnest_real acc = 0;
   int i, j;
-  for (j = 0; j < n; ++j) {
+  LEARNEST_UNROLL for (j = 0; j < n; ++j) {
     learnest_real t = 0;
-    for (i = 0; i < n; ++i) t += W[i + j * n] * r[i];
+    LEARNEST_UNROLL for (i = 0; i < n; ++i) t += W[i + j * n] * r[i];
     acc += t * r[j];
   }
   return acc;
@@ -126,11 +126,11 @@ LEARNEST_KIT int learnest_covariance_ok(const learnest_real* A, int n, learnest_
   const learnest_real tiny = LEARNEST_IS_FLOAT ? (learnest_real)1e-30 : (learnest_real)1e-300;
   learnest_real scale = 0;
   int i, j, k;
-  for (i = 0; i < n; ++i) scale = (learnest_real)fmax(scale, fabs(A[i * n + i]));
+  for (i = 0; i < n; ++i) scale = learnest_fmax(scale, learnest_fabs(A[i * n + i]));
   for (i = 0; i < n; ++i) {
     for (j = 0; j < i; ++j) {
       learnest_real a = A[i * n + j], b = A[j * n + i];
-      if (fabs(a - b) > tol * (scale + fabs(a) + fabs(b))) return 0;
+      if (learnest_fabs(a - b) > tol * (scale + learnest_fabs(a) + learnest_fabs(b))) return 0;
     }
   }
   for (j = 0; j < n; ++j) {

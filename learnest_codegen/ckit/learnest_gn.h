@@ -116,11 +116,47 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
   return c;
 }
 
+/* 1 when the n x n W (column-major) has no off-diagonal entry. */
+LEARNEST_KIT int learnest_gn_diagonal(const learnest_real* W, int n) {
+  int r, c;
+  LEARNEST_UNROLL for (c = 0; c < n; ++c) {
+    LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+      if (r != c && W[r + c * n] != 0) return 0;
+    }
+  }
+  return 1;
+}
+
+/* Wv = W v and WM = W M (M: n x cols, column-major) for the n x n W; diag: W is diagonal (the
+ * zero terms are skipped, which changes no bit: adding an exact 0 is exact). */
+LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
+                                    const learnest_real* M, int cols, learnest_real* Wv,
+                                    learnest_real* WM) {
+  int r, c, k;
+  LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+    if (diag) {
+      Wv[r] = W[r + r * n] * v[r];
+      LEARNEST_UNROLL for (c = 0; c < cols; ++c) WM[r + c * n] = W[r + r * n] * M[r + c * n];
+      continue;
+    }
+    Wv[r] = 0;
+    LEARNEST_UNROLL for (k = 0; k < n; ++k) Wv[r] += W[r + k * n] * v[k];
+    LEARNEST_UNROLL for (c = 0; c < cols; ++c) {
+      learnest_real t = 0;
+      LEARNEST_UNROLL for (k = 0; k < n; ++k) t += W[r + k * n] * M[k + c * n];
+      WM[r + c * n] = t;
+    }
+  }
+}
+
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
- * gradient): diagonal blocks D_i, blocks E_i = H_{i, i+1}, gradient g. */
+ * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
+ * E_i = H_{i, i+1}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
 LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
                                     const learnest_real* X) {
   const struct learnest_lin* L = &s->lin;
+  const int dq = learnest_gn_diagonal(s->Q, LEARNEST_NX), dr = learnest_gn_diagonal(s->R, LEARNEST_NY);
+  const int dp = learnest_gn_diagonal(s->P, LEARNEST_NX);
   int i, r, c, k;
   memset(s->D, 0, sizeof s->D);
   memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
@@ -131,10 +167,15 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
     const learnest_real* x = X + i * LEARNEST_NX;
     learnest_real a = i ? 1 - w->mask[i - 1] : 1, m = w->mask[i];
     if (a != 0) {  /* arrival term a |x_i - xbar|^2_P */
-      for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
-      for (c = 0; c < LEARNEST_NX; ++c) {
-        for (r = 0; r < LEARNEST_NX; ++r) {
-          D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
+      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        if (dp) {
+          D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
+          g[c] += a * s->P[c + c * LEARNEST_NX] * s->rw[c];
+          continue;
+        }
+        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
+          if (r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
           g[r] += a * s->P[r + c * LEARNEST_NX] * s->rw[c];
         }
       }
@@ -143,28 +184,20 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
     {  /* measurement term m |G (y_i - h(x_i))|^2_R: D += C'RC, g -= C'R v (C, v weighted) */
       const learnest_real* Gi = w->G + i * LEARNEST_NY;
       learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
-      for (k = 0; k < LEARNEST_NY * LEARNEST_NX; ++k) {
+      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY * LEARNEST_NX; ++k) {
         C[k] = Gi[k % LEARNEST_NY] * L->C[i * LEARNEST_NY * LEARNEST_NX + k];
       }
-      for (k = 0; k < LEARNEST_NY; ++k) {
+      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
-      for (r = 0; r < LEARNEST_NY; ++r) {
-        Rv[r] = 0;
-        for (k = 0; k < LEARNEST_NY; ++k) Rv[r] += s->R[r + k * LEARNEST_NY] * s->rv[k];
-        for (c = 0; c < LEARNEST_NX; ++c) {
+      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_NX, Rv, RC);
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
           learnest_real v = 0;
-          for (k = 0; k < LEARNEST_NY; ++k) v += s->R[r + k * LEARNEST_NY] * C[k + c * LEARNEST_NY];
-          RC[r + c * LEARNEST_NY] = v;
-        }
-      }
-      for (c = 0; c < LEARNEST_NX; ++c) {
-        for (r = 0; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
+          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
           D[r + c * LEARNEST_NX] += m * v;
         }
-        for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
       }
     }
     if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
@@ -173,25 +206,20 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       learnest_real* E = s->E + i * LEARNEST_NXX;
       learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
-      for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
-      for (r = 0; r < LEARNEST_NX; ++r) {
-        Qw[r] = 0;
-        for (k = 0; k < LEARNEST_NX; ++k) Qw[r] += s->Q[r + k * LEARNEST_NX] * s->rw[k];
-        for (c = 0; c < LEARNEST_NX; ++c) {
-          learnest_real v = 0;
-          for (k = 0; k < LEARNEST_NX; ++k) v += s->Q[r + k * LEARNEST_NX] * A[k + c * LEARNEST_NX];
-          QA[r + c * LEARNEST_NX] = v;
-        }
-      }
-      for (c = 0; c < LEARNEST_NX; ++c) {
-        for (r = 0; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-          D[r + c * LEARNEST_NX] += m * v;
+      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
+      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_NX, Qw, QA);
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
           E[r + c * LEARNEST_NX] = -m * QA[c + r * LEARNEST_NX];  /* -(A'Q)[r][c] = -(QA)[c][r] */
-          Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+          if (r < c) continue;
+          {
+            learnest_real v = 0;
+            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
+            D[r + c * LEARNEST_NX] += m * v;
+          }
+          if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
         }
-        for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
         gn[c] += m * Qw[c];
       }
     }
@@ -209,10 +237,10 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
     learnest_real* Di = D + i * LEARNEST_NXX;
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
-      for (c = 0; c < LEARNEST_NX; ++c) {
-        for (r = c; r < LEARNEST_NX; ++r) {
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
           learnest_real v = 0;
-          for (k = 0; k < LEARNEST_NX; ++k) v += B[r + k * LEARNEST_NX] * B[c + k * LEARNEST_NX];
+          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += B[r + k * LEARNEST_NX] * B[c + k * LEARNEST_NX];
           Di[r + c * LEARNEST_NX] -= v;
         }
       }
@@ -220,20 +248,20 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
     if (!learnest_cholesky(Di, LEARNEST_NX)) return 0;
     if (i < LEARNEST_N) {  /* B_i = (L_i^-1 E_i)' */
       learnest_real* Ei = E + i * LEARNEST_NXX;
-      for (c = 0; c < LEARNEST_NX; ++c) learnest_forward_subst(Di, LEARNEST_NX, Ei + c * LEARNEST_NX);
-      for (c = 0; c < LEARNEST_NX; ++c) {
-        for (r = 0; r < LEARNEST_NX; ++r) tmp[r + c * LEARNEST_NX] = Ei[c + r * LEARNEST_NX];
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) learnest_forward_subst(Di, LEARNEST_NX, Ei + c * LEARNEST_NX);
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) tmp[r + c * LEARNEST_NX] = Ei[c + r * LEARNEST_NX];
       }
       memcpy(Ei, tmp, LEARNEST_NXX * sizeof(learnest_real));
     }
   }
   for (i = 0; i <= LEARNEST_N; ++i) {  /* forward: z_i = L_i^-1 (-g_i - B_{i-1} z_{i-1}) */
     learnest_real* z = dx + i * LEARNEST_NX;
-    for (r = 0; r < LEARNEST_NX; ++r) z[r] = -g[i * LEARNEST_NX + r];
+    LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) z[r] = -g[i * LEARNEST_NX + r];
     if (i > 0) {
       const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
-      for (r = 0; r < LEARNEST_NX; ++r) {
-        for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[r + k * LEARNEST_NX] * z[k - LEARNEST_NX];
+      LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[r + k * LEARNEST_NX] * z[k - LEARNEST_NX];
       }
     }
     learnest_forward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);
@@ -242,8 +270,8 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
     learnest_real* z = dx + i * LEARNEST_NX;
     if (i < LEARNEST_N) {
       const learnest_real* B = E + i * LEARNEST_NXX;
-      for (r = 0; r < LEARNEST_NX; ++r) {
-        for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[k + r * LEARNEST_NX] * z[LEARNEST_NX + k];
+      LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[k + r * LEARNEST_NX] * z[LEARNEST_NX + k];
       }
     }
     learnest_backward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);

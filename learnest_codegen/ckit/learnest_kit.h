@@ -37,6 +37,16 @@
 
 typedef LEARNEST_REAL learnest_real;
 
+/* Before a loop over a block's rows or columns: unrolled by the compiler (the blocks are
+ * small and of fixed size; GCC's -O2 would not unroll them: -12 % instructions for mhe_rti). */
+#if defined(__clang__)
+#define LEARNEST_UNROLL _Pragma("unroll 4")
+#elif defined(__GNUC__) && __GNUC__ >= 8
+#define LEARNEST_UNROLL _Pragma("GCC unroll 4")
+#else
+#define LEARNEST_UNROLL
+#endif
+
 /* Math routines by precision: learnest_math.h (LEARNEST_SQRT, LEARNEST_FABS). */
 #define LEARNEST_IS_FLOAT (sizeof(learnest_real) == sizeof(float))
 

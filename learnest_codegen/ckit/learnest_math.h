@@ -1,19 +1,229 @@
 /* learnest_math.h -- the one place where a build's math routines are chosen by precision.
  *
  * Included by learnest_kit.h (the kit's routines, on LEARNEST_REAL) and by the generated
- * model code <prefix>_model.c (codegen/casadi_c.py inserts it after CasADi's definitions,
- * with LEARNEST_REAL = casadi_real). Today every build calls the double routines: a float
- * argument widens exactly and the result rounds back, which keeps float32 builds
- * bit-identical across C libraries (docs/cortex_m.md). A float build that should call
- * sqrtf, sinf, tanhf & co. changes this file only: the kit's macros below, and for the model
- * code a mapping of CasADi's names (sin, cos, tanh, exp, sqrt, fabs) after <math.h>.
+ * model code <prefix>_model.c, whose calls of sin, cos, tanh, exp, sqrt, ... the generator
+ * (codegen/casadi_c.py) renames to learnest_sin, learnest_cos, ... (LEARNEST_REAL =
+ * casadi_real there). Each learnest_<name> runs in the build's precision: a float build calls
+ * the float routine, a double build the double one (the choice is a constant sizeof test the
+ * compiler folds away). docs/cortex_m.md states the parity bar per precision.
+ *
+ * Four routines are the kit's own, because they dominate the learned models' cost (a libm
+ * call is 2-4x the instructions of these) and because libraries round them differently
+ * (newlib and glibc differ in the last bit):
+ *   learnest_tanh   both precisions: an odd series near 0, 1 - 2/(exp(2|x|) + 1) beyond
+ *                   with the kit's own exp (double: a 64-entry table of 2^(j/64) and a
+ *                   degree-5 polynomial); |error| <= 2.3e-16 (double), <= 3 ulp (float);
+ *   learnest_sin, learnest_cos: Cody-Waite reduction by pi/2 in three parts and Taylor
+ *                   polynomials; float: <= 2 ulp for |x| < 4096, double: |error| <= 2.3e-16
+ *                   for |x| < 1e5 (beyond: the C library's double routine);
+ *   learnest_exp (float): a 32-entry table of 2^(j/32) and a cubic polynomial, <= 2 ulp.
+ * The float ones use + - * / and integer conversions only, so a float32 build computes the same bits
+ * on every IEEE single machine (host x86-64 and the Cortex-M4F's FPv4-SP, -ffp-contract=off).
+ * sqrt and fabs are exact in both libraries. The other routines are libm's (float ones in a
+ * float build). tests/test_learnest_math.py checks them against numpy.
  */
 #ifndef LEARNEST_MATH_H
 #define LEARNEST_MATH_H
 
 #include <math.h>
+#include <string.h>
 
-#define LEARNEST_SQRT(x) ((LEARNEST_REAL)sqrt((double)(x)))
-#define LEARNEST_FABS(x) ((LEARNEST_REAL)fabs((double)(x)))
+#ifndef LEARNEST_REAL
+#error "learnest_math.h: define LEARNEST_REAL (double or float) before including it"
+#endif
+
+#if defined(__GNUC__) || defined(__clang__)
+#define LEARNEST_MATH_FN static __attribute__((unused))
+#else
+#define LEARNEST_MATH_FN static
+#endif
+
+#define LEARNEST_MATH_IS_FLOAT (sizeof(LEARNEST_REAL) == sizeof(float))
+
+/* 2^(j/32), j = 0..31, rounded to float. */
+#if defined(__GNUC__) || defined(__clang__)
+__attribute__((unused))
+#endif
+static const float learnest_exp2_32f_[32] = {
+  1.0f, 1.0218971967697144f, 1.0442737340927124f, 1.0671404600143433f,
+  1.0905077457427979f, 1.114386796951294f, 1.1387885808944702f, 1.1637248992919922f,
+  1.1892070770263672f, 1.215247392654419f, 1.2418577671051025f, 1.2690509557724f,
+  1.2968395948410034f, 1.3252366781234741f, 1.3542555570602417f, 1.3839099407196045f,
+  1.4142135381698608f, 1.4451807737350464f, 1.4768261909484863f, 1.5091644525527954f,
+  1.5422108173370361f, 1.5759809017181396f, 1.610490322113037f, 1.6457555294036865f,
+  1.6817928552627563f, 1.7186193466186523f, 1.7562521696090698f, 1.7947090864181519f,
+  1.8340080976486206f, 1.8741676807403564f, 1.9152065515518188f, 1.9571441411972046f};
+
+/* exp(y) in float for any y: y = (32 m + j) ln2/32 + r, |r| <= ln2/64, cubic Taylor
+ * polynomial times 2^(j/32) 2^m (own for -87 < y < 88: the same bits on every IEEE machine). */
+LEARNEST_MATH_FN float learnest_expf_(float y) {
+  const float H = 0.02165985107421875f, L = 9.983182280848268e-07f;  /* ln2/32 in two parts */
+  float r, p, scale;
+  int k, j;
+  unsigned int bits;
+  if (!(y < 88.0f && y > -87.0f)) return (float)exp((double)y);  /* NaN, inf, extremes */
+  k = (int)(y * 46.16624130844683f + (y >= 0 ? 0.5f : -0.5f));
+  j = k & 31;
+  r = (y - (float)k * H) - (float)k * L;
+  p = 1.0f + r * (1.0f + r * (0.5f + r * 1.66666667e-1f));
+  bits = (unsigned int)((k - j) / 32 + 127) << 23;
+  memcpy(&scale, &bits, sizeof scale);
+  return learnest_exp2_32f_[j] * p * scale;
+}
+
+LEARNEST_MATH_FN float learnest_tanhf_(float x) {
+  float a = x < 0 ? -x : x, t;
+  if (x != x) return x;
+  if (a >= 9.0f) {
+    t = 1.0f;  /* tanh(9) rounds to 1 in float */
+  } else if (a < 0.35f) {
+    float a2 = a * a;
+    t = a + a * a2 * (-3.33333333e-1f + a2 * (1.33333333e-1f + a2 * (-5.39682540e-2f
+        + a2 * (2.18694885e-2f + a2 * -8.86323552e-3f))));
+  } else {
+    t = 1.0f - 2.0f / (learnest_expf_(2.0f * a) + 1.0f);
+  }
+  return x < 0 ? -t : t;
+}
+
+/* 2^(j/64), j = 0..63, rounded to double. */
+#if defined(__GNUC__) || defined(__clang__)
+__attribute__((unused))
+#endif
+static const double learnest_exp2_64_[64] = {
+  1.0, 1.0108892860517005, 1.0218971486541166, 1.0330248790212284,
+  1.0442737824274138, 1.0556451783605572, 1.0671404006768237, 1.0787607977571199,
+  1.0905077326652577, 1.102382583307841, 1.1143867425958924, 1.1265216186082418,
+  1.1387886347566916, 1.1511892299529827, 1.1637248587775775, 1.1763969916502812,
+  1.189207115002721, 1.202156731452703, 1.215247359980469, 1.22848053610687,
+  1.241857812073484, 1.255380757024691, 1.2690509571917332, 1.2828700160787783,
+  1.2968395546510096, 1.3109612115247644, 1.3252366431597413, 1.339667524053303,
+  1.3542555469368927, 1.3690024229745905, 1.383909881963832, 1.3989796725383112,
+  1.4142135623730951, 1.42961333839197, 1.4451808069770467, 1.460917794180647,
+  1.4768261459394993, 1.4929077282912648, 1.5091644275934228, 1.5255981507445384,
+  1.5422108254079407, 1.559004400237837, 1.5759808451078865, 1.593142151342267,
+  1.6104903319492543, 1.6280274218573478, 1.645755478153965, 1.6636765803267364,
+  1.681792830507429, 1.7001063537185235, 1.718619298122478, 1.7373338352737062,
+  1.7562521603732995, 1.7753764925265212, 1.7947090750031072, 1.8142521755003989,
+  1.8340080864093424, 1.8539791250833855, 1.8741676341103, 1.8945759815869656,
+  1.9152065613971474, 1.9360617934922943, 1.9571441241754002, 1.978456026387951};
+
+/* exp(y) in double for 0 <= y <= 700: y = (64 m + j) ln2/64 + r, |r| <= ln2/128, degree-5
+ * Taylor polynomial times 2^(j/64) 2^m (about 1 ulp). */
+LEARNEST_MATH_FN double learnest_expd_(double y) {
+  const double H = 0.010830417275428772, L = 7.420820373486988e-09;  /* ln2/64 in two parts */
+  int k = (int)(y * 92.33248261689366 + 0.5);
+  double r = (y - (double)k * H) - (double)k * L, p, scale;
+  unsigned long long bits = (unsigned long long)((k >> 6) + 1023) << 52;
+  memcpy(&scale, &bits, sizeof scale);
+  p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120)))));
+  return learnest_exp2_64_[k & 63] * p * scale;
+}
+
+LEARNEST_MATH_FN double learnest_tanhd_(double x) {
+  double a = x < 0 ? -x : x, t;
+  if (x != x) return x;
+  if (a >= 22.0) {
+    t = 1.0;  /* tanh(22) rounds to 1 in double */
+  } else if (a < 0.125) {
+    double a2 = a * a;
+    t = a + a * a2 * (-1.0 / 3 + a2 * (2.0 / 15 + a2 * (-17.0 / 315 + a2 * (62.0 / 2835
+        + a2 * (-1382.0 / 155925 + a2 * (21844.0 / 6081075 + a2 * (-929569.0 / 638512875)))))));
+  } else {
+    t = 1.0 - 2.0 / (learnest_expd_(2.0 * a) + 1.0);
+  }
+  return x < 0 ? -t : t;
+}
+
+/* sin (c = 0) or cos (c = 1) in float: x = q pi/2 + r, |r| <= pi/4. */
+LEARNEST_MATH_FN float learnest_sincosf_(float x, int c) {
+  const float P1 = 1.5703125f, P2 = 4.837512969970703e-04f, P3 = 7.549790126404332e-08f;
+  float r, r2, s, co;
+  int q;
+  if (!(x < 4096.0f && x > -4096.0f)) return (float)(c ? cos((double)x) : sin((double)x));
+  q = (int)(x * 6.36619772e-1f + (x >= 0 ? 0.5f : -0.5f));
+  r = ((x - (float)q * P1) - (float)q * P2) - (float)q * P3;
+  r2 = r * r;
+  s = r + r * r2 * (-1.66666667e-1f + r2 * (8.33333333e-3f + r2 * (-1.98412698e-4f
+      + r2 * 2.75573192e-6f)));
+  co = 1.0f + r2 * (-0.5f + r2 * (4.16666667e-2f + r2 * (-1.38888889e-3f
+       + r2 * (2.48015873e-5f + r2 * -2.75573192e-7f))));
+  switch ((q + c) & 3) {
+    case 0: return s;
+    case 1: return co;
+    case 2: return -s;
+    default: return -co;
+  }
+}
+
+/* sin (c = 0) or cos (c = 1) in double: x = q pi/2 + r, |r| <= pi/4 (three-part pi/2, each
+ * part of 32 bits so q * part is exact), Taylor polynomials to r^15 / r^16. */
+LEARNEST_MATH_FN double learnest_sincosd_(double x, int c) {
+  const double P1 = 1.5707963267341256, P2 = 6.077100506303966e-11, P3 = 2.0222662487959506e-21;
+  double r, r2, v;
+  int q;
+  if (!(x < 1e5 && x > -1e5)) return c ? cos(x) : sin(x);  /* NaN, inf, large */
+  q = (int)(x * 0.6366197723675814 + (x >= 0 ? 0.5 : -0.5));
+  r = ((x - (double)q * P1) - (double)q * P2) - (double)q * P3;
+  r2 = r * r;
+  if ((q + c) & 1) {
+    v = 1.0 - 0.5 * r2 + r2 * r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320
+        + r2 * (-1.0 / 3628800 + r2 * (1.0 / 479001600 + r2 * (-1.0 / 87178291200.0
+        + r2 * (1.0 / 20922789888000.0)))))));
+  } else {
+    v = r + r * r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880
+        + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0 + r2 * (-1.0 / 1307674368000.0)))))));
+  }
+  return ((q + c) & 2) ? -v : v;
+}
+
+/* learnest_<name>(x): the routine in the build's precision. */
+#define LEARNEST_MATH_1(name, fl, db)                                                        \
+  LEARNEST_MATH_FN LEARNEST_REAL learnest_##name(LEARNEST_REAL x) {                          \
+    return LEARNEST_MATH_IS_FLOAT ? (LEARNEST_REAL)fl((float)x) : (LEARNEST_REAL)db((double)x); \
+  }
+#define LEARNEST_MATH_2(name, fl, db)                                                   \
+  LEARNEST_MATH_FN LEARNEST_REAL learnest_##name(LEARNEST_REAL x, LEARNEST_REAL y) {    \
+    return LEARNEST_MATH_IS_FLOAT ? (LEARNEST_REAL)fl((float)x, (float)y)               \
+                                  : (LEARNEST_REAL)db((double)x, (double)y);            \
+  }
+
+LEARNEST_MATH_FN float learnest_sinf_(float x) { return learnest_sincosf_(x, 0); }
+LEARNEST_MATH_FN float learnest_cosf_(float x) { return learnest_sincosf_(x, 1); }
+LEARNEST_MATH_FN double learnest_sind_(double x) { return learnest_sincosd_(x, 0); }
+LEARNEST_MATH_FN double learnest_cosd_(double x) { return learnest_sincosd_(x, 1); }
+
+LEARNEST_MATH_1(tanh, learnest_tanhf_, learnest_tanhd_)
+LEARNEST_MATH_1(sin, learnest_sinf_, learnest_sind_)
+LEARNEST_MATH_1(cos, learnest_cosf_, learnest_cosd_)
+LEARNEST_MATH_1(exp, learnest_expf_, exp)
+LEARNEST_MATH_1(sqrt, sqrtf, sqrt)
+LEARNEST_MATH_1(fabs, fabsf, fabs)
+LEARNEST_MATH_1(tan, tanf, tan)
+LEARNEST_MATH_1(asin, asinf, asin)
+LEARNEST_MATH_1(acos, acosf, acos)
+LEARNEST_MATH_1(atan, atanf, atan)
+LEARNEST_MATH_1(sinh, sinhf, sinh)
+LEARNEST_MATH_1(cosh, coshf, cosh)
+LEARNEST_MATH_1(asinh, asinhf, asinh)
+LEARNEST_MATH_1(acosh, acoshf, acosh)
+LEARNEST_MATH_1(atanh, atanhf, atanh)
+LEARNEST_MATH_1(log, logf, log)
+LEARNEST_MATH_1(log1p, log1pf, log1p)
+LEARNEST_MATH_1(expm1, expm1f, expm1)
+LEARNEST_MATH_1(floor, floorf, floor)
+LEARNEST_MATH_1(ceil, ceilf, ceil)
+LEARNEST_MATH_1(erf, erff, erf)
+LEARNEST_MATH_2(atan2, atan2f, atan2)
+LEARNEST_MATH_2(pow, powf, pow)
+LEARNEST_MATH_2(fmod, fmodf, fmod)
+LEARNEST_MATH_2(fmin, fminf, fmin)
+LEARNEST_MATH_2(fmax, fmaxf, fmax)
+LEARNEST_MATH_2(hypot, hypotf, hypot)
+LEARNEST_MATH_2(copysign, copysignf, copysign)
+
+/* The kit's names. */
+#define LEARNEST_SQRT(x) learnest_sqrt(x)
+#define LEARNEST_FABS(x) learnest_fabs(x)
 
 #endif /* LEARNEST_MATH_H */

@@ -7,7 +7,9 @@ C++ refuses. :func:`write_casadi_c` writes the file with CasADi's ``CodeGenerato
 marks each unused parameter ``(void)name;`` and casts those literals, so the generated folder
 builds under ``-Wall -Wextra -Werror -pedantic`` with gcc, clang and g++ without a per-file
 flag (tested in tests/test_handoff.py). It also includes the kit's ``learnest_math.h`` after
-CasADi's definitions: the one place where a build's math routines are chosen by precision.
+CasADi's definitions and renames CasADi's calls of the C math routines (``sin(``, ``tanh(``,
+...) to the kit's ``learnest_sin(``, ...: the one place where a build's math routines are
+chosen by precision (a float32 build calls float routines; docs/cortex_m.md).
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ _STRING = re.compile(r'"([^"\\]*)"')
 # After CasADi's "#define casadi_int ..." block: the model code's math routines (learnest_math.h).
 _MATH_ANCHOR = "/* Add prefix to internal symbols */"
 _MATH = '#define LEARNEST_REAL casadi_real\n#include "learnest_math.h"\n\n'
+# The C math routines CasADi 3.8 calls by name; each is learnest_<name> in learnest_math.h.
+MATH_ROUTINES = ("sin", "cos", "tan", "tanh", "exp", "log", "sqrt", "fabs", "asin", "acos",
+                 "atan", "sinh", "cosh", "asinh", "acosh", "atanh", "log1p", "expm1", "floor",
+                 "ceil", "erf", "atan2", "pow", "fmod", "fmin", "fmax", "hypot", "copysign")
+_MATH_CALL = re.compile(r"(?<![\w.\"])(" + "|".join(MATH_ROUTINES) + r")(?=\s*\()")
 
 
 
@@ -62,7 +69,8 @@ def clean(text: str) -> str:
     if _MATH_ANCHOR not in text:
         raise BuildError(f"CasADi {cs.__version__} wrote C without the line {_MATH_ANCHOR!r}, "
                          "after which learnest_math.h is included; update codegen/casadi_c.py")
-    return text.replace(_MATH_ANCHOR, _MATH + _MATH_ANCHOR, 1)
+    head, tail = text.split(_MATH_ANCHOR, 1)
+    return head + _MATH + _MATH_ANCHOR + _MATH_CALL.sub(r"learnest_\1", tail)
 
 
 def _parameter_names(params: str) -> list[str]:

@@ -4,9 +4,11 @@
 for operation (Merwe sigma points from the upper Cholesky factor of ``(lambda + n) P``, the
 unscented transform, re-drawing the sigma points from the prior, an explicit ``S^-1`` and
 ``P - K S K^T``), so the compiled filter matches the reference to rounding.
-:func:`generate_ukf` has CasADi write the C of FilterPy's predict and of a masked update into
-an estimator folder whose algorithm around them (samples, missing outputs, gate, covariance
-guards, API) is the C kit's ``learnest_ukf.h`` (``codegen/emit.py``, docs/c_kit.md).
+:func:`generate_ukf` has CasADi write the C of the model alone (``F`` and ``h``, one copy each)
+into an estimator folder whose C kit (``learnest_ukf.h``) runs the same predict and masked
+update operation for operation through a loop over the sigma points, and the samples, missing
+outputs, gate, covariance guards and API around them (``codegen/emit.py``, docs/c_kit.md);
+the CasADi functions here are its tested reference.
 """
 
 from __future__ import annotations
@@ -194,13 +196,18 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                          "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
                          "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
     prefix = resolve_prefix(prefix, model, "ukf", precision)
-    functions = (ukf_predict_function(model, settings, name=f"{prefix}_model_predict"),
-                 ukf_gated_update_function(model, settings, name=f"{prefix}_model_update"))
+    settings.validate_for(model)
+    x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
+    functions = (cs.Function(f"{prefix}_model_F", [x, u], [cs.cse(model.F(x, u))], ["x", "u"], ["F"]),
+                 cs.Function(f"{prefix}_model_h", [x, u], [cs.cse(model.h(x, u))], ["x", "u"], ["h"]))
     nx, ny = model.nx, model.ny
     design = Design(
         estimator="ukf", title="Unscented Kalman Filter", kit="learnest_ukf.h",
         functions=functions,
-        hooks={"LEARNEST_MODEL_PREDICT": functions[0].name(), "LEARNEST_MODEL_UPDATE": functions[1].name()},
+        hooks={"LEARNEST_MODEL_F": functions[0].name(), "LEARNEST_MODEL_H": functions[1].name(),
+               "LEARNEST_UKF_ALPHA": repr(float(settings.alpha)),
+               "LEARNEST_UKF_BETA": repr(float(settings.beta)),
+               "LEARNEST_UKF_KAPPA": repr(float(settings.kappa))},
         defaults={"x0": np.asarray(model.system.x0, dtype=float), "P0": settings.P0(),
                   "Q": settings.Q(), "R": settings.R()},
         gate=settings.gate, precision=precision, settings=settings.to_json(), solver=None,
@@ -215,9 +222,10 @@ def header_doc(settings: UKFSettings) -> dict[str, str]:
         "description": comment(
             "The filter: FilterPy 2.0.0's predict and update on Merwe scaled sigma points "
             f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), generated "
-            "as CasADi code (<prefix>_model.c) operation for operation, so it equals FilterPy "
-            "to rounding (tests/test_ukf.py); the C kit (learnest_ukf.h) runs the samples, the "
-            "gate and the covariance guards around it."),
+            "operation for operation by the C kit (learnest_ukf.h) over the model's generated "
+            "code (<prefix>_model.c, one call per sigma point), so it equals FilterPy to "
+            "rounding (tests/test_ukf.py); the kit also runs the samples, the gate and the "
+            "covariance guards around it."),
         "arrival_note": "", "reset_keeps": "", "init_options": "", "threads": "",
         "covariance_rule": "each must be symmetric positive semidefinite (to rounding), else "
                            "LEARNEST_NOT_POSITIVE_DEFINITE.",
