@@ -35,6 +35,17 @@ class ModelMismatchError(LearnestError, ValueError):
     """A trained model or compiled library does not belong to the system or settings in use."""
 
 
+class SettingsError(LearnestError, ValueError):
+    """A setting is out of its range or contradicts another (training, network, estimator or
+    study settings); the message names the setting, what it needs and what it got."""
+
+
+class ObserverError(LearnestError, ValueError):
+    """A pre-training observer cannot be used with the system or the run it is given (no
+    kinematic chains, a nonlinear prior for ``linear_rts``, measurements that do not fix a
+    planar pose)."""
+
+
 class BuildError(LearnestError, RuntimeError):
     """The C compiler failed; the message carries the command line and the compiler's stderr."""
 

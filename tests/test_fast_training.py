@@ -84,12 +84,14 @@ def _numpy_ekf_rts(run, system, residual, q_scale):
             Ak = A(x, run.u[k - 1]).full()
             x, P = F(x, run.u[k - 1]).full().ravel(), Ak @ P @ Ak.T + Q
         xps[k], Pps[k] = x, P
-        Hk = H(x, run.u[k]).full()
-        innov = run.y[k] - system.h(x, run.u[k])
-        S = Hk @ P @ Hk.T + R
-        K = np.linalg.solve(S, Hk @ P).T
-        x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
-        loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
+        rows = np.flatnonzero(np.isfinite(run.y[k]))  # the outputs present: an update with them
+        if len(rows):
+            Hk = H(x, run.u[k]).full()[rows]
+            innov = (run.y[k] - system.h(x, run.u[k]))[rows]
+            S = Hk @ P @ Hk.T + R[np.ix_(rows, rows)]
+            K = np.linalg.solve(S, Hk @ P).T
+            x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
+            loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
         xs[k], Ps[k] = x, P
     zeta, covs = xs.copy(), Ps.copy()
     for k in range(T - 2, -1, -1):
@@ -99,14 +101,21 @@ def _numpy_ekf_rts(run, system, residual, q_scale):
     return xs, Ps, loglik, zeta, covs
 
 
+@pytest.mark.parametrize("missing", [False, True])
 @pytest.mark.parametrize("name", ["cartpole", "ground_robot"])
-def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name):
+def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name, missing):
     """The EKF's forward recursion and the RTS pass, run as CasADi ``mapaccum``s, equal the
-    step-by-step numpy passes (states to 1e-9, log-likelihood to 1e-9 relative)."""
+    step-by-step numpy passes (states to 1e-9, log-likelihood to 1e-9 relative); with missing
+    outputs (NaN), the update uses those present and a sample with none is a prediction."""
     from learnest_codegen.systems import get_system
 
     system = get_system(name)
     run = simulate(system, 0, duration=1.0)
+    if missing:
+        y = run.y.copy()
+        y[::3, 0] = np.nan  # the first output at two thirds of the rate
+        y[200:260] = np.nan  # every output, 60 samples
+        run = dataclasses.replace(run, y=y)
     residual = None
     if name == "cartpole":
         residual = load_model(OLD_MODEL, system).net.casadi

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 import time
 from dataclasses import replace
 from typing import Callable
@@ -282,18 +283,18 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
                  progress: bool = True) -> TrainedModel:
     """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train.
 
-    ``observer`` defaults to the system's ``default_observer``. Through an observer, restarts
+    ``observer`` defaults to :func:`~learnest_codegen.observers.choose_observer`'s choice (said
+    on stderr when ``progress``, and stored as ``observer_choice``). Through an observer, restarts
     are chosen by the EKF innovation likelihood of the run's measurements
     (:func:`~learnest_codegen.observers.innovation_loglik`), not by the validation loss on the
     observer's states.
     """
     check_sampling(run, system.dt, f"train_on_run({system.name})")
-    observer = observer or system.default_observer
     start = time.perf_counter()
     from ..observers import ekf_rts, innovation_loglik, observe, smooth_states
     from ..simulation import noisy_states
 
-    score = None
+    score, choice = None, None
     if not full_state and settings.restarts > 1:
         score = lambda m: innovation_loglik(run, system, m.net.casadi)  # noqa: E731
 
@@ -301,7 +302,11 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
         noisy = noisy_states(run, system, settings.seed)
         zeta, source = smooth_states(noisy, run.dt, system.noise.state_std), "full_state+rts"
     else:
-        zeta, source = observe(run, system, observer).zeta, observer
+        observations = observe(run, system, observer)
+        zeta, source = observations.zeta, observations.method
+        choice = observations.info.get("chosen_because")
+        if choice and progress:  # a choice the caller did not make: say which
+            print(f"pre-training observer: {source} ({choice})", file=sys.stderr)
     model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
     rounds = 0 if full_state else settings.refine
     warm = settings.warm_refinement
@@ -321,4 +326,6 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
                           observer=round_observer, progress=progress, init=model)
             model.meta.update(first, training=settings.to_json())
     model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
+    if choice:
+        model.meta["observer_choice"] = choice
     return model
