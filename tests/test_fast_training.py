@@ -318,3 +318,30 @@ def test_warm_refinement_rounds_train_one_net_from_the_previous_round(cartpole):
     assert len(model.meta["validation_history"]) == warm.epochs  # the last round's
     assert len(model.meta["restart_score"]) == settings.restarts  # the first round's choice
     assert model.meta["restart_seed"] in (1, 2)
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot", "quadrotor"])
+def test_the_training_derivative_equals_the_hybrid_model(name):
+    """``ResidualNet.derivative`` (shared sines and cosines, no stacking in between), which the
+    loss runs on, equals ``f_prior + Delta`` as ``hybrid`` evaluates it, and so do the
+    gradients of a loss through it, for three restarts stacked."""
+    from learnest_codegen.integrators import rk4_step
+    from learnest_codegen.learning.network import StackedMLP
+    from learnest_codegen.systems import get_system
+
+    system = get_system(name)
+    run = simulate(system, 0, duration=0.5)
+    torch.manual_seed(0)
+    net = make_net(system)
+    net.set_input_scaling(run.x, run.u)
+    mlp = StackedMLP([make_net(system).mlp for _ in range(3)])
+    x = torch.as_tensor(run.x).expand(3, *run.x.shape)
+    u = torch.as_tensor(run.u).expand(3, *run.u.shape)
+    losses = []
+    for fn in (lambda a, b: net.hybrid(system.f, a, b, mlp), lambda a, b: net.derivative(a, b, mlp)):
+        loss = (rk4_step(fn, x, u, run.dt) ** 2).sum()
+        losses.append((loss, torch.autograd.grad(loss, list(mlp.parameters()))))
+    (l_ref, g_ref), (l_new, g_new) = losses
+    assert l_new.item() == pytest.approx(l_ref.item(), rel=1e-14)
+    for a, b in zip(g_new, g_ref):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(b.abs().max()))

@@ -12,6 +12,7 @@ import hashlib
 import json
 import pickle
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -66,7 +67,13 @@ def make_net(system: System, settings: NetworkSettings = NetworkSettings()) -> R
     prior_features = tuple(names.index(n) for n in system.residual_prior_feature_names)
     return ResidualNet(system.nx, system.nu, settings, periodic, outputs, inputs, via,
                        prior=system.f if via or prior_features else None,
-                       prior_features=prior_features, prior_gains=system.residual.prior_gains)
+                       prior_features=prior_features, prior_gains=system.residual.prior_gains,
+                       prior_terms=partial(_prior_terms, system))
+
+
+def _prior_terms(system: System, ops, xs: list, us: list) -> list:
+    """The prior's derivative as a list of terms (``System.f`` before stacking)."""
+    return list(system.dynamics(ops, xs, us, system.params))
 
 
 def residual_structure(system: System) -> dict:

@@ -55,8 +55,11 @@ class ResidualNet(torch.nn.Module):
                  periodic: tuple[int, ...] = (), outputs: tuple[int, ...] | None = None,
                  inputs: tuple[int, ...] | None = None, via: tuple[int, ...] | None = None,
                  prior: Callable | None = None, prior_features: tuple[int, ...] = (),
-                 prior_gains: bool = False):
+                 prior_gains: bool = False, prior_terms: Callable | None = None):
         super().__init__()
+        #: the prior's derivative as terms, ``prior_terms(ops, xs, us) -> list`` of ``nx`` scalars
+        #: (a system's ``dynamics`` with its parameters bound); :meth:`derivative` needs it
+        self.prior_terms = prior_terms
         self.via, self.prior_features = tuple(via or ()), tuple(prior_features)
         self.prior_gains = bool(prior_gains)
         if self.prior_gains and not self.prior_features:
@@ -138,6 +141,24 @@ class ResidualNet(torch.nn.Module):
         delta = torch.stack(rows, dim=-1)
         return fp + delta if plus_prior else delta
 
+    def derivative(self, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None) -> torch.Tensor:
+        """``f_prior(x, u) + Delta(x, u)`` (torch) with the prior's terms from
+        :attr:`prior_terms`: the prior, the net's features, its gains and its input correction
+        share one evaluation of every sine and cosine of a state and no intermediate vector is
+        stacked and split again. Equal to :meth:`hybrid` with the system's prior up to rounding;
+        training's loss runs on it (a third fewer operations on the cartpole)."""
+        ops = _SharedTrig()
+        xs, us = list(x.unbind(-1)), list(u.unbind(-1))
+        fp = self.prior_terms(ops, xs, us)
+        feats = self._features([*xs, *us], ops.sin, ops.cos, fp)
+        out = (mlp or self.mlp)((_stack(ops, feats) - self.in_mean) / self.in_scale)
+        out = self._channels(list(out.unbind(-1)), fp)
+        if self.via:
+            shifted = [v + out[self.via.index(i)] if i in self.via else v for i, v in enumerate(us)]
+            return _stack(ops, self.prior_terms(ops, xs, shifted))
+        return _stack(ops, [fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
+                            for i in range(self.nx)])
+
     def _channels(self, out: list, prior_xdot: list | None) -> list:
         """The residual's channels from the MLP's outputs (any backend): the outputs themselves,
         or with ``prior_gains`` each plus its gains times the scaled prior features."""
@@ -163,6 +184,44 @@ class ResidualNet(torch.nn.Module):
             return self.prior(x, u + du) - fp
         return cs.vertcat(*[out[self.outputs.index(i)] if i in self.outputs else cs.SX(0)
                             for i in range(self.nx)])
+
+
+class _SharedTrig:
+    """The torch backend of a system's equations for one evaluation, remembering each sine and
+    cosine it took: the prior at ``(x, u)``, at ``(x, u + du)`` and the net's angle features
+    then take ``sin(alpha)`` once (and the backward pass its derivative once)."""
+
+    def __init__(self) -> None:
+        from ..systems.backends import ops_for
+
+        self._torch = ops_for(torch.zeros(1))
+        self._memo: dict[tuple[str, int], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def __getattr__(self, name):  # every other function of the torch backend
+        return getattr(self._torch, name)
+
+    def _remember(self, fn: str, value):
+        if not isinstance(value, torch.Tensor):
+            return getattr(torch, fn)(torch.as_tensor(value))
+        key = (fn, id(value))
+        hit = self._memo.get(key)
+        if hit is None or hit[0] is not value:
+            hit = self._memo[key] = (value, getattr(torch, fn)(value))  # keeps value alive: no id reuse
+        return hit[1]
+
+    def sin(self, value):
+        return self._remember("sin", value)
+
+    def cos(self, value):
+        return self._remember("cos", value)
+
+
+def _stack(ops, parts: list) -> torch.Tensor:
+    """``parts`` stacked on a last axis: one ``torch.stack`` when they are tensors of one shape."""
+    first = parts[0]
+    if all(isinstance(p, torch.Tensor) and p.shape == first.shape for p in parts):
+        return torch.stack(parts, dim=-1)
+    return ops.stack(parts)
 
 
 class StackedMLP(torch.nn.Module):

@@ -166,7 +166,7 @@ def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch
     members or ``(R, B, .)`` one batch per member."""
     members = len(mlp.weights[0])
     zeta, u = zeta.expand(members, *zeta.shape[-2:]), u.expand(members, *u.shape[-2:])
-    pred = rk4_step(lambda x, v: net.hybrid(system.f, x, v, mlp), zeta, u, dt)
+    pred = rk4_step(lambda x, v: net.derivative(x, v, mlp), zeta, u, dt)
     return ((pred - zeta_next) ** 2).sum(dim=-1).mean(dim=-1)
 
 
