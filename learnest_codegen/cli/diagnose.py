@@ -18,7 +18,7 @@ from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, system_named
 @click.option("--format", "data_format", default="run", show_default=True,
               help="format of --data: run, or a reader in learnest_codegen.recordings (nanobench, dart)")
 @click.option("--model", default=None, type=click.Path(file_okay=False),
-              help="trained KNODE model directory to compare with")
+              help="trained KNODE model directory to compare with (its system is the default of --system)")
 @click.option("--out", default=None, type=click.Path(file_okay=False),
               help="folder for diagnosis.json, report.md and figures")
 @click.option("--source", type=click.Choice(["auto", "truth", "observer"]), default="auto", show_default=True,
@@ -79,8 +79,8 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
         if failed:
             raise click.ClickException(f"{len(failed)} self-test case(s) failed: {'; '.join(failed)}")
         return
-    if data is None or out is None or (system_name is None and data_format == "run"):
-        raise click.UsageError("give --system (unless --format names it), --data and --out "
+    if data is None or out is None or (system_name is None and model is None and data_format == "run"):
+        raise click.UsageError("give --system (unless --format or --model names it), --data and --out "
                                "(or --list-effects / --selftest)")
     from ..data import check_sampling
     from ..data import resample as to_grid
@@ -88,6 +88,10 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     from ..outputs import claim_output
 
     claim_output(out, inputs=(data, model), force=force, kind="dir")
+    if system_name is None and model is not None and data_format == "run":  # the model's own
+        from .common import resolve_system
+
+        system_name = resolve_system(None, model)
     system, runs = dg.load(system_name, data, data_format)
     if resample:
         runs = [to_grid(r, system.dt) for r in runs]

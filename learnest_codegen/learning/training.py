@@ -81,6 +81,8 @@ from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
 from .network import ResidualNet, StackedMLP
+from .source import KEY as SOURCE_KEY
+from .source import system_source
 
 __all__ = ["META", "QUICK_TRAINING", "RECOMMENDED_TRAINING", "WEIGHTS", "TrainingSettings", "TrainedModel",
            "data_hash", "load_model", "make_net", "one_step_loss", "residual_structure", "train",
@@ -140,6 +142,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     best = models[int(np.argmax(scores)) if scores else int(np.argmin(valid))]
     best.meta.update(training=settings.to_json(), restart_seed=best.meta["training"]["seed"],
                      restart_validation=valid, train_seconds=time.perf_counter() - start)
+    best.meta[SOURCE_KEY] = system_source(system)  # a separate key: where the system comes from
     if scores:
         best.meta["restart_score"] = scores
     return best
