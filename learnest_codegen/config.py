@@ -21,7 +21,13 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
-from .errors import UnknownNameError
+from .errors import SettingsError, UnknownNameError
+
+
+def _need(ok: bool, where: str, what: str, got) -> None:
+    """Raise :class:`SettingsError` "``where`` must be ``what``, got ``got``" unless ``ok``."""
+    if not ok:
+        raise SettingsError(f"{where} must be {what}, got {got!r}")
 
 ACTIVATIONS = ("Tanh", "Sigmoid", "ReLU", "LeakyReLU")
 #: The default ``batch_size``: every training set of up to a million pairs is one batch (full
@@ -42,10 +48,8 @@ class NetworkSettings:
     activation: str = "Tanh"
 
     def __post_init__(self) -> None:
-        if self.layers < 2:
-            raise ValueError(f"layers must be >= 2 (input and output layer), got {self.layers}")
-        if self.hidden < 1:
-            raise ValueError(f"hidden must be >= 1, got {self.hidden}")
+        _need(self.layers >= 2, "NetworkSettings.layers", ">= 2 (input and output layer)", self.layers)
+        _need(self.hidden >= 1, "NetworkSettings.hidden", ">= 1", self.hidden)
         if self.activation not in ACTIVATIONS:
             raise UnknownNameError(f"unknown activation {self.activation!r}; choose from {ACTIVATIONS}")
 
@@ -76,10 +80,15 @@ class WarmRefinement:
     weight_average: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
-            raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
-        if not 0.0 <= self.weight_average < 1.0:
-            raise ValueError(f"need 0 <= weight_average < 1; got {self}")
+        _check_optimiser(self, "WarmRefinement")
+
+
+def _check_optimiser(settings, name: str) -> None:
+    _need(settings.epochs >= 1, f"{name}.epochs", ">= 1", settings.epochs)
+    _need(settings.batch_size >= 1, f"{name}.batch_size", ">= 1", settings.batch_size)
+    _need(settings.learning_rate > 0, f"{name}.learning_rate", "> 0", settings.learning_rate)
+    _need(0.0 <= settings.weight_average < 1.0, f"{name}.weight_average", "in [0, 1)",
+          settings.weight_average)
 
 
 @dataclass(frozen=True)
@@ -128,19 +137,18 @@ class TrainingSettings:
     warm_refinement: WarmRefinement | None = None
 
     def __post_init__(self) -> None:
-        if self.epochs < 1 or self.batch_size < 1 or not self.learning_rate > 0:
-            raise ValueError(f"need epochs >= 1, batch_size >= 1, learning_rate > 0; got {self}")
-        if self.patience is not None and self.patience < 1:
-            raise ValueError(f"need patience >= 1 (or None); got {self}")
-        if not 0 <= self.validation_fraction < 0.9 or self.refine < 0 or self.restarts < 1:
-            raise ValueError(f"need 0 <= validation_fraction < 0.9, refine >= 0 and restarts >= 1; "
-                             f"got {self}")
-        if not (0.0 <= self.weight_decay < 1.0 / self.learning_rate):
-            raise ValueError(f"need 0 <= weight_decay < 1 / learning_rate; got {self}")
-        if not 0.0 <= self.weight_average < 1.0:
-            raise ValueError(f"need 0 <= weight_average < 1; got {self}")
-        if self.final_learning_rate is not None and not 0 < self.final_learning_rate <= self.learning_rate:
-            raise ValueError(f"need 0 < final_learning_rate <= learning_rate; got {self}")
+        _check_optimiser(self, "TrainingSettings")
+        _need(self.patience is None or self.patience >= 1, "TrainingSettings.patience", ">= 1 (or None)",
+              self.patience)
+        _need(0 <= self.validation_fraction < 0.9, "TrainingSettings.validation_fraction", "in [0, 0.9)",
+              self.validation_fraction)
+        _need(self.refine >= 0, "TrainingSettings.refine", ">= 0", self.refine)
+        _need(self.restarts >= 1, "TrainingSettings.restarts", ">= 1", self.restarts)
+        _need(0.0 <= self.weight_decay < 1.0 / self.learning_rate, "TrainingSettings.weight_decay",
+              f"in [0, 1 / learning_rate = {1.0 / self.learning_rate:g})", self.weight_decay)
+        _need(self.final_learning_rate is None or 0 < self.final_learning_rate <= self.learning_rate,
+              "TrainingSettings.final_learning_rate",
+              f"in (0, learning_rate = {self.learning_rate:g}] or None", self.final_learning_rate)
 
     def to_json(self) -> dict:
         """The settings as a dict. ``weight_decay``, ``final_learning_rate``,

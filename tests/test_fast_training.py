@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from learnest_codegen import config
-from learnest_codegen.errors import UnknownNameError
+from learnest_codegen.errors import SettingsError, UnknownNameError
 from learnest_codegen.learning.training import load_model, make_net, one_step_loss
 from learnest_codegen.observers import _discrete_with_jacobian, _ekf_passes, _rts_backward
 from learnest_codegen.simulation import simulate
@@ -244,10 +244,10 @@ def test_patience_and_warm_refinement_settings_and_identity():
     assert out["warm_refinement"] == {"epochs": 7, "batch_size": 64, "learning_rate": 1e-3,
                                       "weight_average": 0.5}
     for bad in ({"patience": 0}, {"patience": -2}):
-        with pytest.raises(ValueError, match="patience"):
+        with pytest.raises(SettingsError, match="patience"):
             config.TrainingSettings(**bad)
     for bad in ({"epochs": 0}, {"learning_rate": 0.0}, {"weight_average": 1.0}):
-        with pytest.raises(ValueError):
+        with pytest.raises(SettingsError, match="WarmRefinement"):
             config.WarmRefinement(**bad)
 
 
@@ -297,7 +297,7 @@ def test_a_warm_start_begins_at_the_given_net_and_keeps_its_input_scaling(cartpo
     for name, value in first.net.state_dict().items():
         np.testing.assert_allclose(warm.net.state_dict()[name], value, rtol=0, atol=1e-10)
     assert not torch.allclose(fresh.net.in_mean, first.net.in_mean)
-    with pytest.raises(ValueError, match="warm start"):
+    with pytest.raises(SettingsError, match="warm start"):
         train(system, run.x[:300], run.u[:300], run.dt, dataclasses.replace(still, restarts=2),
               init=first, progress=False)
 
@@ -322,9 +322,10 @@ def test_warm_refinement_rounds_train_one_net_from_the_previous_round(cartpole):
 
 @pytest.mark.parametrize("name", ["cartpole", "ground_robot", "quadrotor"])
 def test_the_training_derivative_equals_the_hybrid_model(name):
-    """``ResidualNet.derivative`` (shared sines and cosines, no stacking in between), which the
-    loss runs on, equals ``f_prior + Delta`` as ``hybrid`` evaluates it, and so do the
-    gradients of a loss through it, for three restarts stacked."""
+    """``ResidualNet.derivative`` (shared sines and cosines, no stacking in between) and its
+    components-first form ``derivative_t``, which the loss runs on, equal ``f_prior + Delta`` as
+    ``hybrid`` evaluates it, and so do the gradients of a loss through them, for three restarts
+    stacked."""
     from learnest_codegen.integrators import rk4_step
     from learnest_codegen.learning.network import StackedMLP
     from learnest_codegen.systems import get_system
@@ -338,10 +339,29 @@ def test_the_training_derivative_equals_the_hybrid_model(name):
     x = torch.as_tensor(run.x).expand(3, *run.x.shape)
     u = torch.as_tensor(run.u).expand(3, *run.u.shape)
     losses = []
-    for fn in (lambda a, b: net.hybrid(system.f, a, b, mlp), lambda a, b: net.derivative(a, b, mlp)):
-        loss = (rk4_step(fn, x, u, run.dt) ** 2).sum()
+    for fn, layout in ((lambda a, b: net.hybrid(system.f, a, b, mlp), lambda a: a),
+                       (lambda a, b: net.derivative(a, b, mlp), lambda a: a),
+                       (lambda a, b: net.derivative_t(a, b, mlp), lambda a: a.permute(2, 0, 1))):
+        loss = (rk4_step(fn, layout(x), layout(u), run.dt) ** 2).sum()
         losses.append((loss, torch.autograd.grad(loss, list(mlp.parameters()))))
-    (l_ref, g_ref), (l_new, g_new) = losses
-    assert l_new.item() == pytest.approx(l_ref.item(), rel=1e-14)
-    for a, b in zip(g_new, g_ref):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(b.abs().max()))
+    l_ref, g_ref = losses[0]
+    for l_new, g_new in losses[1:]:
+        assert l_new.item() == pytest.approx(l_ref.item(), rel=1e-14)
+        for a, b in zip(g_new, g_ref):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(b.abs().max()))
+
+
+def test_progress_stays_quiet_off_a_terminal(cartpole, cartpole_run, capsys):
+    """Redirected to a file (not a terminal), training writes no progress bar: one log line per
+    refresh would fill a log (90 KB for one training before); only the observer choice, said
+    once, is written."""
+    from learnest_codegen.learning.training import train, train_on_run
+
+    train(cartpole, cartpole_run.x[:300], cartpole_run.u[:300], cartpole_run.dt,
+          config.TrainingSettings(epochs=30), progress=True)
+    err = capsys.readouterr().err
+    assert "training cartpole" not in err and "it/s" not in err and len(err) < 100, err
+    run = simulate(cartpole, 0, duration=0.4)
+    train_on_run(run, cartpole, config.TrainingSettings(epochs=2), progress=True)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["pre-training observer: rts (the system declares kinematic chains covering its states)"]

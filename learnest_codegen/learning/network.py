@@ -16,6 +16,7 @@ import torch
 from l4casadi.naive import MultiLayerPerceptron
 
 from ..config import ACTIVATIONS, NetworkSettings
+from ..errors import SettingsError
 
 __all__ = ["ACTIVATIONS", "NetworkSettings", "ResidualNet", "StackedMLP"]
 
@@ -63,22 +64,22 @@ class ResidualNet(torch.nn.Module):
         self.via, self.prior_features = tuple(via or ()), tuple(prior_features)
         self.prior_gains = bool(prior_gains)
         if self.prior_gains and not self.prior_features:
-            raise ValueError("ResidualNet: prior_gains multiplies the prior features; give prior_features")
+            raise SettingsError("ResidualNet: prior_gains multiplies the prior features; give prior_features")
         if self.via and (prior is None or any(not 0 <= i < nu for i in self.via)):
-            raise ValueError(f"ResidualNet: via must index range({nu}) and needs the prior "
+            raise SettingsError(f"ResidualNet: via must index range({nu}) and needs the prior "
                              f"dynamics; got via={self.via}, prior={prior}")
         if self.prior_features and (prior is None or any(not 0 <= i < nx for i in self.prior_features)):
-            raise ValueError(f"ResidualNet: prior_features must index range({nx}) and need the prior "
+            raise SettingsError(f"ResidualNet: prior_features must index range({nx}) and need the prior "
                              f"dynamics; got prior_features={self.prior_features}, prior={prior}")
         self.prior = prior
         self.nx, self.nu, self.settings, self.periodic = nx, nu, settings, tuple(periodic)
         self.outputs = tuple(range(nx)) if outputs is None else tuple(outputs)
         self.inputs = tuple(range(nx + nu)) if inputs is None else tuple(inputs)
         if not self.outputs or any(not 0 <= i < nx for i in self.outputs):
-            raise ValueError(f"ResidualNet: outputs must be a non-empty subset of range({nx}), "
+            raise SettingsError(f"ResidualNet: outputs must be a non-empty subset of range({nx}), "
                              f"got {self.outputs}")
         if not self.inputs or any(not 0 <= i < nx + nu for i in self.inputs):
-            raise ValueError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
+            raise SettingsError(f"ResidualNet: inputs must be a non-empty subset of range({nx + nu}), "
                              f"got {self.inputs}")
         n_in = len(self.inputs) + sum(1 for i in self.periodic if i in self.inputs) + len(self.prior_features)
         self.channels = len(self.via) or len(self.outputs)
@@ -151,13 +152,32 @@ class ResidualNet(torch.nn.Module):
         xs, us = list(x.unbind(-1)), list(u.unbind(-1))
         fp = self.prior_terms(ops, xs, us)
         feats = self._features([*xs, *us], ops.sin, ops.cos, fp)
-        out = (mlp or self.mlp)((_stack(ops, feats) - self.in_mean) / self.in_scale)
+        out = (mlp or self.mlp)((_stack(feats) - self.in_mean) / self.in_scale)
         out = self._channels(list(out.unbind(-1)), fp)
         if self.via:
             shifted = [v + out[self.via.index(i)] if i in self.via else v for i, v in enumerate(us)]
-            return _stack(ops, self.prior_terms(ops, xs, shifted))
-        return _stack(ops, [fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
+            return _stack(self.prior_terms(ops, xs, shifted))
+        return _stack([fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
                             for i in range(self.nx)])
+
+    def derivative_t(self, x: torch.Tensor, u: torch.Tensor, mlp: "StackedMLP") -> torch.Tensor:
+        """:meth:`derivative` in training's layout: components first, ``x (nx, R, B)`` and
+        ``u (nu, R, B)`` for the ``R`` members of ``mlp`` (a :class:`StackedMLP`) and ``B``
+        pairs; returns ``(nx, R, B)``. Every component is then a contiguous ``(R, B)`` block,
+        so the elementwise arithmetic of the prior runs on contiguous memory and stacking or
+        splitting components copies blocks instead of interleaving them. Equal to
+        :meth:`derivative` up to the matrix products' rounding."""
+        ops = _SharedTrig()
+        xs, us = list(x.unbind(0)), list(u.unbind(0))
+        fp = self.prior_terms(ops, xs, us)
+        feats = self._features([*xs, *us], ops.sin, ops.cos, fp)
+        z = (_stack(feats, dim=-2) - self.in_mean[:, None]) / self.in_scale[:, None]
+        out = self._channels(list(mlp.forward_t(z).unbind(-2)), fp)
+        if self.via:
+            shifted = [v + out[self.via.index(i)] if i in self.via else v for i, v in enumerate(us)]
+            return _stack(self.prior_terms(ops, xs, shifted), dim=0)
+        return _stack([fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
+                            for i in range(self.nx)], dim=0)
 
     def _channels(self, out: list, prior_xdot: list | None) -> list:
         """The residual's channels from the MLP's outputs (any backend): the outputs themselves,
@@ -216,12 +236,15 @@ class _SharedTrig:
         return self._remember("cos", value)
 
 
-def _stack(ops, parts: list) -> torch.Tensor:
-    """``parts`` stacked on a last axis: one ``torch.stack`` when they are tensors of one shape."""
+def _stack(parts: list, dim: int = -1) -> torch.Tensor:
+    """``parts`` stacked on a new axis ``dim``: one ``torch.stack`` when they are tensors of one
+    shape (else broadcast, constants filled in)."""
     first = parts[0]
-    if all(isinstance(p, torch.Tensor) and p.shape == first.shape for p in parts):
-        return torch.stack(parts, dim=-1)
-    return ops.stack(parts)
+    if not all(isinstance(p, torch.Tensor) and p.shape == first.shape for p in parts):
+        ref = next(p for p in parts if isinstance(p, torch.Tensor))
+        parts = [p if isinstance(p, torch.Tensor) else torch.full_like(ref, float(p)) for p in parts]
+        parts = list(torch.broadcast_tensors(*parts))
+    return torch.stack(parts, dim=dim)
 
 
 class StackedMLP(torch.nn.Module):
@@ -251,6 +274,16 @@ class StackedMLP(torch.nn.Module):
         z = z.expand(len(self.weights[0]), *z.shape[-2:])
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             z = torch.baddbmm(b, z, w.transpose(1, 2))  # one fused product and bias per layer
+            if i < last:
+                z = self.act(z)
+        return z
+
+    def forward_t(self, z: torch.Tensor) -> torch.Tensor:
+        """The members on features-first inputs: ``z (R, in, B)`` -> ``(R, out, B)`` (the layout
+        of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed."""
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            z = torch.baddbmm(b.transpose(1, 2), w, z)
             if i < last:
                 z = self.act(z)
         return z

@@ -77,6 +77,7 @@ from tqdm.auto import tqdm
 
 from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
 from ..data import Run, check_sampling
+from ..errors import DataError, SettingsError, ShapeError
 from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
@@ -124,12 +125,13 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     """
     zeta, u = np.asarray(zeta, float), np.asarray(u, float)
     if zeta.ndim != 2 or zeta.shape[1] != system.nx or u.shape != (zeta.shape[0], system.nu):
-        raise ValueError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
+        raise ShapeError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
                          f"got {zeta.shape}, {u.shape}")
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
-        raise ValueError("train: zeta and u must be finite")
+        raise DataError("train: zeta and u must be finite (a state observation or an input is NaN or "
+                        "infinite)")
     if init is not None and settings.restarts != 1:
-        raise ValueError(f"train: a warm start (init) trains one net; got restarts={settings.restarts}")
+        raise SettingsError(f"train: a warm start (init) trains one net; got restarts={settings.restarts}")
     start = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny operations: a second thread only spins (37x slower under load)
@@ -165,12 +167,15 @@ def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: Traini
 
 def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch.Tensor,
                   u: torch.Tensor, zeta_next: torch.Tensor, dt: float) -> torch.Tensor:
-    """Eq. (11) of every stacked member ``(R,)``; the pairs are ``(B, .)`` shared by all
-    members or ``(R, B, .)`` one batch per member."""
-    members = len(mlp.weights[0])
-    zeta, u = zeta.expand(members, *zeta.shape[-2:]), u.expand(members, *u.shape[-2:])
-    pred = rk4_step(lambda x, v: net.derivative(x, v, mlp), zeta, u, dt)
-    return ((pred - zeta_next) ** 2).sum(dim=-1).mean(dim=-1)
+    """Eq. (11) of every stacked member ``(R,)``; the pairs are components first, ``(n, B)``
+    shared by all members or ``(n, R, B)`` one batch per member (the layout of
+    :meth:`~learnest_codegen.learning.network.ResidualNet.derivative_t`)."""
+    if zeta.dim() == 2:
+        members = len(mlp.weights[0])
+        zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
+        zeta_next = zeta_next[:, None]
+    pred = rk4_step(lambda x, v: net.derivative_t(x, v, mlp), zeta, u, dt)
+    return ((pred - zeta_next) ** 2).sum(dim=0).mean(dim=-1)
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
@@ -193,6 +198,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings)
     n_train = len(train_set[0])
+    train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
     mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
         optimiser = torch.optim.AdamW(mlp.parameters(), lr=settings.learning_rate,
@@ -213,7 +219,9 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
-    bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=not progress, unit="epoch")
+    # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
+    bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=None if progress else True,
+               unit="epoch")
     for epoch in bar:
         if full_batch:
             batches = [None]
@@ -223,7 +231,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
         for idx in batches:
             optimiser.zero_grad()
-            batch = train_set if idx is None else [a[idx] for a in train_set]
+            batch = train_set if idx is None else [a[:, idx] for a in train_set]
             loss = _stacked_loss(system, net, mlp, *batch, dt)
             loss.sum().backward()
             optimiser.step()

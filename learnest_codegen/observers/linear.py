@@ -6,6 +6,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from ..data import Run
+from ..errors import ObserverError
 from ..systems import System
 from .base import JERK_GRID, Observations
 from .kalman import FilterPasses, LinearGaussian, kalman_filter, rts_smoother
@@ -25,7 +26,8 @@ def linear_rts(run: Run, system: System, grid: np.ndarray = JERK_GRID) -> Observ
     get from second differences of position. The filter starts diffuse (``x = 0``, ``P = 1e4
     I``), so no ``x0`` is assumed.
 
-    Raises ``ValueError`` when ``f`` or ``h`` is not linear in ``x`` or depends on ``u``.
+    Raises :class:`~learnest_codegen.errors.ObserverError` when ``f`` or ``h`` is not linear in
+    ``x`` or depends on ``u``.
     """
     A, C = _linear_prior(system)
     R = np.diag(np.square(system.noise.measurement_std))
@@ -46,7 +48,8 @@ def linear_rts(run: Run, system: System, grid: np.ndarray = JERK_GRID) -> Observ
 
 
 def _linear_prior(system: System) -> tuple[np.ndarray, np.ndarray]:
-    """``(A, C)`` of a prior ``f = A x``, ``h = C x``; ``ValueError`` if it is not of that form."""
+    """``(A, C)`` of a prior ``f = A x``, ``h = C x``; :class:`ObserverError` if it is not of that
+    form."""
     import casadi as cs
 
     x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
@@ -56,7 +59,7 @@ def _linear_prior(system: System) -> tuple[np.ndarray, np.ndarray]:
         offset = cs.substitute(expr, x, cs.DM.zeros(system.nx))
         nonlinear = cs.depends_on(J, cs.vertcat(x, u)) or cs.depends_on(expr, u)
         if nonlinear or np.any(np.array(cs.DM(cs.evalf(offset))) != 0):
-            raise ValueError(f"system {system.name!r}: observer 'linear_rts' needs a prior {what} "
+            raise ObserverError(f"system {system.name!r}: observer 'linear_rts' needs a prior {what} "
                              "of the form M x (linear in x, no input, no offset); use 'ekf_rts'")
         out.append(np.array(cs.DM(cs.evalf(J))))
     return out[0], out[1]
