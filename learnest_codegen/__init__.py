@@ -6,7 +6,7 @@ pipeline's calls (:mod:`learnest_codegen.pipeline`) import torch only when a tra
 involved, so ``import learnest_codegen`` stays light.
 """
 
-from .config import RECOMMENDED_TRAINING as RECOMMENDED_TRAINING
+from .config import DEFAULT_TRAINING as DEFAULT_TRAINING
 from .config import NetworkSettings as NetworkSettings
 from .config import TrainingSettings as TrainingSettings
 from .config import WarmRefinement as WarmRefinement

@@ -7,7 +7,7 @@ and the studies use the same calls, so a model reaches a running estimator by on
 
     system = ln.get_system("cartpole")
     train_run, test_run = ln.simulate(system, seed=0), ln.simulate(system, seed=1)
-    model = ln.train(train_run, system, ln.QUICK_TRAINING)
+    model = ln.train(train_run, system)                          # ln.DEFAULT_TRAINING
     ukf = ln.compile_estimator(model, "ukf", out="generated")   # C library, loaded
     result = ln.evaluate(ukf, test_run)                          # estimates, MSE, timing
 
@@ -83,12 +83,14 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
           observer: str | None = None, full_state: bool = False, progress: bool = True) -> TrainedModel:
     """Train the KNODE residual on ``run`` (Alg. 1 phase 1); see :func:`training.train_on_run`.
 
-    ``settings`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`.
+    ``settings`` defaults to :data:`~learnest_codegen.config.DEFAULT_TRAINING`, the one default
+    (``learnest train``'s too); the pre-training observer to :func:`~learnest_codegen.observers.
+    choose_observer`'s choice, said on stderr when ``progress``.
     """
-    from .config import QUICK_TRAINING
+    from .config import DEFAULT_TRAINING
     from .learning.training import train_on_run
 
-    return train_on_run(run, get_system(system), settings or QUICK_TRAINING, observer=observer,
+    return train_on_run(run, get_system(system), settings or DEFAULT_TRAINING, observer=observer,
                         full_state=full_state, progress=progress)
 
 

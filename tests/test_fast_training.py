@@ -147,19 +147,26 @@ def test_training_settings_live_in_config_and_keep_their_old_homes():
 
     assert training.TrainingSettings is config.TrainingSettings
     assert network.NetworkSettings is config.NetworkSettings
-    assert training.RECOMMENDED_TRAINING is config.RECOMMENDED_TRAINING
-    assert training.QUICK_TRAINING is config.QUICK_TRAINING
-    assert config.recipe("quick") is config.QUICK_TRAINING
-    with pytest.raises(UnknownNameError, match="recommended"):
+    assert training.DEFAULT_TRAINING is config.DEFAULT_TRAINING
+    assert config.recipe("table1_cartpole") is config.TABLE1_CARTPOLE_TRAINING
+    assert config.recipe("paper") == config.TrainingSettings()
+    with pytest.raises(UnknownNameError, match="table1_cartpole"):
         config.recipe("fastest")
 
 
-def test_cli_defaults_come_from_config():
-    """``learnest train``'s option defaults are TRAIN_COMMAND_TRAINING's fields."""
+def test_one_default_training_for_the_command_line_and_the_library(cartpole, monkeypatch):
+    """``learnest train``'s option defaults are DEFAULT_TRAINING's fields, and ``ln.train``
+    without settings trains with DEFAULT_TRAINING itself: the two doors give the same settings."""
+    import learnest_codegen as ln
     from learnest_codegen.cli import cli
+    from learnest_codegen.learning import training
 
+    seen = []
+    monkeypatch.setattr(training, "train_on_run", lambda run, system, settings, **kw: seen.append(settings))
+    ln.train(simulate(cartpole, 0, duration=0.1), cartpole)
+    assert seen == [config.DEFAULT_TRAINING]
     defaults = {p.name: p.default for p in cli.commands["train"].params}
-    settings = config.TRAIN_COMMAND_TRAINING
+    settings = config.DEFAULT_TRAINING
     for name in ("epochs", "learning_rate", "batch_size", "seed", "validation_fraction", "refine",
                  "restarts", "weight_decay", "final_learning_rate", "weight_average"):
         assert defaults[name] == getattr(settings, name), name
@@ -207,7 +214,7 @@ def test_the_recipes_keep_the_weight_averages_window_and_other_batches_get_other
     other's."""
     from learnest_codegen.experiments.table1 import DEFAULT_TASKS, Job
 
-    recommended = config.RECOMMENDED_TRAINING
+    recommended = config.TABLE1_CARTPOLE_TRAINING
     steps = -(-8000 // recommended.batch_size)
     assert recommended.weight_average ** steps == pytest.approx(0.99 ** 32, rel=1e-3)
     full = dataclasses.replace(recommended, batch_size=config.FULL_BATCH, weight_average=0.725)

@@ -75,7 +75,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
+from ..config import DEFAULT_TRAINING, TrainingSettings
 from ..data import Run, check_sampling
 from ..errors import DataError, SettingsError, ShapeError
 from ..integrators import rk4_step
@@ -85,7 +85,7 @@ from .network import ResidualNet, StackedMLP
 from .source import KEY as SOURCE_KEY
 from .source import system_source
 
-__all__ = ["META", "QUICK_TRAINING", "RECOMMENDED_TRAINING", "WEIGHTS", "TrainingSettings", "TrainedModel",
+__all__ = ["DEFAULT_TRAINING", "META", "WEIGHTS", "TrainingSettings", "TrainedModel",
            "data_hash", "load_model", "make_net", "one_step_loss", "residual_structure", "train",
            "train_on_run"]
 
@@ -99,7 +99,7 @@ def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch
 
 
 def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
-          settings: TrainingSettings = TrainingSettings(), *, observer: str = "",
+          settings: TrainingSettings = DEFAULT_TRAINING, *, observer: str = "",
           progress: bool = True, score: Callable[[TrainedModel], float] | None = None,
           init: TrainedModel | None = None) -> TrainedModel:
     """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``.
@@ -289,7 +289,7 @@ class _ZeroNet(torch.nn.Module):
         return torch.zeros_like(x)
 
 
-def train_on_run(run: Run, system: System, settings: TrainingSettings = TrainingSettings(), *,
+def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_TRAINING, *,
                  observer: str | None = None, full_state: bool = False,
                  progress: bool = True) -> TrainedModel:
     """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train.
