@@ -118,6 +118,9 @@ class TrainingSettings:
     patience : stop when no restart's validation loss has improved for this many epochs;
         ``None``: run every epoch. The kept weights are the best epoch's either way, so the
         result changes only when a later epoch would have beaten it.
+    refine_restarts : initialisations trained in each refinement round; ``None``: ``restarts``.
+        With fewer than ``restarts``, a refinement round trains the initialisations from the
+        seed that won the first round on (its basin, the measurements' choice).
     warm_refinement : the refinement rounds after the first start from the previous round's
         net with these settings (:class:`WarmRefinement`); ``None``: every round trains
         ``restarts`` nets from scratch with the settings above.
@@ -136,6 +139,7 @@ class TrainingSettings:
     weight_average: float = 0.0
     patience: int | None = None
     warm_refinement: WarmRefinement | None = None
+    refine_restarts: int | None = None
 
     def __post_init__(self) -> None:
         _check_optimiser(self, "TrainingSettings")
@@ -145,6 +149,8 @@ class TrainingSettings:
               self.validation_fraction)
         _need(self.refine >= 0, "TrainingSettings.refine", ">= 0", self.refine)
         _need(self.restarts >= 1, "TrainingSettings.restarts", ">= 1", self.restarts)
+        _need(self.refine_restarts is None or self.refine_restarts >= 1, "TrainingSettings.refine_restarts",
+              ">= 1 (or None)", self.refine_restarts)
         _need(0.0 <= self.weight_decay < 1.0 / self.learning_rate, "TrainingSettings.weight_decay",
               f"in [0, 1 / learning_rate = {1.0 / self.learning_rate:g})", self.weight_decay)
         _need(self.final_learning_rate is None or 0 < self.final_learning_rate <= self.learning_rate,
@@ -153,11 +159,12 @@ class TrainingSettings:
 
     def to_json(self) -> dict:
         """The settings as a dict. ``weight_decay``, ``final_learning_rate``,
-        ``weight_average``, ``patience`` and ``warm_refinement`` are left out when off, so the
+        ``weight_average``, ``patience``, ``warm_refinement`` and ``refine_restarts`` are left
+        out when off, so the
         identities of models and sweep jobs trained before they existed are unchanged."""
         out = asdict(self)
         for key in ("weight_decay", "final_learning_rate", "weight_average", "patience",
-                    "warm_refinement"):
+                    "warm_refinement", "refine_restarts"):
             if not out[key]:
                 del out[key]
         return out

@@ -327,6 +327,30 @@ def test_warm_refinement_rounds_train_one_net_from_the_previous_round(cartpole):
     assert model.meta["restart_seed"] in (1, 2)
 
 
+def test_refinement_rounds_can_train_the_first_rounds_choice_alone(cartpole, monkeypatch):
+    """With ``refine_restarts=1`` the first round trains ``restarts`` initialisations and the
+    measurements choose one; every refinement round then trains that initialisation alone (its
+    seed), unscored. The model records the whole recipe."""
+    from learnest_codegen.learning import training
+
+    run = simulate(cartpole, seed=4, duration=1.0)
+    settings = config.TrainingSettings(epochs=2, restarts=3, refine=2, refine_restarts=1, seed=5)
+    calls = []
+    real_train = training.train
+
+    def spy(system, zeta, u, dt, s, **kw):
+        calls.append((s.restarts, s.seed, kw.get("score") is not None))
+        return real_train(system, zeta, u, dt, s, **kw)
+
+    monkeypatch.setattr(training, "train", spy)
+    model = training.train_on_run(run, cartpole, settings, progress=False)
+    winner = model.meta["restart_seed"]  # the last round trained the first round's choice
+    assert calls[0] == (3, 5, True)
+    assert calls[1:] == [(1, winner, False), (1, winner, False)] and winner in (5, 6, 7)
+    assert model.meta["training"] == settings.to_json() and settings.to_json()["refine_restarts"] == 1
+    assert "refine_restarts" not in config.TrainingSettings().to_json()
+
+
 @pytest.mark.parametrize("name", ["cartpole", "ground_robot", "quadrotor"])
 def test_the_training_derivative_equals_the_hybrid_model(name):
     """``ResidualNet.derivative`` (shared sines and cosines, no stacking in between) and its

@@ -321,12 +321,18 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
     model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
     rounds = 0 if full_state else settings.refine
     warm = settings.warm_refinement
+    round_settings, round_score = settings, score
+    if settings.refine_restarts is not None and settings.refine_restarts < settings.restarts:
+        # the later rounds train fewer initialisations, from the seed the first round chose
+        round_settings = replace(settings, restarts=settings.refine_restarts, seed=model.meta["restart_seed"])
+        round_score = score if settings.refine_restarts > 1 else None
     for k in range(rounds):
         zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
         round_observer = f"{source}+ekf_rts*{k + 1}"
         if warm is None:  # every round from scratch, with the restarts
-            model = train(system, zeta, run.u, run.dt, settings, observer=round_observer,
-                          progress=progress, score=score)
+            model = train(system, zeta, run.u, run.dt, round_settings, observer=round_observer,
+                          progress=progress, score=round_score)
+            model.meta["training"] = settings.to_json()
         else:  # one net, from the previous round's
             first = {key: model.meta[key] for key in ("restart_seed", "restart_validation", "restart_score")
                      if key in model.meta}  # the first round's choice of initialisation
