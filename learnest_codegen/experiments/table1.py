@@ -137,24 +137,17 @@ class TaskConfig:
                 "observer": self.observer, "duration": self.duration}
 
 
-# THE place for the defaults of the sweep (the paper's settings; tune here).
+# THE place for the defaults of the sweep (the paper's settings; tune here). Why each setting,
+# with its measured effect: docs/training.md and docs/results.md.
 DEFAULT_TASKS: dict[str, TaskConfig] = {
-    # TABLE1_CARTPOLE_TRAINING (learnest_codegen.config): per round three initialisations, the one
-    # whose model best explains the measurements kept (a bad local optimum otherwise costs a
-    # seed 15-20 points of gap closure); weight decay 0.1 (the full-state nets go from 99.3-99.9
-    # to 99.9-100 % of the UKF gap closed); the moving average of the weights (+0.08 point on
-    # average over seeds 0, 10-14); five refinement rounds instead of two (seeds 13 and 14:
-    # 99.62 -> 99.81 % and 99.47 -> 99.80 %). The full-state model needs neither restarts nor
-    # rounds (it is trained on measured states).
+    # TABLE1_CARTPOLE_TRAINING (learnest_codegen.config): restarts chosen by the measurements,
+    # weight decay, the weight average and refinement rounds; the full-state model needs
+    # neither restarts nor rounds (it is trained on measured states).
     "cartpole": TaskConfig("cartpole", TABLE1_CARTPOLE_TRAINING,
-                           replace(TABLE1_CARTPOLE_TRAINING, refine=0, restarts=1)),
-    # The paper's 10000 epochs, full batch (2000 training pairs; minibatches of 256 take ~4x
-    # longer for no better held-out loss). The partial-measurement net stops once its
-    # validation loss has not improved for 500 epochs: its best epoch was 30-1033 on the 15
-    # seeds (median 63), and the mean gap closure went from 97.5 / 98.1 % to 97.9 / 98.4 %
-    # (MHE / UKF). The full-state net keeps every epoch: it improves in slow steps after
-    # plateaus, and with the same patience seed 11 stopped at epoch 983 and its MHE came out
-    # 223 % above the true dynamics' instead of a few per cent.
+                           replace(TABLE1_CARTPOLE_TRAINING, refine=0, restarts=1, refine_restarts=None)),
+    # The paper's 10000 epochs, full batch (2000 training pairs). The partial-measurement net
+    # stops once its validation loss has not improved for 500 epochs; the full-state net keeps
+    # every epoch (it improves in slow steps after plateaus).
     "ground_robot": TaskConfig("ground_robot",
                                replace(PAPER_TRAINING, epochs=10000, batch_size=4096, patience=500),
                                replace(PAPER_TRAINING, epochs=10000, batch_size=4096)),
