@@ -66,18 +66,14 @@ def resolve_system(system_name: str | None, model: str | None = None, compiled: 
     """The system of a command: ``--system`` when given; else the one a model directory
     (``--model``) or a compiled estimator folder (``--compiled``) records (a built-in by name, a
     system file by path, refused when the file changed); else ``default``."""
-    import json
     from pathlib import Path
 
-    from ..learning.source import KEY, read_sidecar, system_from_source
+    from ..learning.source import KEY, model_meta, read_sidecar, system_from_source
 
     if system_name is not None:
         return system_named(system_name)
     if model is not None and model not in ("nominal", "true"):
-        meta_path = Path(model) / "model.json"
-        if not meta_path.is_file():
-            raise FileNotFoundError(f"{model} is not a model directory (needs model.json and weights.pt)")
-        meta = json.loads(meta_path.read_text())
+        meta = model_meta(model)
         return system_from_source(meta.get(KEY), meta.get("system"), f"model {model}")
     if compiled is not None:
         from ..runtime.manifest import read_manifest

@@ -23,7 +23,7 @@ from ..errors import ModelMismatchError
 from ..systems import System
 from .network import NetworkSettings, ResidualNet
 from .source import KEY as SOURCE_KEY
-from .source import system_from_source
+from .source import model_meta, system_from_source
 
 WEIGHTS, META = "weights.pt", "model.json"
 __all__ = ["META", "WEIGHTS", "TrainedModel", "data_hash", "load_model", "make_net", "residual_structure"]
@@ -118,16 +118,8 @@ def load_model(directory: str | Path, system: System | None = None) -> TrainedMo
     :mod:`.source`).
     """
     directory = Path(directory)
-    meta_path, weights_path = directory / META, directory / WEIGHTS
-    if not meta_path.is_file() or not weights_path.is_file():
-        raise FileNotFoundError(f"{directory} is not a model directory (needs {META} and {WEIGHTS})")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ModelMismatchError(f"{meta_path} is not valid JSON ({exc}); the model directory is "
-                                 "damaged: retrain or restore it") from exc
-    if not isinstance(meta, dict) or "network" not in meta:
-        raise ModelMismatchError(f"{meta_path} holds no model description; retrain or restore it")
+    weights_path = directory / WEIGHTS
+    meta = model_meta(directory)
     if system is None:
         system = system_from_source(meta.get(SOURCE_KEY), meta.get("system"), f"model {directory}")
     got = (meta.get("system"), meta.get("nx"), meta.get("nu"))

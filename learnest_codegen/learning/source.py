@@ -26,6 +26,22 @@ KEY, SIDECAR = "system_source", "system_source.json"
 PACKAGE = Path(__file__).resolve().parents[1]
 
 
+def model_meta(directory: str | Path) -> dict[str, Any]:
+    """A model directory's ``model.json``, checked: one clear error when it is missing, damaged
+    or no model description (no torch needed)."""
+    meta_path = Path(directory) / "model.json"
+    if not meta_path.is_file() or not (Path(directory) / "weights.pt").is_file():
+        raise FileNotFoundError(f"{directory} is not a model directory (needs model.json and weights.pt)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelMismatchError(f"{meta_path} is not valid JSON ({exc}); the model directory is "
+                                 "damaged: retrain or restore it") from exc
+    if not isinstance(meta, dict) or "network" not in meta:
+        raise ModelMismatchError(f"{meta_path} holds no model description; retrain or restore it")
+    return meta
+
+
 def file_sha256(path: str | Path) -> str:
     """SHA-256 of a file's bytes."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
