@@ -13,6 +13,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from .data import Run
+from .errors import DataError
 from .systems import System
 
 RTOL, ATOL = 1e-10, 1e-12
@@ -58,6 +59,6 @@ def _integrate(system: System, variant: str, x: np.ndarray, u: np.ndarray, dt: f
 def noisy_states(run: Run, system: System, seed: int) -> np.ndarray:
     """Full-state observations: the truth plus N(0, ``noise.state_std``) per state, ``(T, nx)``."""
     if run.x is None:
-        raise ValueError("full-state observations need a run with truth (x_ columns)")
+        raise DataError("full-state observations need a run with truth (x_ columns)")
     rng = np.random.default_rng(seed + 7919)  # offset: independent of the measurement noise
     return run.x + rng.normal(size=run.x.shape) * np.asarray(system.noise.state_std)

@@ -17,6 +17,7 @@ from pathlib import Path
 import casadi as cs
 
 from .. import toolchain
+from ..errors import SettingsError
 from ..estimators.gate import MAX_INFLATION
 from ..estimators.mhe_problem import (
     IPOPT_OPTIONS,
@@ -72,8 +73,8 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     settings = settings or MHESettings.from_system(model.system)
     prefix = prefix or f"{model.system.name}_{model.kind}_mhe"
     if not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", prefix):
-        raise ValueError(f"generate_mhe: prefix {prefix!r} is not a C identifier without "
-                         "leading/trailing/double underscores (CasADi's rule for names)")
+        raise SettingsError(f"generate_mhe: prefix {prefix!r} is not a C identifier without "
+                            "leading/trailing/double underscores (CasADi's rule for names)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     problem = build_problem(model, settings, prefix)

@@ -15,6 +15,7 @@ from pathlib import Path
 import casadi as cs
 
 from .. import toolchain
+from ..errors import SettingsError
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
 from ..estimators.precision import PRECISIONS
@@ -47,8 +48,8 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
     prefix = prefix or f"{model.system.name}_{model.kind}_{solver.estimator}"
     if not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", prefix):
-        raise ValueError(f"generate_embedded_mhe: prefix {prefix!r} is not a C identifier without "
-                         "leading/trailing/double underscores")
+        raise SettingsError(f"generate_embedded_mhe: prefix {prefix!r} is not a C identifier without "
+                            "leading/trailing/double underscores")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     real = PRECISIONS[solver.precision]

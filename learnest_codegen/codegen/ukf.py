@@ -19,6 +19,7 @@ from pathlib import Path
 import casadi as cs
 import numpy as np
 
+from ..errors import SettingsError
 from ..estimators.gate import MAX_INFLATION
 from ..estimators.precision import PRECISIONS, check_precision
 from ..estimators.ukf import UKFSettings
@@ -229,13 +230,13 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
     """
     check_precision(precision, "generate_ukf")
     if precision == "float32" and settings.alpha < FLOAT32_MIN_ALPHA:
-        raise ValueError(f"generate_ukf: a float32 UKF needs alpha >= {FLOAT32_MIN_ALPHA}, got "
-                         f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
-                         "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
-                         "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
+        raise SettingsError(f"generate_ukf: a float32 UKF needs alpha >= {FLOAT32_MIN_ALPHA}, got "
+                            f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
+                            "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
+                            "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
     prefix = prefix or default_prefix(model)
     if not _C_IDENTIFIER.fullmatch(prefix):
-        raise ValueError(f"generate_ukf: prefix must be a C identifier, got {prefix!r}")
+        raise SettingsError(f"generate_ukf: prefix must be a C identifier, got {prefix!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()

@@ -42,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import SettingsError
+
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
 #: model with model error (the nominal prior) has innovations larger than its ``S``, and at
 #: the textbook 15.14 (1e-4) the nominal cartpole UKF rejected 4 % of a clean test run's
@@ -72,15 +74,15 @@ class GateSettings:
     def __post_init__(self) -> None:
         t = float(self.threshold)
         if math.isnan(t) or t < 0:
-            raise ValueError(f"GateSettings.threshold must be >= 0 (0 or inf: no gate), got {t}")
+            raise SettingsError(f"GateSettings.threshold must be >= 0 (0 or inf: no gate), got {t}")
         object.__setattr__(self, "threshold", math.inf if t == 0 else t)
         k = self.recover_after
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ValueError(f"GateSettings.recover_after must be an integer >= 1, got {k!r}")
+            raise SettingsError(f"GateSettings.recover_after must be an integer >= 1, got {k!r}")
         object.__setattr__(self, "recover_after", int(self.recover_after))
         g = float(self.inflation)
         if not (math.isfinite(g) and g > 1):
-            raise ValueError(f"GateSettings.inflation must be a finite number > 1, got {g}")
+            raise SettingsError(f"GateSettings.inflation must be a finite number > 1, got {g}")
         object.__setattr__(self, "inflation", g)
 
     @property
@@ -93,7 +95,7 @@ class GateSettings:
         from scipy.stats import chi2
 
         if not 0 < probability < 1:
-            raise ValueError(f"false-rejection probability must be in (0, 1), got {probability}")
+            raise SettingsError(f"false-rejection probability must be in (0, 1), got {probability}")
         return cls(threshold=float(chi2.isf(probability, 1)), **overrides)
 
     def c_threshold(self) -> float:

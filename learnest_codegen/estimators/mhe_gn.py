@@ -16,6 +16,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from ..errors import SettingsError
 from .precision import check_precision
 
 MODES = ("converged", "rti")
@@ -43,15 +44,15 @@ class GaussNewtonSettings:
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
-            raise ValueError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
+            raise SettingsError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
         check_precision(self.precision, "GaussNewtonSettings")
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) \
                 or self.max_iterations < 1:
-            raise ValueError(f"GaussNewtonSettings.max_iterations must be an integer >= 1, "
-                             f"got {self.max_iterations!r}")
+            raise SettingsError(f"GaussNewtonSettings.max_iterations must be an integer >= 1, "
+                                f"got {self.max_iterations!r}")
         tol = DEFAULT_TOLERANCE[self.precision] if self.tolerance is None else self.tolerance
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-            raise ValueError(f"GaussNewtonSettings.tolerance must be a positive number, got {tol!r}")
+            raise SettingsError(f"GaussNewtonSettings.tolerance must be a positive number, got {tol!r}")
         object.__setattr__(self, "tolerance", float(tol))
 
     @property
