@@ -68,6 +68,7 @@ def test_the_command_line_job_needs_no_system_after_training(work):
     r = run(["diagnose", "--data", work / "test.csv", "--model", work / "model", "--out", work / "diag",
              "--estimators", "ukf", "--no-progress"])
     assert r.exit_code == 0, r.output
+    assert (f"comparing against the true states in {work / 'test.csv'} (x_q, x_qdot)") in r.output
     assert (work / "diag" / "diagnosis.json").is_file()
     # a compiled folder finds its system file too: ``load_estimator`` then ``evaluate``, no system
     test_run = ln.read_run(work / "test.csv", ln.get_system(str(work / "my_pendulum.py")))
@@ -126,3 +127,22 @@ def test_an_edited_system_file_is_refused_in_one_line(work, tmp_path):
     r = run(["estimate", "--data", work / "test.csv", "--estimator", "ukf", "--model", model,
              "--system", work / "my_pendulum.py", "--out", tmp_path / "est.csv"])
     assert r.exit_code == 0, r.output  # named explicitly: used as it is
+
+
+def test_diagnose_says_which_states_it_compares_against(work):
+    """The truth when every run has ``x_`` columns (``--source auto``), else the observer's
+    estimates from the measurements; ``--source observer`` forces the latter."""
+    from learnest_codegen.cli.diagnose import compared_against
+    from learnest_codegen.data import Run
+    from learnest_codegen.diagnosis import DiagnosisSettings
+
+    system = ln.get_system(str(work / "my_pendulum.py"))
+    full = ln.read_run(work / "test.csv", system)
+    bare = Run(full.t, full.u, full.y, None, full.system)
+    auto = DiagnosisSettings(source="auto")
+    assert compared_against(system, [full], auto, "d.csv").startswith(
+        "diagnose: comparing against the true states in d.csv (x_q, x_qdot)")
+    for runs, settings in (([full, bare], auto), ([full], DiagnosisSettings(source="observer"))):
+        line = compared_against(system, runs, settings, "d.csv")
+        assert line == ("diagnose: comparing against the states the 'rts' observer estimates from the "
+                        "measurements in d.csv (y_q)"), line

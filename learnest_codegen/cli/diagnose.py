@@ -97,6 +97,7 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
         runs = [to_grid(r, system.dt) for r in runs]
     for i, r in enumerate(runs):
         check_sampling(r, system.dt, f"{data} (run {i})")
+    click.echo(compared_against(system, runs, settings, data))
     trained = None
     if model is not None:
         from ..learning.training import load_model
@@ -108,3 +109,20 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     report = write_report(result, out)
     click.echo(dg.summary(result.report))
     click.echo(f"wrote {Path(out) / 'diagnosis.json'} and {report}")
+
+
+def compared_against(system, runs, settings, data) -> str:
+    """One line saying which states the prior is compared against: the runs' true states
+    (``x_`` columns; ``--source auto`` takes them when every run has them) or the
+    pre-training observer's estimates from the measurements."""
+    source = settings.source
+    if source == "auto":
+        source = "truth" if all(r.x is not None for r in runs) else "observer"
+    if source == "truth":
+        columns = ", ".join(f"x_{n}" for n in system.state_names)
+        return (f"diagnose: comparing against the true states in {data} ({columns}); "
+                "--source observer uses the measurements alone")
+    observer = settings.observer or system.default_observer
+    outputs = ", ".join(f"y_{n}" for n in system.output_names)
+    return (f"diagnose: comparing against the states the {observer!r} observer estimates from "
+            f"the measurements in {data} ({outputs})")
