@@ -146,11 +146,11 @@ DEFAULT_TASKS: dict[str, TaskConfig] = {
     "cartpole": TaskConfig("cartpole", TABLE1_CARTPOLE_TRAINING,
                            replace(TABLE1_CARTPOLE_TRAINING, refine=0, restarts=1, refine_restarts=None)),
     # The paper's 10000 epochs, full batch (2000 training pairs). The partial-measurement net
-    # stops once its validation loss has not improved for 500 epochs; the full-state net trains
-    # 5000 epochs without stopping (it improves in slow steps after plateaus).
+    # stops once its validation loss has not improved for 500 epochs; the full-state net keeps
+    # every epoch (it improves in slow steps after plateaus; 5000 left seed 11 at 99.77 %).
     "ground_robot": TaskConfig("ground_robot",
                                replace(PAPER_TRAINING, epochs=10000, batch_size=4096, patience=500),
-                               replace(PAPER_TRAINING, epochs=5000, batch_size=4096)),
+                               replace(PAPER_TRAINING, epochs=10000, batch_size=4096)),
 }
 
 
