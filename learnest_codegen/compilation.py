@@ -16,7 +16,7 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from .errors import UnknownNameError
+from .errors import SettingsError, UnknownNameError
 from .export import DiscreteModel, hybrid_model, prior_model, true_model
 from .outputs import atomic_dir
 from .systems import System
@@ -135,7 +135,7 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
     """
     problem = precision_problem(estimators, precision)
     if problem:
-        raise ValueError(problem)
+        raise SettingsError(problem)
     kinds = {name: estimator_kind(name) for name in estimators}
     results = {}
     for name, kind in kinds.items():

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataError, ShapeError
+from .errors import DataError, SettingsError, ShapeError
 from .outputs import atomic_file
 from .systems import System
 
@@ -150,7 +150,7 @@ def resample(run: Run, dt: float) -> Run:
     convention of :class:`Run`: ``u[k]`` applies from ``t[k]`` to ``t[k+1]``).
     """
     if not dt > 0:
-        raise ValueError(f"resample: need dt > 0, got {dt}")
+        raise SettingsError(f"resample: need dt > 0, got {dt}")
     t = run.t[0] + dt * np.arange(int(np.floor((run.t[-1] - run.t[0]) / dt + 1e-9)) + 1)
     if len(t) < 2:
         raise DataError(f"resample: a run of {run.t[-1] - run.t[0]:g} s holds fewer than 2 samples "

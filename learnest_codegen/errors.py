@@ -16,10 +16,6 @@ class ShapeError(LearnestError, ValueError):
     """An array has the wrong shape for the system or estimator it is given to."""
 
 
-class SettingsError(LearnestError, ValueError):
-    """An option is outside its documented range (``runtime/limits.py``) or of the wrong type."""
-
-
 class DataError(LearnestError, ValueError):
     """A run (CSV) is malformed: missing columns, non-monotonic time, non-finite values."""
 
@@ -37,6 +33,18 @@ class SystemFileError(LearnestError, ImportError):
 
 class ModelMismatchError(LearnestError, ValueError):
     """A trained model or compiled library does not belong to the system or settings in use."""
+
+
+class SettingsError(LearnestError, ValueError):
+    """A setting is out of its range (``runtime/limits.py`` for the estimators' options), of the
+    wrong type, or contradicts another (training, network, estimator or study settings); the
+    message names the setting, what it needs and what it got."""
+
+
+class ObserverError(LearnestError, ValueError):
+    """A pre-training observer cannot be used with the system or the run it is given (no
+    kinematic chains, a nonlinear prior for ``linear_rts``, measurements that do not fix a
+    planar pose)."""
 
 
 class BuildError(LearnestError, RuntimeError):

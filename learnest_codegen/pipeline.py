@@ -7,7 +7,7 @@ and the studies use the same calls, so a model reaches a running estimator by on
 
     system = ln.get_system("cartpole")
     train_run, test_run = ln.simulate(system, seed=0), ln.simulate(system, seed=1)
-    model = ln.train(train_run, system, ln.QUICK_TRAINING)
+    model = ln.train(train_run, system)                          # ln.DEFAULT_TRAINING
     ukf = ln.compile_estimator(model, "ukf", out="generated")   # C library, loaded
     result = ln.evaluate(ukf, test_run)                          # estimates, MSE, timing
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from .compilation import ESTIMATOR_NAMES, compile_estimators, estimator_dir, estimator_kind, resolve_model
 from .data import Run, check_sampling
+from .errors import ModelMismatchError, SettingsError
 from .evaluation import EstimateResult, run_estimator
 from .export import DiscreteModel, hybrid_model
 from .runtime.manifest import read_manifest
@@ -55,20 +56,26 @@ def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedMod
     """``"nominal"``, ``"true"``, a trained model, its directory, a :class:`DiscreteModel` (nominal
     or true) or an already resolved model.
 
-    ``system`` is needed for the names and for model directories (checked against the model's
-    own); a trained model knows its system.
+    ``system`` is needed for ``"nominal"`` and ``"true"``; a model directory records its own
+    (a built-in by name, a system file by path and content hash, see
+    :mod:`~learnest_codegen.learning.source`), and a ``system`` given is checked against it.
     """
     if isinstance(model, ResolvedModel):
         return model
     if isinstance(model, DiscreteModel):  # nominal and true models are identified by their kind
         if model.kind not in ("nominal", "true"):
-            raise ValueError("resolve: a KNODE DiscreteModel carries no identity; pass the trained "
-                             "model (or its directory) instead")
+            raise SettingsError("resolve: a KNODE DiscreteModel carries no identity; pass the trained "
+                                "model (or its directory) instead")
         return ResolvedModel(model, model.kind)
     if isinstance(model, (str, Path)):
-        if system is None:
-            raise ValueError(f"resolve: model {str(model)!r} needs a system")
-        return ResolvedModel(*resolve_model(get_system(system), str(model)))
+        if str(model) in ("nominal", "true"):
+            if system is None:
+                raise SettingsError(f"resolve: model {str(model)!r} needs a system (system=)")
+            return ResolvedModel(*resolve_model(get_system(system), str(model)))
+        from .learning.model import load_model  # torch only for trained models
+
+        trained = load_model(model, None if system is None else get_system(system))
+        return ResolvedModel(hybrid_model(trained.system, trained.net), trained.hash)
     return ResolvedModel(hybrid_model(model.system, model.net), model.hash)
 
 
@@ -76,12 +83,14 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
           observer: str | None = None, full_state: bool = False, progress: bool = True) -> TrainedModel:
     """Train the KNODE residual on ``run`` (Alg. 1 phase 1); see :func:`training.train_on_run`.
 
-    ``settings`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`.
+    ``settings`` defaults to :data:`~learnest_codegen.config.DEFAULT_TRAINING`, the one default
+    (``learnest train``'s too); the pre-training observer to :func:`~learnest_codegen.observers.
+    choose_observer`'s choice, said on stderr when ``progress``.
     """
-    from .config import QUICK_TRAINING
+    from .config import DEFAULT_TRAINING
     from .learning.training import train_on_run
 
-    return train_on_run(run, get_system(system), settings or QUICK_TRAINING, observer=observer,
+    return train_on_run(run, get_system(system), settings or DEFAULT_TRAINING, observer=observer,
                         full_state=full_state, progress=progress)
 
 
@@ -106,16 +115,42 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
-            raise ValueError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
+            raise SettingsError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
         chosen = settings or kind.default_settings(resolved.model)
-        return kind.python(resolved.model, chosen if gate is None else replace(chosen, gate=gate))
+        chosen = chosen if gate is None else replace(chosen, gate=gate)
+        return _with_system(kind.python(resolved.model, chosen), resolved.model.system)
     if backend != "c":
-        raise ValueError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
-    compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
-                       settings={estimator: settings} if settings is not None else None,
-                       precision=precision, gate=gate)
-    return load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
-                          expect=expected_manifest(resolved))
+        raise SettingsError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
+    compile_model(resolved, out, (estimator,), precision=precision, gate=gate,
+                  settings={estimator: settings} if settings is not None else None)
+    return _with_system(load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
+                                       expect=expected_manifest(resolved)), resolved.model.system)
+
+
+def compile_model(model: ModelLike, out: str | Path, estimators: tuple[str, ...] = ("mhe", "ukf"), *,
+                  system: System | str | None = None, settings: Mapping[str, Any] | None = None,
+                  precision: str = "float64", gate: Any = None) -> dict[str, Any]:
+    """Generate and build ``estimators`` of ``model`` under ``out`` (one folder each, see
+    :func:`~learnest_codegen.compilation.compile_estimators`), each with a record of where the
+    model's system comes from, so that :func:`load_estimator` finds it; returns name -> result."""
+    resolved = resolve(model, system)
+    results = compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=estimators,
+                                 settings=settings, precision=precision, gate=gate)
+    from .learning.source import system_source, write_sidecar
+
+    record = system_source(resolved.model.system)
+    for name in results:
+        write_sidecar(estimator_dir(Path(out), resolved.model, name, precision), record)
+    return results
+
+
+def _with_system(estimator, system: System):
+    """``estimator`` knowing its system (``estimator.system``), for :func:`evaluate`."""
+    try:
+        estimator.system = system
+    except AttributeError:  # a class that forbids it: evaluate then looks the system up
+        pass
+    return estimator
 
 
 def expected_manifest(model: ModelLike, system: System | str | None = None) -> dict[str, Any]:
@@ -145,9 +180,35 @@ def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = 
     """
     kind = estimator_kind(str(read_manifest(Path(directory)).get("estimator")))
     estimator = kind.compiled(directory, expect=expect)
-    if gate is None:
-        return estimator
-    return kind.compiled(directory, expect=expect, settings=replace(estimator.settings, gate=gate))
+    if gate is not None:
+        estimator = kind.compiled(directory, expect=expect, settings=replace(estimator.settings, gate=gate))
+    return estimator
+
+
+def estimator_system(estimator) -> System:
+    """The system an estimator was made for: the one :func:`make_estimator` attached, or the
+    one its compiled folder records (a built-in by name, a system file by path, checked against
+    the file's content and the library's system fingerprint)."""
+    system = getattr(estimator, "system", None)
+    if isinstance(system, System):
+        return system
+    model = getattr(estimator, "model", None)
+    if isinstance(getattr(model, "system", None), System):
+        return model.system
+    directory = getattr(estimator, "directory", None)
+    if directory is None:
+        raise SettingsError(f"{type(estimator).__name__} does not say which system it estimates; "
+                            "pass system=")
+    from .learning.source import read_sidecar, system_from_source
+
+    manifest = read_manifest(Path(directory))
+    system = system_from_source(read_sidecar(directory), manifest.get("system"),
+                                f"compiled estimator {directory}")
+    if manifest.get("system_fingerprint") not in (None, system.fingerprint()):
+        raise ModelMismatchError(f"compiled estimator {directory} was built for another version of "
+                                 f"system {system.name!r} (its equations, parameters or noise "
+                                 "changed); recompile it")
+    return system
 
 
 def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: System | str | None = None,
@@ -160,15 +221,16 @@ def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: Syste
              label: str = "") -> EstimateResult:
     """Run ``estimator`` over ``run`` from ``x0`` (default: the system's ``x0``) and time it.
 
-    ``system`` defaults to the built-in one the run names. The run must be sampled at the
-    system's ``dt``, the step the estimator was built for. The result's ``mse(run.x)`` scores it
-    when the truth is known.
+    ``system`` defaults to the estimator's own (:func:`estimator_system`). The run must be
+    sampled at the system's ``dt``, the step the estimator was built for. The result's
+    ``mse(run.x)`` scores it when the truth is known.
     """
-    system = get_system(system or run.system)
+    system = get_system(system) if system is not None else estimator_system(estimator)
     check_sampling(run, system.dt, label or "evaluate")
     x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
     return run_estimator(estimator, run, x0, label or type(estimator).__name__)
 
 
-__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "expected_manifest",
-           "load_estimator", "make_estimator", "reference_estimator", "resolve", "simulate", "train"]
+__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "compile_model", "estimator_system",
+           "evaluate", "expected_manifest", "load_estimator", "make_estimator", "reference_estimator",
+           "resolve", "simulate", "train"]

@@ -764,7 +764,8 @@ def csv_cases() -> list[Case]:
         return ok, out.strip().splitlines()[-1][-80:] if out.strip() else "no output"
     '''
     big = []
-    for folder, owner in (("cartpole_nominal_ukf", "boundaries"), ("cartpole_nominal_ukf_float32", "boundaries"),
+    for folder, owner in (("cartpole_nominal_ukf", "boundaries"),
+                          ("cartpole_nominal_ukf_float32", "boundaries"),
                           ("cartpole_nominal_mhe_gn_float32", "boundaries"),
                           ("cartpole_nominal_mhe_rti_float32", "boundaries")):
         big.append(_case(f"float32/csv-1e39-{folder.replace('cartpole_nominal_', '')}", owner, RESULT,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import click
 import numpy as np
@@ -97,19 +96,18 @@ def test_demo_end_to_end(tmp_path):
         assert (tmp_path / png).stat().st_size > 10_000
 
 
-def test_demo_defaults_are_the_quick_training_recipe():
-    """The demo's option defaults are QUICK_TRAINING (written out so that `learnest --help`
-    imports no torch), and Table I's cartpole task trains with RECOMMENDED_TRAINING."""
-    from learnest_codegen.config import QUICK_TRAINING, RECOMMENDED_TRAINING
+def test_demo_defaults_are_the_one_default_training():
+    """The demo's option defaults are DEFAULT_TRAINING's (read from config, so that `learnest
+    --help` imports no torch), and Table I's cartpole task trains with its own recipe."""
+    from learnest_codegen.config import DEFAULT_TRAINING, TABLE1_CARTPOLE_TRAINING
     from learnest_codegen.experiments import DEFAULT_TASKS
 
     defaults = {p.name: p.default for p in cli.commands["demo"].params}
     for name in ("epochs", "refine", "restarts", "weight_decay", "weight_average"):
-        assert defaults[name] == getattr(QUICK_TRAINING, name), name
+        assert defaults[name] == getattr(DEFAULT_TRAINING, name), name
     help_text = " ".join(cli.commands["demo"].get_help(click.Context(cli)).split())
-    assert f"Table I uses {RECOMMENDED_TRAINING.refine})" in help_text
-    assert DEFAULT_TASKS["cartpole"].training == RECOMMENDED_TRAINING
-    assert replace(RECOMMENDED_TRAINING, refine=QUICK_TRAINING.refine) == QUICK_TRAINING
+    assert f"Table I uses {TABLE1_CARTPOLE_TRAINING.refine})" in help_text
+    assert DEFAULT_TASKS["cartpole"].training == TABLE1_CARTPOLE_TRAINING
 
 
 def test_gate_options_default_to_the_gate_settings():

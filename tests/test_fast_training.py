@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from learnest_codegen import config
-from learnest_codegen.errors import UnknownNameError
+from learnest_codegen.errors import SettingsError, UnknownNameError
 from learnest_codegen.learning.training import load_model, make_net, one_step_loss
 from learnest_codegen.observers import _discrete_with_jacobian, _ekf_passes, _rts_backward
 from learnest_codegen.simulation import simulate
@@ -84,12 +84,14 @@ def _numpy_ekf_rts(run, system, residual, q_scale):
             Ak = A(x, run.u[k - 1]).full()
             x, P = F(x, run.u[k - 1]).full().ravel(), Ak @ P @ Ak.T + Q
         xps[k], Pps[k] = x, P
-        Hk = H(x, run.u[k]).full()
-        innov = run.y[k] - system.h(x, run.u[k])
-        S = Hk @ P @ Hk.T + R
-        K = np.linalg.solve(S, Hk @ P).T
-        x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
-        loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
+        rows = np.flatnonzero(np.isfinite(run.y[k]))  # the outputs present: an update with them
+        if len(rows):
+            Hk = H(x, run.u[k]).full()[rows]
+            innov = (run.y[k] - system.h(x, run.u[k]))[rows]
+            S = Hk @ P @ Hk.T + R[np.ix_(rows, rows)]
+            K = np.linalg.solve(S, Hk @ P).T
+            x, P = x + K @ innov, (np.eye(n) - K @ Hk) @ P
+            loglik -= 0.5 * (innov @ np.linalg.solve(S, innov) + np.linalg.slogdet(2 * np.pi * S)[1])
         xs[k], Ps[k] = x, P
     zeta, covs = xs.copy(), Ps.copy()
     for k in range(T - 2, -1, -1):
@@ -99,14 +101,21 @@ def _numpy_ekf_rts(run, system, residual, q_scale):
     return xs, Ps, loglik, zeta, covs
 
 
+@pytest.mark.parametrize("missing", [False, True])
 @pytest.mark.parametrize("name", ["cartpole", "ground_robot"])
-def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name):
+def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name, missing):
     """The EKF's forward recursion and the RTS pass, run as CasADi ``mapaccum``s, equal the
-    step-by-step numpy passes (states to 1e-9, log-likelihood to 1e-9 relative)."""
+    step-by-step numpy passes (states to 1e-9, log-likelihood to 1e-9 relative); with missing
+    outputs (NaN), the update uses those present and a sample with none is a prediction."""
     from learnest_codegen.systems import get_system
 
     system = get_system(name)
     run = simulate(system, 0, duration=1.0)
+    if missing:
+        y = run.y.copy()
+        y[::3, 0] = np.nan  # the first output at two thirds of the rate
+        y[200:260] = np.nan  # every output, 60 samples
+        run = dataclasses.replace(run, y=y)
     residual = None
     if name == "cartpole":
         residual = load_model(OLD_MODEL, system).net.casadi
@@ -138,19 +147,26 @@ def test_training_settings_live_in_config_and_keep_their_old_homes():
 
     assert training.TrainingSettings is config.TrainingSettings
     assert network.NetworkSettings is config.NetworkSettings
-    assert training.RECOMMENDED_TRAINING is config.RECOMMENDED_TRAINING
-    assert training.QUICK_TRAINING is config.QUICK_TRAINING
-    assert config.recipe("quick") is config.QUICK_TRAINING
-    with pytest.raises(UnknownNameError, match="recommended"):
+    assert training.DEFAULT_TRAINING is config.DEFAULT_TRAINING
+    assert config.recipe("table1_cartpole") is config.TABLE1_CARTPOLE_TRAINING
+    assert config.recipe("paper") == config.TrainingSettings()
+    with pytest.raises(UnknownNameError, match="table1_cartpole"):
         config.recipe("fastest")
 
 
-def test_cli_defaults_come_from_config():
-    """``learnest train``'s option defaults are TRAIN_COMMAND_TRAINING's fields."""
+def test_one_default_training_for_the_command_line_and_the_library(cartpole, monkeypatch):
+    """``learnest train``'s option defaults are DEFAULT_TRAINING's fields, and ``ln.train``
+    without settings trains with DEFAULT_TRAINING itself: the two doors give the same settings."""
+    import learnest_codegen as ln
     from learnest_codegen.cli import cli
+    from learnest_codegen.learning import training
 
+    seen = []
+    monkeypatch.setattr(training, "train_on_run", lambda run, system, settings, **kw: seen.append(settings))
+    ln.train(simulate(cartpole, 0, duration=0.1), cartpole)
+    assert seen == [config.DEFAULT_TRAINING]
     defaults = {p.name: p.default for p in cli.commands["train"].params}
-    settings = config.TRAIN_COMMAND_TRAINING
+    settings = config.DEFAULT_TRAINING
     for name in ("epochs", "learning_rate", "batch_size", "seed", "validation_fraction", "refine",
                  "restarts", "weight_decay", "final_learning_rate", "weight_average"):
         assert defaults[name] == getattr(settings, name), name
@@ -198,7 +214,7 @@ def test_the_recipes_keep_the_weight_averages_window_and_other_batches_get_other
     other's."""
     from learnest_codegen.experiments.table1 import DEFAULT_TASKS, Job
 
-    recommended = config.RECOMMENDED_TRAINING
+    recommended = config.TABLE1_CARTPOLE_TRAINING
     steps = -(-8000 // recommended.batch_size)
     assert recommended.weight_average ** steps == pytest.approx(0.99 ** 32, rel=1e-3)
     full = dataclasses.replace(recommended, batch_size=config.FULL_BATCH, weight_average=0.725)
@@ -235,10 +251,10 @@ def test_patience_and_warm_refinement_settings_and_identity():
     assert out["warm_refinement"] == {"epochs": 7, "batch_size": 64, "learning_rate": 1e-3,
                                       "weight_average": 0.5}
     for bad in ({"patience": 0}, {"patience": -2}):
-        with pytest.raises(ValueError, match="patience"):
+        with pytest.raises(SettingsError, match="patience"):
             config.TrainingSettings(**bad)
     for bad in ({"epochs": 0}, {"learning_rate": 0.0}, {"weight_average": 1.0}):
-        with pytest.raises(ValueError):
+        with pytest.raises(SettingsError, match="WarmRefinement"):
             config.WarmRefinement(**bad)
 
 
@@ -288,7 +304,7 @@ def test_a_warm_start_begins_at_the_given_net_and_keeps_its_input_scaling(cartpo
     for name, value in first.net.state_dict().items():
         np.testing.assert_allclose(warm.net.state_dict()[name], value, rtol=0, atol=1e-10)
     assert not torch.allclose(fresh.net.in_mean, first.net.in_mean)
-    with pytest.raises(ValueError, match="warm start"):
+    with pytest.raises(SettingsError, match="warm start"):
         train(system, run.x[:300], run.u[:300], run.dt, dataclasses.replace(still, restarts=2),
               init=first, progress=False)
 
@@ -309,3 +325,74 @@ def test_warm_refinement_rounds_train_one_net_from_the_previous_round(cartpole):
     assert len(model.meta["validation_history"]) == warm.epochs  # the last round's
     assert len(model.meta["restart_score"]) == settings.restarts  # the first round's choice
     assert model.meta["restart_seed"] in (1, 2)
+
+
+def test_refinement_rounds_can_train_the_first_rounds_choice_alone(cartpole, monkeypatch):
+    """With ``refine_restarts=1`` the first round trains ``restarts`` initialisations and the
+    measurements choose one; every refinement round then trains that initialisation alone (its
+    seed), unscored. The model records the whole recipe."""
+    from learnest_codegen.learning import training
+
+    run = simulate(cartpole, seed=4, duration=1.0)
+    settings = config.TrainingSettings(epochs=2, restarts=3, refine=2, refine_restarts=1, seed=5)
+    calls = []
+    real_train = training.train
+
+    def spy(system, zeta, u, dt, s, **kw):
+        calls.append((s.restarts, s.seed, kw.get("score") is not None))
+        return real_train(system, zeta, u, dt, s, **kw)
+
+    monkeypatch.setattr(training, "train", spy)
+    model = training.train_on_run(run, cartpole, settings, progress=False)
+    winner = model.meta["restart_seed"]  # the last round trained the first round's choice
+    assert calls[0] == (3, 5, True)
+    assert calls[1:] == [(1, winner, False), (1, winner, False)] and winner in (5, 6, 7)
+    assert model.meta["training"] == settings.to_json() and settings.to_json()["refine_restarts"] == 1
+    assert "refine_restarts" not in config.TrainingSettings().to_json()
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot", "quadrotor"])
+def test_the_training_derivative_equals_the_hybrid_model(name):
+    """``ResidualNet.derivative`` (shared sines and cosines, no stacking in between) and its
+    components-first form ``derivative_t``, which the loss runs on, equal ``f_prior + Delta`` as
+    ``hybrid`` evaluates it, and so do the gradients of a loss through them, for three restarts
+    stacked."""
+    from learnest_codegen.integrators import rk4_step
+    from learnest_codegen.learning.network import StackedMLP
+    from learnest_codegen.systems import get_system
+
+    system = get_system(name)
+    run = simulate(system, 0, duration=0.5)
+    torch.manual_seed(0)
+    net = make_net(system)
+    net.set_input_scaling(run.x, run.u)
+    mlp = StackedMLP([make_net(system).mlp for _ in range(3)])
+    x = torch.as_tensor(run.x).expand(3, *run.x.shape)
+    u = torch.as_tensor(run.u).expand(3, *run.u.shape)
+    losses = []
+    for fn, layout in ((lambda a, b: net.hybrid(system.f, a, b, mlp), lambda a: a),
+                       (lambda a, b: net.derivative(a, b, mlp), lambda a: a),
+                       (lambda a, b: net.derivative_t(a, b, mlp), lambda a: a.permute(2, 0, 1))):
+        loss = (rk4_step(fn, layout(x), layout(u), run.dt) ** 2).sum()
+        losses.append((loss, torch.autograd.grad(loss, list(mlp.parameters()))))
+    l_ref, g_ref = losses[0]
+    for l_new, g_new in losses[1:]:
+        assert l_new.item() == pytest.approx(l_ref.item(), rel=1e-14)
+        for a, b in zip(g_new, g_ref):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(b.abs().max()))
+
+
+def test_progress_stays_quiet_off_a_terminal(cartpole, cartpole_run, capsys):
+    """Redirected to a file (not a terminal), training writes no progress bar: one log line per
+    refresh would fill a log (90 KB for one training before); only the observer choice, said
+    once, is written."""
+    from learnest_codegen.learning.training import train, train_on_run
+
+    train(cartpole, cartpole_run.x[:300], cartpole_run.u[:300], cartpole_run.dt,
+          config.TrainingSettings(epochs=30), progress=True)
+    err = capsys.readouterr().err
+    assert "training cartpole" not in err and "it/s" not in err and len(err) < 100, err
+    run = simulate(cartpole, 0, duration=0.4)
+    train_on_run(run, cartpole, config.TrainingSettings(epochs=2), progress=True)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["pre-training observer: rts (the system declares kinematic chains covering its states)"]

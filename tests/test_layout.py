@@ -51,3 +51,23 @@ def test_no_module_is_over_400_lines_without_a_stated_reason():
         if text.count("\n") > MAX_LINES and "\nLength:" not in text.split('"""')[1]:
             long.append(f"{path.relative_to(root)} ({text.count(chr(10))} lines)")
     assert long == []
+
+
+def test_no_bare_value_error_outside_the_modules_still_being_converted():
+    """A user's mistake raises a subclass of ``LearnestError`` (errors.py), so ``except
+    LearnestError`` catches every one. Still converting: the diagnosis package and the
+    quadrotor experiment."""
+    import ast
+
+    package = SCRIPT.parents[1] / "learnest_codegen"
+    pending = {"diagnosis", "experiments/quadrotor.py"}
+    bare = []
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package).as_posix()
+        if any(rel == p or rel.startswith(p + "/") for p in pending):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) \
+                    and isinstance(node.exc.func, ast.Name) and node.exc.func.id == "ValueError":
+                bare.append(f"{rel}:{node.lineno}")
+    assert bare == []

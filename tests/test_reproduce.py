@@ -60,7 +60,14 @@ def test_quick_sweep_writes_results_and_table(sweep):
         assert {"simulate", "train_knode", "compile_knode", "estimate"} <= set(res["timings"])
         assert (f.with_suffix("") / "models" / "knode" / "model.json").is_file()
     assert not list((out / "runs").glob("*/*.error.json"))
+    # the MHE rows run on mhe_gn; seed 0 ran the Ipopt MHE beside it, and the table says how close
+    seed0, seed1 = (load(f)["methods"] for f in files)
+    for label in ("MHE", "KNODE-MHE", "KNODE-MHE (full state)", "MHE (true dynamics)"):
+        ref = seed0[label]["reference"]
+        assert ref["estimator"] == "mhe" and ref["max_abs_difference"] < 1e-6, (label, ref)
+        assert ref["mse_relative_difference"] < 1e-5 and "reference" not in seed1[label]
     md = (out / "table1.md").read_text()
+    assert "the Ipopt MHE ran beside it on the same 4 rows" in md
     rows = list(csv.reader((out / "table1.csv").open()))
     for label in rep.METHOD_LABELS:
         assert f"| {label} |" in md and label in output

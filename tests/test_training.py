@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from learnest_codegen.errors import ModelMismatchError, ShapeError, UnknownNameError
+from learnest_codegen.errors import DataError, ModelMismatchError, SettingsError, ShapeError, UnknownNameError
 from learnest_codegen.export import hybrid_model, prior_model, true_model
 from learnest_codegen.integrators import rk4_step
 from learnest_codegen.learning.network import NetworkSettings, ResidualNet
@@ -128,9 +128,9 @@ def test_full_state_smoother_beats_raw_noise(cartpole, cartpole_run):
 
 
 def test_bad_inputs(cartpole):
-    with pytest.raises(ValueError, match="zeta"):
+    with pytest.raises(ShapeError, match="zeta"):
         train(cartpole, np.zeros((10, 3)), np.zeros((10, 1)), 0.01, progress=False)
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(DataError, match="finite"):
         train(cartpole, np.full((10, 4), np.nan), np.zeros((10, 1)), 0.01, progress=False)
     with pytest.raises(UnknownNameError):
         NetworkSettings(activation="Swish")
@@ -170,7 +170,7 @@ def test_residual_ignores_the_coordinates_the_physics_is_invariant_to(name):
 def test_residual_inputs_must_name_signals(cartpole):
     with pytest.raises(ValueError, match=r"residual\.inputs"):
         cartpole.with_residual(inputs=("p", "nonsense"))
-    with pytest.raises(ValueError, match="inputs must be a non-empty subset"):
+    with pytest.raises(SettingsError, match="inputs must be a non-empty subset"):
         ResidualNet(4, 1, inputs=(7,))
 
 
@@ -217,7 +217,7 @@ def test_residual_via_is_checked(cartpole, tmp_path):
         cartpole.with_residual(via=("pdot",))
     with pytest.raises(ValueError, match="not both"):
         cartpole.with_residual(states=("pdot",))
-    with pytest.raises(ValueError, match="via must index"):
+    with pytest.raises(SettingsError, match="via must index"):
         ResidualNet(4, 1, via=(0,))  # no prior dynamics to act through
     run = simulate(cartpole, 0, duration=0.2)
     model = train(cartpole, run.x, run.u, run.dt, TrainingSettings(epochs=1), progress=False)
@@ -245,7 +245,7 @@ def test_prior_features_are_the_prior_derivatives(cartpole):
     _assert_acts_as_force(cartpole, net, x, u, 2.0 * np.tanh(0.3 * cartpole.f(x, u)[:, 1]))  # unit scaling
     with pytest.raises(ValueError, match=r"residual\.prior_features"):
         cartpole.with_residual(prior_features=("nope",))
-    with pytest.raises(ValueError, match="prior_features must index"):
+    with pytest.raises(SettingsError, match="prior_features must index"):
         ResidualNet(4, 1, prior_features=(1,))
 
 
@@ -266,7 +266,7 @@ def test_prior_gains_multiply_the_prior_accelerations(cartpole):
     _assert_acts_as_force(cartpole, net, x, u, -0.4 * cartpole.f(x, u)[:, 1] / 2.0)
     with pytest.raises(ValueError, match=r"residual\.prior_gains"):
         cartpole.with_residual(prior_features=())
-    with pytest.raises(ValueError, match="prior_gains"):
+    with pytest.raises(SettingsError, match="prior_gains"):
         ResidualNet(4, 1, prior_gains=True)
 
 
@@ -302,7 +302,7 @@ def test_restarts_keep_the_lowest_validation_loss(cartpole, cartpole_run):
                    dataclasses.replace(settings, seed=chosen, restarts=1), progress=False)
     for a, b in zip(model.net.state_dict().values(), single.net.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-    with pytest.raises(ValueError, match="restarts"):
+    with pytest.raises(SettingsError, match="restarts"):
         TrainingSettings(restarts=0)
 
 
@@ -356,7 +356,7 @@ def test_weight_decay_settings_and_identity():
     assert "weight_decay" not in TrainingSettings().to_json()
     assert TrainingSettings(weight_decay=0.1).to_json()["weight_decay"] == 0.1
     for bad in (-0.1, 100.0):  # 100 * lr 1e-2 would zero every weight in one step
-        with pytest.raises(ValueError, match="weight_decay"):
+        with pytest.raises(SettingsError, match="weight_decay"):
             TrainingSettings(weight_decay=bad)
 
 
@@ -388,7 +388,7 @@ def test_final_learning_rate_settings_and_identity():
     assert "final_learning_rate" not in TrainingSettings().to_json()
     assert TrainingSettings(final_learning_rate=1e-4).to_json()["final_learning_rate"] == 1e-4
     for bad in (0.0, -1e-4, 0.1):  # above the starting rate 1e-2 is not an annealing
-        with pytest.raises(ValueError, match="final_learning_rate"):
+        with pytest.raises(SettingsError, match="final_learning_rate"):
             TrainingSettings(final_learning_rate=bad)
 
 

@@ -61,6 +61,30 @@ def system_named(name: str):
     return get_system(name)
 
 
+def resolve_system(system_name: str | None, model: str | None = None, compiled: str | None = None,
+                   default: str | None = "cartpole"):
+    """The system of a command: ``--system`` when given; else the one a model directory
+    (``--model``) or a compiled estimator folder (``--compiled``) records (a built-in by name, a
+    system file by path, refused when the file changed); else ``default``."""
+    from pathlib import Path
+
+    from ..learning.source import KEY, model_meta, read_sidecar, system_from_source
+
+    if system_name is not None:
+        return system_named(system_name)
+    if model is not None and model not in ("nominal", "true"):
+        meta = model_meta(model)
+        return system_from_source(meta.get(KEY), meta.get("system"), f"model {model}")
+    if compiled is not None:
+        from ..runtime.manifest import read_manifest
+
+        return system_from_source(read_sidecar(compiled), read_manifest(Path(compiled)).get("system"),
+                                  f"compiled estimator {compiled}")
+    if default is None:
+        raise click.UsageError("give --system (a built-in name or a system file)")
+    return system_named(default)
+
+
 
 # the names of compilation.ESTIMATOR_NAMES (not imported here: it would load casadi for --help)
 ESTIMATOR_CHOICES = ["mhe", "ukf", "mhe_gn", "mhe_rti"]

@@ -18,7 +18,7 @@ from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, system_named
 @click.option("--format", "data_format", default="run", show_default=True,
               help="format of --data: run, or a reader in learnest_codegen.recordings (nanobench, dart)")
 @click.option("--model", default=None, type=click.Path(file_okay=False),
-              help="trained KNODE model directory to compare with")
+              help="trained KNODE model directory to compare with (its system is the default of --system)")
 @click.option("--out", default=None, type=click.Path(file_okay=False),
               help="folder for diagnosis.json, report.md and figures")
 @click.option("--source", type=click.Choice(["auto", "truth", "observer"]), default="auto", show_default=True,
@@ -77,8 +77,8 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
         if failed:
             raise click.ClickException(f"{len(failed)} self-test case(s) failed: {'; '.join(failed)}")
         return
-    if data is None or out is None or (system_name is None and data_format == "run"):
-        raise click.UsageError("give --system (unless --format names it), --data and --out "
+    if data is None or out is None or (system_name is None and model is None and data_format == "run"):
+        raise click.UsageError("give --system (unless --format or --model names it), --data and --out "
                                "(or --list-effects / --selftest)")
     from ..data import check_sampling
     from ..data import resample as to_grid
@@ -86,6 +86,10 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     from ..outputs import claim_output
 
     claim_output(out, inputs=(data, model), force=force, kind="dir")
+    if system_name is None and model is not None and data_format == "run":  # the model's own
+        from .common import resolve_system
+
+        system_name = resolve_system(None, model)
     system, found = dg.load_recordings(system_name, data, data_format)
     if resample:
         if found.references is not None:
@@ -94,6 +98,7 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
         found = dataclasses.replace(found, runs=[to_grid(r, system.dt) for r in found.runs])
     for name, r in zip(found.names, found.runs):
         check_sampling(r, system.dt, f"{data} ({name})")
+    click.echo(compared_against(system, found.runs, settings, data))
     trained = None
     if model is not None:
         from ..learning.training import load_model
@@ -105,3 +110,20 @@ def diagnose(system_name, data, data_format, model, out, source, observer, estim
     report = write_report(result, out)
     click.echo(dg.summary(result.report))
     click.echo(f"wrote {Path(out) / 'diagnosis.json'} and {report}")
+
+
+def compared_against(system, runs, settings, data) -> str:
+    """One line saying which states the prior is compared against: the runs' true states
+    (``x_`` columns; ``--source auto`` takes them when every run has them) or the
+    pre-training observer's estimates from the measurements."""
+    source = settings.source
+    if source == "auto":
+        source = "truth" if all(r.x is not None for r in runs) else "observer"
+    if source == "truth":
+        columns = ", ".join(f"x_{n}" for n in system.state_names)
+        return (f"diagnose: comparing against the true states in {data} ({columns}); "
+                "--source observer uses the measurements alone")
+    observer = settings.observer or system.default_observer
+    outputs = ", ".join(f"y_{n}" for n in system.output_names)
+    return (f"diagnose: comparing against the states the {observer!r} observer estimates from "
+            f"the measurements in {data} ({outputs})")

@@ -4,7 +4,6 @@ and estimates of a run.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -20,6 +19,7 @@ from .common import (
     friendly,
     gate_settings,
     read_run,
+    resolve_system,
     system_named,
     with_gate_options,
 )
@@ -28,26 +28,23 @@ from .common import (
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
              estimators: tuple[str, ...], precision: str = "float64", gate=None,
              force: bool = False) -> dict:
-    from ..compilation import compile_estimators, estimator_dir, precision_problem, resolve_model
+    from ..compilation import estimator_dir, precision_problem
     from ..outputs import claim_output
+    from ..pipeline import compile_model, resolve
 
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
     if nominal:
-        system = system_named(system_name or "cartpole")
-        model, model_hash = resolve_model(system, "nominal")
+        model, system = "nominal", system_named(system_name or "cartpole")
     else:
         if model_dir is None:
             raise click.UsageError("give MODEL_DIR, or --nominal for the prior-only estimators")
-        meta_path = Path(model_dir) / "model.json"
-        if system_name is None and meta_path.is_file():
-            system_name = json.loads(meta_path.read_text()).get("system")
-        model, model_hash = resolve_model(system_named(system_name or "cartpole"), model_dir)
+        model, system = model_dir, resolve_system(system_name, model_dir)
+    resolved = resolve(model, system).model
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
-        claim_output(estimator_dir(Path(out), model, name, precision), inputs=(model_dir,),
-                     force=force, kind="dir")
-    results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators,
-                                 precision=precision, gate=gate)
+        claim_output(estimator_dir(Path(out), resolved, name, precision),
+                     inputs=(model_dir,) if model_dir else (), force=force, kind="dir")
+    results = compile_model(model, out, estimators, system=system, precision=precision, gate=gate)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused
@@ -59,7 +56,8 @@ COMPILE_OPTIONS = [
     click.argument("model_dir", required=False, type=click.Path(file_okay=False)),
     click.option("--out", default="generated", show_default=True, type=click.Path(file_okay=False),
                  help="output directory (one subdirectory per estimator)"),
-    click.option("--system", "system_name", default=None, help=SYSTEM_HELP + " (default: the model's)"),
+    click.option("--system", "system_name", default=None,
+                 help=SYSTEM_HELP + " (default: the one the model records; cartpole with --nominal)"),
     click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
     click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
                  default=("mhe", "ukf"), show_default=True, help=ESTIMATOR_HELP),
@@ -103,7 +101,8 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
 
 
 @click.command()
-@click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
+@click.option("--system", "system_name", default=None,
+              help=SYSTEM_HELP + " (default: the one --model or --compiled records; cartpole otherwise)")
 @click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="run CSV")
 @click.option("--estimator", type=click.Choice(ESTIMATOR_CHOICES), required=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
@@ -121,8 +120,10 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
              gate_recover_after, gate_inflation, resample, force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state.
 
-    Samples whose outputs the innovation gate rejected are counted in the summary line; they
-    are not errors."""
+    With a model directory (--model) or a compiled folder (--compiled) the system is the one it
+    records. When the run holds the truth, the summary gives the MSE over all states and the RMS
+    error of each state in its unit. Samples whose outputs the innovation gate rejected are
+    counted in the summary line; they are not errors."""
     from ..compilation import estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -135,7 +136,7 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)
-    system = system_named(system_name)
+    system = resolve_system(system_name, model, compiled if backend == "c" else None)
     run = read_run(data, system, resample)
     resolved = resolve(model, system)
     gate = gate_settings(gate_threshold, gate_recover_after, gate_inflation)
@@ -152,6 +153,10 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
                    comments="", fmt="%.17g")
     line = f"wrote {out}: {len(run)} estimates, {result.seconds_per_step * 1e6:.1f} us/step"
     if run.x is not None:
-        line += f", MSE vs truth {mse(result.x_hat, run.x):.4e}"
+        line += f", MSE vs truth {mse(result.x_hat, run.x):.4e} (all states)"
     line += f", {result.rejections} output(s) rejected by the innovation gate"
     click.echo(line)
+    if run.x is not None:  # one figure per state, in its own unit
+        rms = np.sqrt(np.mean((result.x_hat - run.x) ** 2, axis=0))
+        click.echo("RMS error per state: " + ", ".join(
+            f"{s.name} {e:.3g} {s.unit}".rstrip() for s, e in zip(system.states, rms)))

@@ -9,25 +9,27 @@ from pathlib import Path
 
 import click
 
-from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING
+from ..config import DEFAULT_TRAINING, TABLE1_CARTPOLE_TRAINING
 from .common import SYSTEM_HELP, friendly, system_named
 
 
 @click.command()
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
 @click.option("--out", default="out/demo", show_default=True, type=click.Path(file_okay=False))
-@click.option("--epochs", default=QUICK_TRAINING.epochs, show_default=True)
-@click.option("--observer", default=None, help="pre-training observer (default: the system's own)")
+@click.option("--epochs", default=DEFAULT_TRAINING.epochs, show_default=True)
+@click.option("--observer", default=None,
+              help="pre-training observer (default: chosen for the system, and said)")
 @click.option("--duration", type=float, default=None, help="length of each run [s] (default: the system's)")
-@click.option("--refine", default=QUICK_TRAINING.refine, show_default=True,
-              help=f"model-based smoothing rounds (0 = paper; Table I uses {RECOMMENDED_TRAINING.refine})")
-@click.option("--restarts", type=click.IntRange(min=1), default=QUICK_TRAINING.restarts, show_default=True,
+@click.option("--refine", default=DEFAULT_TRAINING.refine, show_default=True,
+              help=f"model-based smoothing rounds (0 = paper; Table I uses "
+                   f"{TABLE1_CARTPOLE_TRAINING.refine})")
+@click.option("--restarts", type=click.IntRange(min=1), default=DEFAULT_TRAINING.restarts, show_default=True,
               help="initialisations per training round (the one whose model best explains the "
                    "measurements is kept; 1 = paper)")
-@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=QUICK_TRAINING.weight_decay,
+@click.option("--weight-decay", type=click.FloatRange(min=0.0), default=DEFAULT_TRAINING.weight_decay,
               show_default=True, help="decoupled weight decay (AdamW; 0 = the paper's Adam)")
 @click.option("--weight-average", type=click.FloatRange(min=0.0, max=1.0, max_open=True),
-              default=QUICK_TRAINING.weight_average, show_default=True,
+              default=DEFAULT_TRAINING.weight_average, show_default=True,
               help="keep the moving average of the weights (decay per step; 0 = the weights "
                    "themselves, as the paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
@@ -36,10 +38,11 @@ def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_
          no_python_mhe) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run.
 
-    The training defaults are ``QUICK_TRAINING`` (learnest_codegen.config)."""
+    The training defaults are ``DEFAULT_TRAINING`` (learnest_codegen.config), as ``learnest
+    train``'s."""
     from ..experiments.demo import run_demo
 
-    training = replace(QUICK_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
+    training = replace(DEFAULT_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
                        weight_decay=weight_decay, weight_average=weight_average)
     report = run_demo(system_named(system_name), out, training=training, observer=observer,
                       python_mhe=not no_python_mhe, duration=duration)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import click
 
 from ..config import ACTIVATIONS
-from ..config import TRAIN_COMMAND_TRAINING as _TRAIN
+from ..config import DEFAULT_TRAINING as _TRAIN
 from .common import FORCE, RESAMPLE, SYSTEM_HELP, friendly, read_run, system_named
 
 
@@ -45,8 +45,8 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
 @click.option("--activation", default=_TRAIN.network.activation, show_default=True,
               type=click.Choice(ACTIVATIONS))
 @click.option("--observer", default=None,
-              help="pre-training observer turning (y, u) into state observations "
-                   "(default: the system's own; see `learnest_codegen.observers.OBSERVERS`)")
+              help="pre-training observer turning (y, u) into state observations (default: chosen "
+                   "for the system, and said; see `learnest_codegen.observers.OBSERVERS`)")
 @click.option("--full-state", is_flag=True, help="train on noisy full states (needs x_ columns)")
 @click.option("--refine", default=_TRAIN.refine, show_default=True,
               help="rounds of model-based (EKF-RTS) smoothing and retraining; 0 = the paper's method")
@@ -73,19 +73,28 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
           observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
           weight_average, seed, resample, force) -> None:
-    """Train the KNODE residual network on a run and write a model directory."""
-    from ..config import NetworkSettings, TrainingSettings
+    """Train the KNODE residual network on a run and write a model directory.
+
+    The option defaults are the one default training, ``DEFAULT_TRAINING``
+    (learnest_codegen.config), the same as the library's ``ln.train``. The model records its
+    system, so later commands need no --system."""
+    from dataclasses import replace
+
+    from ..config import NetworkSettings
     from ..learning.training import train_on_run
     from ..outputs import atomic_dir, claim_output
 
     claim_output(out, inputs=(data,), force=force, kind="dir")
     system = system_named(system_name)
     run = read_run(data, system, resample)
-    settings = TrainingSettings(epochs, learning_rate, batch_size, seed,
-                                NetworkSettings(layers, hidden, activation), validation_fraction, refine,
-                                restarts, weight_decay, final_learning_rate, weight_average)
+    settings = replace(_TRAIN, epochs=epochs, learning_rate=learning_rate, batch_size=batch_size, seed=seed,
+                       network=NetworkSettings(layers, hidden, activation),
+                       validation_fraction=validation_fraction, refine=refine, restarts=restarts,
+                       weight_decay=weight_decay, final_learning_rate=final_learning_rate,
+                       weight_average=weight_average)
     model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
     with atomic_dir(out) as tmp:
         model.save(tmp)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
-               f"(prior alone {model.meta['prior_loss']:.4e}), {model.meta['train_seconds']:.1f} s")
+               f"(prior alone {model.meta['prior_loss']:.4e}), observer {model.meta['observer']}, "
+               f"{model.meta['train_seconds']:.1f} s")

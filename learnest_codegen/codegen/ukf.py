@@ -18,6 +18,7 @@ from pathlib import Path
 import casadi as cs
 import numpy as np
 
+from ..errors import SettingsError
 from ..estimators.precision import check_precision
 from ..estimators.ukf import UKFSettings
 from ..export import DiscreteModel
@@ -191,7 +192,7 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
     """
     check_precision(precision, "generate_ukf")
     if precision == "float32" and settings.alpha < FLOAT32_MIN_ALPHA:
-        raise ValueError(f"generate_ukf: a float32 UKF needs alpha >= {FLOAT32_MIN_ALPHA}, got "
+        raise SettingsError(f"generate_ukf: a float32 UKF needs alpha >= {FLOAT32_MIN_ALPHA}, got "
                          f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
                          "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
                          "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")

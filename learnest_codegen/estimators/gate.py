@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import SettingsError
 from ..runtime.limits import check_option
 
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
@@ -97,7 +98,7 @@ class GateSettings:
         from scipy.stats import chi2
 
         if not 0 < probability < 1:
-            raise ValueError(f"false-rejection probability must be in (0, 1), got {probability}")
+            raise SettingsError(f"false-rejection probability must be in (0, 1), got {probability}")
         return cls(threshold=float(chi2.isf(probability, 1)), **overrides)
 
     def c_threshold(self) -> float:

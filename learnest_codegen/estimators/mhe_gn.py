@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from ..errors import SettingsError
 from ..runtime.limits import check_option
 from .precision import check_precision
 
@@ -45,7 +46,7 @@ class GaussNewtonSettings:
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
-            raise ValueError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
+            raise SettingsError(f"GaussNewtonSettings.mode must be one of {MODES}, got {self.mode!r}")
         check_precision(self.precision, "GaussNewtonSettings")
         object.__setattr__(self, "max_iterations", check_option(
             "max_iterations", self.max_iterations, "GaussNewtonSettings.max_iterations"))

@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 import casadi as cs
 import numpy as np
 
-from ..errors import ShapeError
+from ..errors import SettingsError, ShapeError
 from ..runtime.limits import check_option
 from .gate import GateSettings
 
@@ -108,17 +108,17 @@ class MHESettings:
         for name in ("process_std", "measurement_std", "arrival_std"):
             values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
-                raise ValueError(f"MHESettings.{name} must be finite positive numbers, got {values}")
+                raise SettingsError(f"MHESettings.{name} must be finite positive numbers, got {values}")
             object.__setattr__(self, name, tuple(check_option("std", v, f"MHESettings.{name}")
                                                  for v in values))
         if self.arrival_covariance is not None:
             cov = np.asarray(self.arrival_covariance, dtype=float)
             n = len(self.arrival_std)
             if cov.shape != (n, n) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T):
-                raise ValueError(f"MHESettings.arrival_covariance must be a finite symmetric "
-                                 f"({n}, {n}) matrix, got shape {cov.shape}")
+                raise SettingsError(f"MHESettings.arrival_covariance must be a finite symmetric "
+                                    f"({n}, {n}) matrix, got shape {cov.shape}")
             if np.linalg.eigvalsh(cov).min() <= 0:
-                raise ValueError("MHESettings.arrival_covariance must be positive definite")
+                raise SettingsError("MHESettings.arrival_covariance must be positive definite")
             object.__setattr__(self, "arrival_covariance", tuple(tuple(map(float, r)) for r in cov))
 
     @classmethod
@@ -187,9 +187,9 @@ def steady_state_arrival(model: "DiscreteModel", settings: MHESettings,
     try:
         P = solve_discrete_are(A.T, C.T, Q, R)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        raise ValueError(f"steady-state arrival cost: the Riccati equation of {system.name!r} "
-                         f"linearised at x={x.tolist()} has no stabilising solution ({exc}); "
-                         "set MHESettings.arrival_std instead") from exc
+        raise SettingsError(f"steady-state arrival cost: the Riccati equation of {system.name!r} "
+                            f"linearised at x={x.tolist()} has no stabilising solution ({exc}); "
+                            "set MHESettings.arrival_std instead") from exc
     return dataclasses.replace(settings, arrival_covariance=0.5 * (P + P.T))
 
 

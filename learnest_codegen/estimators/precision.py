@@ -6,11 +6,13 @@ single-precision FPU (accuracy cost and guards: ``docs/embedded_mhe.md``).
 
 from __future__ import annotations
 
+from ..errors import SettingsError
+
 PRECISIONS = {"float64": "double", "float32": "float"}
 
 
 def check_precision(precision: str, where: str) -> str:
-    """``precision`` if it is one of :data:`PRECISIONS`, else a ValueError naming them."""
+    """``precision`` if it is one of :data:`PRECISIONS`, else a SettingsError naming them."""
     if precision not in PRECISIONS:
-        raise ValueError(f"{where}: precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
+        raise SettingsError(f"{where}: precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
     return precision

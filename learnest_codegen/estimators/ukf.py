@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from ..errors import DataError, ShapeError, SolverError
+from ..errors import DataError, SettingsError, ShapeError, SolverError
 from ..export import DiscreteModel
 from ..runtime.limits import check_option
 from ..systems import System
@@ -51,13 +51,13 @@ class UKFSettings:
         for name in ("alpha", "beta", "kappa"):
             value = float(getattr(self, name))
             if not math.isfinite(value):
-                raise ValueError(f"UKFSettings.{name} must be finite, got {value}")
+                raise SettingsError(f"UKFSettings.{name} must be finite, got {value}")
             object.__setattr__(self, name, value)
         check_option("ukf_alpha", self.alpha, "UKFSettings.alpha")
         for name in _STD_FIELDS:
             values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
-                raise ValueError(f"UKFSettings.{name} must be a non-empty sequence of positive "
+                raise SettingsError(f"UKFSettings.{name} must be a non-empty sequence of positive "
                                  f"finite stds, got {values}")
             object.__setattr__(self, name, tuple(check_option("std", v, f"UKFSettings.{name}")
                                                  for v in values))
@@ -80,7 +80,7 @@ class UKFSettings:
                                  f"got {len(getattr(self, name))} values")
         # The sigma points scale P by alpha**2 (n + kappa); it must stay positive.
         if not self.alpha**2 * (model.nx + self.kappa) > 0:
-            raise ValueError(f"UKFSettings: need kappa > -nx = {-model.nx}, got {self.kappa}")
+            raise SettingsError(f"UKFSettings: need kappa > -nx = {-model.nx}, got {self.kappa}")
 
     def to_json(self) -> dict:
         data = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
@@ -227,7 +227,7 @@ class UKF(GateReport):
         cost: ``P_arrival`` is refused."""
         self._require_reset("set_noise")
         if P_arrival is not None:
-            raise ValueError("UKF.set_noise: P_arrival is the MHEs' arrival covariance; the UKF has "
+            raise SettingsError("UKF.set_noise: P_arrival is the MHEs' arrival covariance; the UKF has "
                              "no arrival cost")
         if Q is not None:
             self._kf.Q = validation.covariance("UKF.set_noise Q", Q, self.model.nx).copy()

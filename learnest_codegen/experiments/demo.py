@@ -16,7 +16,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ..config import QUICK_TRAINING, TrainingSettings
+from ..config import DEFAULT_TRAINING, TrainingSettings
 from ..data import write_run
 from ..evaluation import EstimateResult, format_table, mse_per_state, run_estimator
 from ..learning.training import train_on_run
@@ -44,13 +44,13 @@ class DemoReport:
         ])
 
 
-def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QUICK_TRAINING,
+def run_demo(system: System, out: str | Path, *, training: TrainingSettings = DEFAULT_TRAINING,
              observer: str | None = None, train_seed: int = 0, test_seed: int = 1,
              include_true: bool = True, python_mhe: bool = True,
              duration: float | None = None) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``.
 
-    ``training`` defaults to :data:`~learnest_codegen.config.QUICK_TRAINING`; its ``seed`` is
+    ``training`` defaults to :data:`~learnest_codegen.config.DEFAULT_TRAINING`; its ``seed`` is
     replaced by ``train_seed``.
     """
     out = Path(out)
@@ -63,9 +63,9 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = QU
     write_run(train_run, system, out / "train.csv")
     write_run(test_run, system, out / "test.csv")
 
-    observer = observer or system.default_observer
     settings = replace(training, seed=train_seed)
-    say(f"training the KNODE residual on {observer!r} observations ({settings.epochs} epochs, "
+    say(f"training the KNODE residual on {observer or 'the chosen'} observer's states "
+        f"({settings.epochs} epochs, "
         f"{settings.refine} refinement rounds, {settings.restarts} initialisations each, weight decay "
         f"{settings.weight_decay:g}, weight average {settings.weight_average:g})")
     trained = train_on_run(train_run, system, settings, observer=observer)

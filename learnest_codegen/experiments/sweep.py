@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
-from ..errors import UnknownNameError
+from ..errors import SettingsError, UnknownNameError
 from .executors import check_executor, make_executor
 from .store import code_hash, write_json
 from .table1 import (
@@ -108,7 +108,7 @@ def run_sweep(configs: Mapping[str, TaskConfig], *, seeds: int = DEFAULT_SEEDS,
     if backend not in BACKENDS:
         raise UnknownNameError(f"unknown backend {backend!r}; choose from {list(BACKENDS)}")
     if seeds < 1:
-        raise ValueError(f"need seeds >= 1, got {seeds}")
+        raise SettingsError(f"run_sweep: seeds must be >= 1, got {seeds}")
     check_executor(executor)
     start = time.perf_counter()
     out = Path(out)
@@ -203,9 +203,9 @@ def _dispatch(todo: Sequence[Job], pool, report: SweepReport, progress: bool, ec
               *, already: int, total: int) -> None:
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=total, initial=already, desc="table1 jobs", unit="job", disable=not progress,
-               dynamic_ncols=True)
-    say = bar.write if progress else echo
+    bar = tqdm(total=total, initial=already, desc="table1 jobs", unit="job",  # quiet off a terminal
+               disable=None if progress else True, dynamic_ncols=True)
+    say = echo if bar.disable else bar.write
     futures: dict[Future, Job] = {}
     try:
         for job in todo:

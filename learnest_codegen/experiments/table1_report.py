@@ -111,6 +111,7 @@ def summarise(results: Sequence[dict], task: str) -> dict:
                       for stat in ("train_seconds", "best_epoch")} for key in ("knode", "knode_full")}
     timings = sorted({k for r in results for k in r.get("timings", {})})
     return {
+        "ipopt_reference": _reference_summary(results),
         "n_seeds": len(results), "seeds": seeds, "methods": methods, "closure": closure,
         "full_state_vs_true": full, "training_mean": training,
         "timings_mean": {k: float(np.mean([r["timings"].get(k, 0.0) for r in results])) for k in timings},
@@ -119,6 +120,18 @@ def summarise(results: Sequence[dict], task: str) -> dict:
         "backends": sorted({r.get("backend", "?") for r in results}),
         "code": sorted({r.get("code", "?") for r in results}),
     }
+
+
+def _reference_summary(results: Sequence[dict]) -> dict:
+    """The MHE rows' agreement with the Ipopt MHE where a job ran both (the reference seed)."""
+    rows = [(r["seed"], label, v["reference"]) for r in results for label, v in r["methods"].items()
+            if "reference" in v]
+    if not rows:
+        return {}
+    return {"seeds": sorted({seed for seed, _, _ in rows}), "rows": len(rows),
+            "max_abs_difference": max(ref["max_abs_difference"] for _, _, ref in rows),
+            "max_mse_relative_difference": max(ref["mse_relative_difference"] for _, _, ref in rows),
+            "per_row": {f"seed {seed}: {label}": ref for seed, label, ref in rows}}
 
 
 def combine(out: str | Path, *, sweep: dict | None = None, figure: bool = True) -> Table1:
@@ -209,6 +222,13 @@ def format_markdown(table: Table1) -> str:
                      f"{s['training_mean']['knode']['best_epoch']:.0f} (partial), "
                      f"{s['training_mean']['knode_full']['best_epoch']:.0f} (full state); "
                      f"backend {', '.join(s['backends'])}; code {', '.join(s.get('code', ['?']))}")
+        ref = s.get("ipopt_reference") or {}
+        if ref:
+            lines.append(f"- {t}: the MHE rows ran on the embedded Gauss-Newton MHE (`mhe_gn`); on seed(s) "
+                         f"{', '.join(map(str, ref['seeds']))} the Ipopt MHE ran beside it on the same "
+                         f"{ref['rows']} rows: largest difference of an estimate "
+                         f"{ref['max_abs_difference']:.2g}, of a row's MSE "
+                         f"{ref['max_mse_relative_difference']:.2g} (relative)")
         if len(s["configurations"]) > 1:
             lines.append(f"- **warning**: the {t} results mix {len(s['configurations'])} configurations "
                          "(rerun with the same options, or --force)")

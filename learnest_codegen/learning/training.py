@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 import time
 from dataclasses import replace
 from typing import Callable
@@ -74,14 +75,17 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..config import QUICK_TRAINING, RECOMMENDED_TRAINING, TrainingSettings
+from ..config import DEFAULT_TRAINING, TrainingSettings
 from ..data import Run, check_sampling
+from ..errors import DataError, SettingsError, ShapeError
 from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
 from .network import ResidualNet, StackedMLP
+from .source import KEY as SOURCE_KEY
+from .source import system_source
 
-__all__ = ["META", "QUICK_TRAINING", "RECOMMENDED_TRAINING", "WEIGHTS", "TrainingSettings", "TrainedModel",
+__all__ = ["DEFAULT_TRAINING", "META", "WEIGHTS", "TrainingSettings", "TrainedModel",
            "data_hash", "load_model", "make_net", "one_step_loss", "residual_structure", "train",
            "train_on_run"]
 
@@ -95,7 +99,7 @@ def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch
 
 
 def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
-          settings: TrainingSettings = TrainingSettings(), *, observer: str = "",
+          settings: TrainingSettings = DEFAULT_TRAINING, *, observer: str = "",
           progress: bool = True, score: Callable[[TrainedModel], float] | None = None,
           init: TrainedModel | None = None) -> TrainedModel:
     """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``.
@@ -121,12 +125,13 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     """
     zeta, u = np.asarray(zeta, float), np.asarray(u, float)
     if zeta.ndim != 2 or zeta.shape[1] != system.nx or u.shape != (zeta.shape[0], system.nu):
-        raise ValueError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
+        raise ShapeError(f"train: expected zeta (M, {system.nx}) and u (M, {system.nu}), "
                          f"got {zeta.shape}, {u.shape}")
     if not (np.isfinite(zeta).all() and np.isfinite(u).all()):
-        raise ValueError("train: zeta and u must be finite")
+        raise DataError("train: zeta and u must be finite (a state observation or an input is NaN or "
+                        "infinite)")
     if init is not None and settings.restarts != 1:
-        raise ValueError(f"train: a warm start (init) trains one net; got restarts={settings.restarts}")
+        raise SettingsError(f"train: a warm start (init) trains one net; got restarts={settings.restarts}")
     start = time.perf_counter()
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny operations: a second thread only spins (37x slower under load)
@@ -139,6 +144,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     best = models[int(np.argmax(scores)) if scores else int(np.argmin(valid))]
     best.meta.update(training=settings.to_json(), restart_seed=best.meta["training"]["seed"],
                      restart_validation=valid, train_seconds=time.perf_counter() - start)
+    best.meta[SOURCE_KEY] = system_source(system)  # a separate key: where the system comes from
     if scores:
         best.meta["restart_score"] = scores
     return best
@@ -161,12 +167,15 @@ def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: Traini
 
 def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch.Tensor,
                   u: torch.Tensor, zeta_next: torch.Tensor, dt: float) -> torch.Tensor:
-    """Eq. (11) of every stacked member ``(R,)``; the pairs are ``(B, .)`` shared by all
-    members or ``(R, B, .)`` one batch per member."""
-    members = len(mlp.weights[0])
-    zeta, u = zeta.expand(members, *zeta.shape[-2:]), u.expand(members, *u.shape[-2:])
-    pred = rk4_step(lambda x, v: net.hybrid(system.f, x, v, mlp), zeta, u, dt)
-    return ((pred - zeta_next) ** 2).sum(dim=-1).mean(dim=-1)
+    """Eq. (11) of every stacked member ``(R,)``; the pairs are components first, ``(n, B)``
+    shared by all members or ``(n, R, B)`` one batch per member (the layout of
+    :meth:`~learnest_codegen.learning.network.ResidualNet.derivative_t`)."""
+    if zeta.dim() == 2:
+        members = len(mlp.weights[0])
+        zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
+        zeta_next = zeta_next[:, None]
+    pred = rk4_step(lambda x, v: net.derivative_t(x, v, mlp), zeta, u, dt)
+    return ((pred - zeta_next) ** 2).sum(dim=0).mean(dim=-1)
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
@@ -189,6 +198,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings)
     n_train = len(train_set[0])
+    train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
     mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
         optimiser = torch.optim.AdamW(mlp.parameters(), lr=settings.learning_rate,
@@ -209,7 +219,9 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
-    bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=not progress, unit="epoch")
+    # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
+    bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=None if progress else True,
+               unit="epoch")
     for epoch in bar:
         if full_batch:
             batches = [None]
@@ -219,7 +231,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
         for idx in batches:
             optimiser.zero_grad()
-            batch = train_set if idx is None else [a[idx] for a in train_set]
+            batch = train_set if idx is None else [a[:, idx] for a in train_set]
             loss = _stacked_loss(system, net, mlp, *batch, dt)
             loss.sum().backward()
             optimiser.step()
@@ -277,23 +289,23 @@ class _ZeroNet(torch.nn.Module):
         return torch.zeros_like(x)
 
 
-def train_on_run(run: Run, system: System, settings: TrainingSettings = TrainingSettings(), *,
+def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_TRAINING, *,
                  observer: str | None = None, full_state: bool = False,
                  progress: bool = True) -> TrainedModel:
     """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train.
 
-    ``observer`` defaults to the system's ``default_observer``. Through an observer, restarts
+    ``observer`` defaults to :func:`~learnest_codegen.observers.choose_observer`'s choice (said
+    on stderr when ``progress``, and stored as ``observer_choice``). Through an observer, restarts
     are chosen by the EKF innovation likelihood of the run's measurements
     (:func:`~learnest_codegen.observers.innovation_loglik`), not by the validation loss on the
     observer's states.
     """
     check_sampling(run, system.dt, f"train_on_run({system.name})")
-    observer = observer or system.default_observer
     start = time.perf_counter()
     from ..observers import ekf_rts, innovation_loglik, observe, smooth_states
     from ..simulation import noisy_states
 
-    score = None
+    score, choice = None, None
     if not full_state and settings.restarts > 1:
         score = lambda m: innovation_loglik(run, system, m.net.casadi)  # noqa: E731
 
@@ -301,16 +313,26 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
         noisy = noisy_states(run, system, settings.seed)
         zeta, source = smooth_states(noisy, run.dt, system.noise.state_std), "full_state+rts"
     else:
-        zeta, source = observe(run, system, observer).zeta, observer
+        observations = observe(run, system, observer)
+        zeta, source = observations.zeta, observations.method
+        choice = observations.info.get("chosen_because")
+        if choice and progress:  # a choice the caller did not make: say which
+            print(f"pre-training observer: {source} ({choice})", file=sys.stderr)
     model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
     rounds = 0 if full_state else settings.refine
     warm = settings.warm_refinement
+    round_settings, round_score = settings, score
+    if settings.refine_restarts is not None and settings.refine_restarts < settings.restarts:
+        # the later rounds train fewer initialisations, from the seed the first round chose
+        round_settings = replace(settings, restarts=settings.refine_restarts, seed=model.meta["restart_seed"])
+        round_score = score if settings.refine_restarts > 1 else None
     for k in range(rounds):
         zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
         round_observer = f"{source}+ekf_rts*{k + 1}"
         if warm is None:  # every round from scratch, with the restarts
-            model = train(system, zeta, run.u, run.dt, settings, observer=round_observer,
-                          progress=progress, score=score)
+            model = train(system, zeta, run.u, run.dt, round_settings, observer=round_observer,
+                          progress=progress, score=round_score)
+            model.meta["training"] = settings.to_json()
         else:  # one net, from the previous round's
             first = {key: model.meta[key] for key in ("restart_seed", "restart_validation", "restart_score")
                      if key in model.meta}  # the first round's choice of initialisation
@@ -321,4 +343,6 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = Training
                           observer=round_observer, progress=progress, init=model)
             model.meta.update(first, training=settings.to_json())
     model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
+    if choice:
+        model.meta["observer_choice"] = choice
     return model

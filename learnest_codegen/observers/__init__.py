@@ -27,6 +27,7 @@ innovation log-likelihood over a log grid, so no tuning is needed for a new syst
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 from ..data import Run
@@ -34,9 +35,11 @@ from ..errors import UnknownNameError
 from ..systems import System
 from .base import JERK_GRID as JERK_GRID
 from .base import Observations as Observations
-from .kinematic import _chain_filter as _chain_filter
 from .kinematic import _kinematic
 from .kinematic import chain_groups as chain_groups
+from .kinematic import chain_passes as chain_passes
+from .kinematic import inferred_chains as inferred_chains
+from .kinematic import kinematic_chains as kinematic_chains
 from .kinematic import smooth_states as smooth_states
 from .linear import _linear_kf as _linear_kf
 from .linear import _linear_prior as _linear_prior
@@ -54,12 +57,41 @@ from .planar_pose import planar_pose_indices as planar_pose_indices
 def observe(run: Run, system: System, method: str | None = None) -> Observations:
     """Turn a run's ``(y, u)`` into state observations with the named observer.
 
-    ``method`` defaults to the system's ``default_observer``.
+    ``method`` defaults to :func:`choose_observer`'s choice; ``info["chosen_because"]`` then
+    says why. Measurements may be missing (NaN in ``run.y``): every observer predicts through
+    them and updates with the outputs present.
     """
-    method = method or system.default_observer
+    reason = None
+    if method is None:
+        method, reason = choose_observer(system)
     if method not in OBSERVERS:
         raise UnknownNameError(f"unknown observer {method!r}; choose from {sorted(OBSERVERS)}")
-    return OBSERVERS[method](run, system)
+    observations = OBSERVERS[method](run, system)
+    if reason is None:
+        return observations
+    return replace(observations, info={**observations.info, "chosen_because": reason})
+
+
+def choose_observer(system: System) -> tuple[str, str]:
+    """The pre-training observer used when none is named, and why.
+
+    A system that names another ``default_observer`` than ``"rts"`` gets it. Otherwise the
+    kinematic smoother ``rts`` when every state is in a kinematic chain, declared or read from
+    the equations (:func:`~.kinematic.inferred_chains`); else the EKF-RTS smoother on the prior
+    (``ekf_rts``).
+    """
+    if system.default_observer != "rts":
+        return system.default_observer, f"the system's default_observer {system.default_observer!r}"
+    if system.kinematic_chains:
+        return "rts", "the system declares kinematic chains covering its states"
+    chains = inferred_chains(system)
+    covered = {s for chain in chains for s in chain.states}
+    if chains and covered == set(system.state_names):
+        listing = ", ".join(" -> ".join(c.states) for c in chains)
+        return "rts", f"kinematic chains read from the equations ({listing})"
+    missing = [s for s in system.state_names if s not in covered]
+    return "ekf_rts", (f"states {missing} are in no kinematic chain (declared or read from the "
+                       "equations), so the EKF-RTS smoother on the prior")
 
 
 OBSERVERS: dict[str, Callable[[Run, System], Observations]] = {

@@ -6,35 +6,84 @@ from __future__ import annotations
 
 import numpy as np
 from filterpy.common import Q_continuous_white_noise
-from filterpy.kalman import KalmanFilter
 from scipy.linalg import expm
 
 from ..data import Run
+from ..errors import ObserverError
 from ..systems import KinematicChain, System
 from .base import JERK_GRID, Observations
+from .kalman import FilterPasses, LinearGaussian, kalman_filter, rts_smoother
 
 
 def _kinematic(run: Run, system: System, smooth: bool) -> Observations:
-    if not system.kinematic_chains:
-        raise ValueError(f"system {system.name!r} declares no kinematic chains; use observer 'ukf'")
+    chains = kinematic_chains(system)
+    name = "rts" if smooth else "kf"
+    if not chains:
+        raise ObserverError(f"system {system.name!r} declares no kinematic chains and none can be read "
+                            f"from its equations (an output equal to a state); observer {name!r} "
+                            "needs them: use observer 'ekf_rts' or 'ukf'")
     T = len(run)
     zeta = np.full((T, system.nx), np.nan)
     var = np.full((T, system.nx), np.nan)
     info = {}
-    for chain, measured in chain_groups(system):
+    for chain, measured in chain_groups(system, chains):
         means, covs, q = _fit_chain(run, system, chain, smooth, measured)
-        for j, name in enumerate(chain.states):
-            i = system.state_names.index(name)
+        for j, state in enumerate(chain.states):
+            i = system.state_names.index(state)
             zeta[:, i], var[:, i] = means[:, j], covs[:, j, j]
         info[chain.output] = {"jerk_spectral_density": q,
                               "outputs": {system.output_names[o]: chain.states[k] for o, k in measured}}
     uncovered = [n for n, col in zip(system.state_names, zeta.T) if np.isnan(col).any()]
     if uncovered:
-        raise ValueError(f"system {system.name!r}: states {uncovered} are in no kinematic chain")
-    return Observations(zeta, var, "rts" if smooth else "kf", info)
+        raise ObserverError(f"system {system.name!r}: states {uncovered} are in no kinematic chain; "
+                            f"observer {name!r} needs every state in one: use observer 'ekf_rts' or 'ukf'")
+    if not system.kinematic_chains:
+        info["chains_read_from_equations"] = [[c.output, list(c.states)] for c in chains]
+    return Observations(zeta, var, name, info)
 
 
-def chain_groups(system: System) -> list[tuple[KinematicChain, list[tuple[int, int]]]]:
+def kinematic_chains(system: System) -> tuple[KinematicChain, ...]:
+    """The system's kinematic chains: those it declares, or else those its prior's equations
+    show (see :func:`inferred_chains`)."""
+    return tuple(system.kinematic_chains) or inferred_chains(system)
+
+
+def inferred_chains(system: System) -> tuple[KinematicChain, ...]:
+    """Kinematic chains read off the prior's equations: an output that is exactly a state
+    (``h_j(x, u) = x_i``), followed by the states that are exactly its successive derivatives
+    (``f_i(x, u) = x_k``, ...). Evaluated symbolically (CasADi), so ``y = x[0]`` and ``qdot``
+    as the derivative of ``q`` are recognised whatever the file calls them."""
+    import casadi as cs
+
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    xu = cs.vertcat(x, u)
+    h, f = system.h(x, u), system.f(x, u)
+
+    def state_of(expr) -> int | None:  # i when expr is identically x_i
+        J = cs.jacobian(expr, xu)
+        if cs.depends_on(J, xu):
+            return None
+        row = np.array(cs.DM(cs.evalf(J))).ravel()
+        offset = float(cs.evalf(cs.substitute(expr, xu, cs.DM.zeros(xu.shape[0]))))
+        hits = np.flatnonzero(row)
+        if offset != 0 or len(hits) != 1 or row[hits[0]] != 1.0 or hits[0] >= system.nx:
+            return None
+        return int(hits[0])
+
+    chains = []
+    for j, output in enumerate(system.output_names):
+        i = state_of(h[j])
+        if i is None:
+            continue
+        states = [i]
+        while (k := state_of(f[states[-1]])) is not None and k not in states:
+            states.append(k)
+        chains.append(KinematicChain(output, tuple(system.state_names[s] for s in states)))
+    return tuple(chains)
+
+
+def chain_groups(system: System, chains: tuple[KinematicChain, ...] | None = None
+                 ) -> list[tuple[KinematicChain, list[tuple[int, int]]]]:
     """The kinematic chains with every output that measures one of their states.
 
     A chain whose states continue another's (``KinematicChain("qdot", ("qdot",))`` after
@@ -44,7 +93,7 @@ def chain_groups(system: System) -> list[tuple[KinematicChain, list[tuple[int, i
     longest chain the ``(output index, position in the chain)`` of each output it carries.
     Chains that share states without one continuing the other are an error.
     """
-    chains = list(system.kinematic_chains)
+    chains = list(system.kinematic_chains if chains is None else chains)
 
     def inside(b: KinematicChain, a: KinematicChain) -> int | None:
         n = len(b.states)
@@ -65,7 +114,7 @@ def chain_groups(system: System) -> list[tuple[KinematicChain, list[tuple[int, i
     for a, _ in out:
         for s in a.states:
             if s in seen:
-                raise ValueError(f"system {system.name!r}: state {s!r} is in the kinematic chains of "
+                raise ObserverError(f"system {system.name!r}: state {s!r} is in the kinematic chains of "
                                  f"outputs {seen[s]!r} and {a.output!r}, and neither continues the other")
             seen[s] = a.output
     return out
@@ -79,37 +128,41 @@ def _fit_chain(run: Run, system: System, chain: KinematicChain, smooth: bool,
     r = np.square(np.asarray(system.noise.measurement_std, float)[outputs])
     rows = tuple(k for _, k in measured)
     order = len(chain.states) + 1  # one derivative beyond the chain, driven by white noise
-    best = max(JERK_GRID, key=lambda q: _chain_filter(z, run.dt, order, q, r, rows)[2])
-    means, covs, _, kf, fs = _chain_filter(z, run.dt, order, best, r, rows)
-    if smooth:
-        means, covs, _, _ = kf.rts_smoother(means, covs, Fs=fs)
+    passes, model = chain_passes(z, run.dt, order, JERK_GRID, r, rows)
+    best = int(np.argmax(passes.loglik))  # the first of equals, as max() over the grid
+    chosen = passes.member(best)
+    means, covs = rts_smoother(model.F, chosen) if smooth else (chosen.means, chosen.covs)
     n = len(chain.states)
-    return means[:, :n, 0] if means.ndim == 3 else means[:, :n], covs[:, :n, :n], float(best)
+    return means[:, 0, :n], covs[:, 0, :n, :n], float(JERK_GRID[best])
 
 
-def _chain_filter(z: np.ndarray, dt: float, order: int, q: float, r, rows: tuple[int, ...] = (0,)):
-    """Constant-(order-1)-derivative KF over one coordinate, measured at the derivative orders
-    ``rows`` (``z`` (T,) or (T, len(rows)), variances ``r``); returns the log-likelihood too."""
-    z = np.asarray(z, float).reshape(len(z), -1)
-    r = np.broadcast_to(np.asarray(r, float), (z.shape[1],))
-    m = z.shape[1]
-    kf = KalmanFilter(dim_x=order, dim_z=m)
-    kf.F = expm(np.diag(np.full(order - 1, dt), 1))  # exact discretisation of an integrator chain
-    kf.Q = Q_continuous_white_noise(dim=order, dt=dt, spectral_density=q) if order in (2, 3, 4) \
-        else np.eye(order) * q * dt
-    kf.H = np.eye(order)[list(rows)]
-    kf.R = np.diag(r)
-    kf.x = np.zeros((order, 1))
-    P0 = np.full(order, 1e4)
+def chain_passes(z: np.ndarray, dt: float, order: int, q, r, rows: tuple[int, ...] = (0,)):
+    """Constant-(order-1)-derivative Kalman filters over one coordinate, one per white-noise
+    intensity in ``q`` (one pass for all), measured at the derivative orders ``rows``.
+
+    ``z`` is (T,) or (T, len(rows)) with NaN for a missing sample, or (T, B, len(rows)) per
+    filter; ``r`` the measurement variances, (len(rows),) or (B, len(rows)). The filters start
+    at the first sample present with its variance, the unmeasured derivatives at 0 with variance
+    1e4. Returns the :class:`~.kalman.FilterPasses` and the model (``F``, ``Q`` of each filter).
+    """
+    z = np.asarray(z, float)
+    z = z.reshape(len(z), -1) if z.ndim < 3 else z
+    qs = np.atleast_1d(np.asarray(q, float))
+    B, m = len(qs), z.shape[-1]
+    r = np.broadcast_to(np.asarray(r, float), (B, m))
+    F = expm(np.diag(np.full(order - 1, dt), 1))  # exact discretisation of an integrator chain
+    unit = Q_continuous_white_noise(dim=order, dt=dt, spectral_density=1.0) if order in (2, 3, 4) \
+        else np.eye(order) * dt
+    Q = qs[:, None, None] * unit
+    H = np.eye(order)[list(rows)]
+    R = r[:, :, None] * np.eye(m)
+    x0, P0 = np.zeros((B, order)), np.full((B, order), 1e4)
+    first = np.broadcast_to(z[0], (B, m))  # z[0] is (m,) shared or (B, m) per filter
     for col, k in enumerate(rows):
-        kf.x[k, 0], P0[k] = z[0, col], r[col]
-    kf.P = np.diag(P0)
-    means, covs, means_p, covs_p = kf.batch_filter(z[:, :, None])
-    innov = z - np.einsum("ij,tj->ti", kf.H, means_p[:, :, 0])
-    S = np.einsum("ij,tjk,lk->til", kf.H, covs_p, kf.H) + kf.R
-    white = np.linalg.solve(S, innov[:, :, None])[..., 0]
-    loglik = -0.5 * float(np.sum(np.einsum("ti,ti->t", innov, white) + np.linalg.slogdet(2 * np.pi * S)[1]))
-    return means, covs, loglik, kf, [kf.F] * len(z)
+        seen = np.isfinite(first[:, col])
+        x0[seen, k], P0[seen, k] = first[seen, col], r[seen, col]
+    passes = kalman_filter(F, H, Q, R, z, x0, P0[:, :, None] * np.eye(order))
+    return passes, LinearGaussian(F, Q, H, R)
 
 
 def smooth_states(states: np.ndarray, dt: float, std) -> np.ndarray:
@@ -121,12 +174,15 @@ def smooth_states(states: np.ndarray, dt: float, std) -> np.ndarray:
     residual's ``dt * Delta`` under ``sqrt(2) * std`` of noise.
     """
     states = np.asarray(states, dtype=float)
-    std = np.broadcast_to(np.asarray(std, dtype=float), (states.shape[1],))
-    out = np.empty_like(states)
-    for i, (z, s) in enumerate(zip(states.T, std)):
-        r = max(float(s) ** 2, 1e-18)
-        best = max(JERK_GRID, key=lambda q: _chain_filter(z, dt, 3, q, r)[2])
-        means, covs, _, kf, fs = _chain_filter(z, dt, 3, best, r)
-        means, _, _, _ = kf.rts_smoother(means, covs, Fs=fs)
-        out[:, i] = means[:, 0, 0] if means.ndim == 3 else means[:, 0]
-    return out
+    T, nx = states.shape
+    std = np.broadcast_to(np.asarray(std, dtype=float), (nx,))
+    r = np.maximum(std**2, 1e-18)
+    G = len(JERK_GRID)
+    # every state column with every grid intensity: one batch of nx * G filters
+    z = np.repeat(states, G, axis=1)[:, :, None]  # member c * G + g: column c, intensity g
+    passes, model = chain_passes(z, dt, 3, np.tile(JERK_GRID, nx), np.repeat(r, G)[:, None])
+    best = np.argmax(passes.loglik.reshape(nx, G), axis=1) + np.arange(nx) * G
+    chosen = FilterPasses(*(a[:, best] for a in (passes.means, passes.covs, passes.means_p,
+                                                 passes.covs_p)), passes.loglik[best])
+    means, _ = rts_smoother(model.F, chosen)
+    return means[:, np.arange(nx), 0]

@@ -16,7 +16,8 @@ from .base import Observations
 
 
 def _model_ukf(run: Run, system: System) -> Observations:
-    """Forward UKF on the RK4-discretised prior (for systems without kinematic chains)."""
+    """Forward UKF on the RK4-discretised prior (for systems without kinematic chains); an
+    output missing at a sample (NaN) is left out of its update."""
     step: Callable = lambda x, dt, u: rk4_step(lambda s, v: system.f(s, v), x, u, dt)  # noqa: E731
     points = MerweScaledSigmaPoints(system.nx, alpha=0.1, beta=2.0, kappa=0.0)
     ukf = UnscentedKalmanFilter(system.nx, system.ny, run.dt, lambda x: x, step, points)
@@ -26,10 +27,17 @@ def _model_ukf(run: Run, system: System) -> Observations:
     ukf.Q = np.diag(np.square(system.noise.process_std))
     ukf.R = np.diag(np.square(system.noise.measurement_std))
     zeta, var = np.empty((len(run), system.nx)), np.empty((len(run), system.nx))
+    present = np.isfinite(run.y)
     for k in range(len(run)):
         if k:
             ukf.predict(dt=run.t[k] - run.t[k - 1], u=run.u[k - 1])
-        ukf.update(run.y[k], u=run.u[k - 1] if k else run.u[0])  # same convention as estimators
+        u = run.u[k - 1] if k else run.u[0]  # same convention as estimators
+        rows = np.flatnonzero(present[k])
+        if len(rows) == system.ny:
+            ukf.update(run.y[k], u=u)
+        elif len(rows):  # update with the outputs present only
+            ukf.update(run.y[k, rows], R=ukf.R[np.ix_(rows, rows)],
+                       hx=lambda x, u, rows=rows: system.h(x, u)[rows], u=u)
         zeta[k], var[k] = ukf.x, np.diag(ukf.P)
     return Observations(zeta, var, "ukf", {})
 
@@ -100,18 +108,22 @@ def _ekf_functions(system: System, F, A, T: int):
     x, u, u_prev = cs.SX.sym("x", n), cs.SX.sym("u", nu), cs.SX.sym("u_prev", nu)
     y, P = cs.SX.sym("y", ny), cs.SX.sym("P", n, n)
     R, q = cs.SX.sym("R", ny, ny), cs.SX.sym("q", n)  # q: the diagonal of Q
-    H = cs.jacobian(system.h(x, u), x)
-    innov = y - system.h(x, u)
-    S = H @ P @ H.T + R
+    present = cs.SX.sym("present", ny)  # 1: the output was measured; 0: missing (y holds 0)
+    # a missing output: its row of H and its innovation are zero and its variance 1 / (2 pi),
+    # so it moves nothing and adds nothing to the likelihood (R is diagonal)
+    H = cs.diag(present) @ cs.jacobian(system.h(x, u), x)
+    innov = present * (y - system.h(x, u))
+    S = H @ P @ H.T + cs.diag(present) @ R @ cs.diag(present) + cs.diag(1 - present) / (2 * np.pi)
     K = cs.solve(S, H @ P).T
     loglik = -0.5 * (innov.T @ cs.solve(S, innov) + cs.log(cs.det(2 * np.pi * S)))
-    update = cs.Function("update", [x, P, u, y, R], [x + K @ innov, (cs.SX.eye(n) - K @ H) @ P, loglik])
+    update = cs.Function("update", [x, P, u, y, R, present],
+                         [x + K @ innov, (cs.SX.eye(n) - K @ H) @ P, loglik])
     Ak = A(x, u_prev)
     xp, Pp = F(x, u_prev), Ak @ P @ Ak.T + cs.diag(q)
-    xu, Pu, ll = update(xp, Pp, u, y, R)
+    xu, Pu, ll = update(xp, Pp, u, y, R, present)
     acc = cs.SX.sym("loglik")
     # accumulated: x, vec(P), loglik; per step also the predictions (x, vec(P))
-    step = cs.Function("ekf_step", [x, cs.vec(P), acc, u_prev, u, y, R, q],
+    step = cs.Function("ekf_step", [x, cs.vec(P), acc, u_prev, u, y, R, q, present],
                        [xu, cs.vec(Pu), acc + ll, xp, cs.vec(Pp)])
     return update, step.mapaccum("ekf", max(T - 1, 1), 3) if T > 1 else None
 
@@ -120,12 +132,15 @@ def _ekf_forward(run: Run, system: System, update, step, Q, R, x0):
     """Forward EKF; the measurement is linearised by CasADi too. Returns the log-likelihood."""
     T, n = len(run), system.nx
     P0 = np.diag(np.square(system.noise.initial_std))
-    x, P, ll = (v.full() for v in update(np.asarray(x0, float), P0, run.u[0], run.y[0], R))
+    present = np.isfinite(run.y)
+    y = np.where(present, run.y, 0.0)
+    present = present.astype(float)
+    x, P, ll = (v.full() for v in update(np.asarray(x0, float), P0, run.u[0], y[0], R, present[0]))
     xs, Ps, xps, Pps = (np.empty((T, n)), np.empty((T, n, n)), np.empty((T, n)), np.empty((T, n, n)))
     xs[0], Ps[0], xps[0], Pps[0] = x.ravel(), P, x0, P0
     if T > 1:
-        out = step(x, P.reshape(-1, order="F"), ll, run.u[:-1].T, run.u[1:].T, run.y[1:].T, R,
-                   np.diag(Q))
+        out = step(x, P.reshape(-1, order="F"), ll, run.u[:-1].T, run.u[1:].T, y[1:].T, R,
+                   np.diag(Q), present[1:].T)
         xs_, Ps_, ll, xps_, Pps_ = (v.full() for v in out)
         xs[1:], xps[1:] = xs_.T, xps_.T
         Ps[1:] = Ps_.T.reshape(T - 1, n, n).transpose(0, 2, 1)  # column-major vec per step

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data import Run
-from ..errors import DataError
+from ..errors import DataError, SettingsError
 from ..systems.rc_car import RC_CAR
 from . import data_root
 
@@ -71,11 +71,11 @@ class DartSettings:
 
     def __post_init__(self) -> None:
         if not self.dt > 0 or not self.max_gap_s > self.dt:
-            raise ValueError(f"DartSettings: need 0 < dt < max_gap_s, got dt={self.dt}, "
-                             f"max_gap_s={self.max_gap_s}")
+            raise SettingsError(f"DartSettings: need 0 < dt < max_gap_s, got dt={self.dt}, "
+                                f"max_gap_s={self.max_gap_s}")
         for name in ("command_delay_s", "trim_margin_s", "moving_speed"):
             if getattr(self, name) < 0:
-                raise ValueError(f"DartSettings.{name} must be >= 0, got {getattr(self, name)}")
+                raise SettingsError(f"DartSettings.{name} must be >= 0, got {getattr(self, name)}")
 
 
 def list_recordings(root: str | Path | None = None) -> list[Path]:

@@ -41,7 +41,8 @@ class CompiledMHE(CompiledEstimator):
     #: The Ipopt solver's C keeps its memories in one static pool per library (CasADi's
     #: checkout/release), so two handles of one library must not solve at the same time
     #: (two threads failed with NO_MEMORY in 1 of 4 runs): ``init``, ``reset``, ``step`` and
-    #: ``run`` hold :func:`~learnest_codegen.runtime.base.library_lock`. The embedded MHE keeps everything in its workspace.
+    #: ``run`` hold :func:`~learnest_codegen.runtime.base.library_lock`. The embedded MHE
+    #: keeps everything in its workspace.
     SERIALISE = True
 
     def __init__(self, directory: Path, *, expect: Mapping[str, Any] | None = None,

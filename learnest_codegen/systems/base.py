@@ -24,7 +24,7 @@ from typing import Callable, Mapping, Sequence
 import casadi as cs
 import numpy as np
 
-from ..errors import ShapeError
+from ..errors import SettingsError, ShapeError
 from .backends import ops_for
 
 DynamicsFn = Callable[..., Sequence]  # fn(ops, x: list, u: list, p: Mapping) -> list of n terms
@@ -193,40 +193,41 @@ class System:
             if len(values) != n:
                 raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
         if not self.dt > 0 or not self.duration > self.dt:
-            raise ValueError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, {self.duration}")
+            raise SettingsError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, "
+                                f"{self.duration}")
         unknown = [n for n in (*self.periodic_states, *(self.residual.states or ()),
                                *self.residual.prior_features) if n not in self.state_names]
         if unknown:
-            raise ValueError(f"system {self.name!r}: periodic_states/residual.states/"
-                             f"residual.prior_features {unknown} are not states")
+            raise SettingsError(f"system {self.name!r}: periodic_states/residual.states/"
+                                f"residual.prior_features {unknown} are not states")
         signals = {*self.state_names, *self.input_names}
         unknown = [n for n in (self.residual.reflection or ()) if n not in signals]
         if unknown or self.residual.reflection == ():
-            raise ValueError(f"system {self.name!r}: residual.reflection {unknown or '()'} must name "
-                             f"states or inputs ({sorted(signals)})")
+            raise SettingsError(f"system {self.name!r}: residual.reflection {unknown or '()'} must name "
+                                f"states or inputs ({sorted(signals)})")
         unknown = [n for n in (self.residual.inputs or ()) if n not in signals]
         if unknown or self.residual.inputs == ():
-            raise ValueError(f"system {self.name!r}: residual.inputs {unknown or '()'} must name "
-                             f"states or inputs ({sorted(signals)})")
+            raise SettingsError(f"system {self.name!r}: residual.inputs {unknown or '()'} must name "
+                                f"states or inputs ({sorted(signals)})")
         unknown = [n for n in (self.residual.via or ()) if n not in self.input_names]
         if unknown or self.residual.via == ():
-            raise ValueError(f"system {self.name!r}: residual.via {unknown or '()'} must name "
-                             f"inputs ({self.input_names})")
+            raise SettingsError(f"system {self.name!r}: residual.via {unknown or '()'} must name "
+                                f"inputs ({self.input_names})")
         if self.residual.prior_gains and not self.residual.prior_features:
-            raise ValueError(f"system {self.name!r}: residual.prior_gains multiplies the prior "
-                             "features by learned gains; name them in residual.prior_features")
+            raise SettingsError(f"system {self.name!r}: residual.prior_gains multiplies the prior "
+                                "features by learned gains; name them in residual.prior_features")
         if self.residual.via is not None and self.residual.states is not None:
-            raise ValueError(f"system {self.name!r}: give residual.states or residual.via, not both "
-                             "(a residual through inputs changes whichever states those inputs drive)")
+            raise SettingsError(f"system {self.name!r}: give residual.states or residual.via, not both "
+                                "(a residual through inputs changes whichever states those inputs drive)")
         if self.planar_pose is not None and (len(self.planar_pose) != 4 or any(
                 n not in self.state_names for n in self.planar_pose)):
-            raise ValueError(f"system {self.name!r}: planar_pose {self.planar_pose} must name four "
-                             f"states (x, y, v, psi) of {self.state_names}")
+            raise SettingsError(f"system {self.name!r}: planar_pose {self.planar_pose} must name four "
+                                f"states (x, y, v, psi) of {self.state_names}")
         for chain in self.kinematic_chains:
             unknown = [n for n in chain.states if n not in self.state_names]
             if chain.output not in self.output_names or unknown:
-                raise ValueError(f"system {self.name!r}: kinematic chain {chain} names unknown "
-                                 f"signals (outputs {self.output_names}, states {self.state_names})")
+                raise SettingsError(f"system {self.name!r}: kinematic chain {chain} names unknown "
+                                    f"signals (outputs {self.output_names}, states {self.state_names})")
 
     # -- sizes and names ------------------------------------------------------------------
     @property
@@ -365,7 +366,7 @@ class System:
             return self.dynamics, self.params
         if variant == "true":
             return self.true_dynamics or self.dynamics, self.true_params
-        raise ValueError(f"variant must be 'prior' or 'true', got {variant!r}")
+        raise SettingsError(f"variant must be 'prior' or 'true', got {variant!r}")
 
     def casadi_f(self, variant: str = "prior") -> cs.Function:
         """The continuous dynamics as a named CasADi Function ``f(x, u) -> xdot``."""
