@@ -89,7 +89,7 @@ def estimate(est, U: np.ndarray, Y: np.ndarray, x0) -> tuple[np.ndarray, np.ndar
         u = U[k - 1] if k else (U[0] if type(est).__name__.endswith("UKF") else np.zeros(U.shape[1]))
         try:
             X[k] = est.step(u, Y[k])
-            rejected[k] = est.last_status == 1
+            rejected[k] = bool(est.last_status & 1)
         except SolverError:
             errors += 1
             X[k] = est.x

@@ -34,7 +34,7 @@ from learnest_codegen.codegen.ukf import generate_ukf
 from learnest_codegen.compilation import float32_ukf_settings
 from learnest_codegen.errors import BuildError, SolverError
 from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
-from learnest_codegen.estimators.mhe_problem import MHESettings
+from learnest_codegen.estimators.mhe_problem import mhe_settings
 from learnest_codegen.estimators.ukf import UKFSettings
 from learnest_codegen.export import DiscreteModel
 from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
@@ -171,7 +171,7 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
     else:
         solver = GaussNewtonSettings(mode="rti" if estimator == "mhe_rti" else "converged",
                                      precision=precision)
-        settings = MHESettings.from_system(system)
+        settings = mhe_settings(model)  # the settings every MHE door builds
         gen = generate_embedded_mhe(model, settings, out, solver=solver,
                                     model_hash=f"cortex_m-{model.kind}")
         prefix, header = gen.prefix, f"{gen.prefix}.h"

@@ -24,6 +24,7 @@ from ..estimators.mhe_problem import (
     ParamLayout,
     build_problem,
     measurement_function,
+    mhe_settings,
 )
 from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
@@ -64,12 +65,13 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     ----------
     model : the discrete model the estimator uses.
     settings : horizon and default weights (weights stay settable at run time);
-        default ``MHESettings.from_system(model.system)``.
+        default ``MHESettings.from_system(model.system)``; through
+        :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE.
     out_dir : the folder for this estimator (created).
     prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``; also names the CasADi solver.
     model_hash : hash of the model's weights, recorded in the manifest.
     """
-    settings = settings or MHESettings.from_system(model.system)
+    settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     prefix = prefix or f"{model.system.name}_{model.kind}_mhe"
     if not re.fullmatch(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*", prefix):
         raise ValueError(f"generate_mhe: prefix {prefix!r} is not a C identifier without "

@@ -16,7 +16,7 @@ import casadi as cs
 
 from .. import toolchain
 from ..estimators.mhe_gn import GaussNewtonSettings
-from ..estimators.mhe_problem import MHESettings
+from ..estimators.mhe_problem import MHESettings, mhe_settings
 from ..estimators.precision import PRECISIONS
 from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, read_manifest, settings_hash, write_manifest
@@ -36,13 +36,14 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     ----------
     model : the discrete model the estimator uses.
     settings : horizon and default weights (weights are set at run time by init/reset);
-        default ``MHESettings.from_system(model.system)``.
+        default ``MHESettings.from_system(model.system)``; through
+        :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE.
     out_dir : the folder for this estimator (created).
     solver : mode, iteration limit, tolerance and precision; default converged, float64.
     prefix : C symbol prefix, default ``"<system>_<kind>_<mhe_gn|mhe_rti>"``.
     model_hash : hash of the model's weights, recorded in the manifest.
     """
-    settings = settings or MHESettings.from_system(model.system)
+    settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
     prefix = prefix or f"{model.system.name}_{model.kind}_{solver.estimator}"

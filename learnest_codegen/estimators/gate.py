@@ -32,6 +32,11 @@ prediction. A step without rejection resets the streak and divides ``rho`` by ga
 capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
+
+Missing outputs (NaN in ``y``, :mod:`.contract`) are not tested: a missing output is neither
+accepted nor rejected. A step whose outputs are all missing (a pure prediction) carries no
+evidence either way, so it leaves the streak and ``rho`` as they were: a dropout can neither
+start, prolong nor end a recovery episode.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from .inputs import INPUT_REJECTED, MEASUREMENT_REJECTED, InputCheck
 
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
 #: model with model error (the nominal prior) has innovations larger than its ``S``, and at
@@ -135,15 +142,24 @@ class GateState:
         self.streak = 0
         self.inflation = 1.0
 
-    def test(self, d2: np.ndarray) -> np.ndarray:
-        """The rejected mask of normalised innovations ``d2 (ny,)`` (not stored)."""
+    def test(self, d2: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
+        """The rejected mask of normalised innovations ``d2 (ny,)`` (not stored); an output
+        that is not ``observed`` (missing) is never rejected."""
+        observed = np.ones(self.ny, dtype=bool) if observed is None else np.asarray(observed, bool)
         if not self.settings.enabled:
             return np.zeros(self.ny, dtype=bool)
-        return ~(np.asarray(d2) <= self.settings.threshold)  # NaN d2 is rejected
+        with np.errstate(invalid="ignore"):
+            return ~(np.asarray(d2) <= self.settings.threshold) & observed  # NaN d2 is rejected
 
-    def record(self, rejected: np.ndarray) -> float:
-        """Store the step's mask, update the streak; return the factor to inflate by now (>= 1)."""
+    def record(self, rejected: np.ndarray, observed: np.ndarray | None = None) -> float:
+        """Store the step's mask, update the streak; return the factor to inflate by now (>= 1).
+
+        A step with no ``observed`` output (a pure prediction) changes neither the streak nor
+        ``rho`` and returns 1.
+        """
         self.rejected = np.asarray(rejected, dtype=bool).copy()
+        if observed is not None and not np.any(observed):
+            return 1.0
         if not self.rejected.any():
             self.streak = 0
             self.inflation = max(1.0, self.inflation / self.settings.inflation)
@@ -161,9 +177,12 @@ class GateState:
 
 
 class GateReport:
-    """What a Python estimator holding a :class:`GateState` as ``_gate`` reports of it."""
+    """What a Python estimator holding a :class:`GateState` as ``_gate`` and an
+    :class:`~.inputs.InputCheck` as ``_inputs`` reports of them."""
 
     _gate: GateState
+    _inputs: InputCheck
+    _missing: np.ndarray
 
     @property
     def rejected(self) -> np.ndarray:
@@ -171,6 +190,23 @@ class GateReport:
         return self._gate.rejected.copy()
 
     @property
+    def missing(self) -> np.ndarray:
+        """(ny,) bool, the outputs the last step had no sample of (NaN in ``y``)."""
+        return self._missing.copy()
+
+    @property
+    def input_rejected(self) -> np.ndarray:
+        """(nu,) bool, the input components the last step replaced by their held value."""
+        return self._inputs.rejected.copy()
+
+    @property
+    def input_rejections(self) -> int:
+        """Input components replaced since the last reset."""
+        return self._inputs.rejections
+
+    @property
     def last_status(self) -> int:
-        """The last step's status (1: an output was rejected, not an error)."""
-        return self._gate.status
+        """The last step's status bits: 0 OK, +1 an output was rejected, +2 an input
+        component was replaced (:mod:`.inputs`); none of them is an error."""
+        return (MEASUREMENT_REJECTED * self._gate.status
+                | INPUT_REJECTED * int(self._inputs.rejected.any()))

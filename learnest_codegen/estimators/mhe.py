@@ -12,43 +12,86 @@ the last window state. A step Ipopt does not solve raises :class:`SolverError` a
 estimator as it was: silently keeping a poor estimate would hide the problem, and the caller
 can still decide to go on.
 
+Arrival weights. The *running* weight ``P`` (the settings', by default the inverse of the
+steady-state Kalman prior covariance, or :meth:`MHE.set_noise`'s) summarises the samples that
+left the window. The first prior of a window that starts empty has its own weight, in force
+until the window is full and the arrival first moves on: ``inv(P0)`` after ``reset(x0, P0)``
+(``P`` itself without ``P0``), and after a recovery restart the inverse of the restart prior's
+covariance (below).
+
+Missing outputs (NaN in ``y``): the output's gate weight in ``G`` is 0 for that stage (its
+``Y`` entry is stored as 0), so the rest of the stage stays in the cost; a sample without any
+output keeps only its process term (a pure prediction, :meth:`MHE.predict`). Exact for a
+diagonal ``R`` (the default); with a full ``R`` the remaining outputs keep their rows of the
+full weight.
+
+Inputs pass the plausibility check of :mod:`.inputs` before they enter the window.
+
 Innovation gate (:mod:`.gate`): before a sample enters the window, each output's innovation
 ``y_j - h_j(xpred, u)`` at the prediction ``xpred`` (the warm start's last state) is normalised
 by ``S_jj = (C P_arr C^T)_jj + (R^-1)_jj`` (``C = dh/dx`` at ``xpred``, ``P_arr`` the inverse of
-the arrival weight times the gate's inflation ``rho``); a rejected output gets a 0 in the
-window's gate block ``G`` and never enters the cost while the sample is in the window.
+the running arrival weight -- of the first weight until the first window is full -- times the
+gate's inflation ``rho``); a rejected output gets a 0 in the window's gate block ``G`` and
+never enters the cost while the sample is in the window.
 Recovery: ``rho`` is 1 normally and multiplied by ``inflation`` at each rejecting step from the
 ``recover_after``-th consecutive one on, so the gate widens until the new measurements pass.
-The first step that then rejects nothing ends the episode and restarts the window: it is emptied,
-its prior ``xbar`` is the Kalman update of the prediction ``xpred ~ (., rho diag(P^-1))`` by the
-sample (:func:`restart_prior`), the sample itself is folded into that prior (gate weight 0)
-and the step is taken as the first after a reset, with the arrival weight ``P`` as given.
-``rho`` then shrinks by ``inflation`` per step without rejection, so the gate stays wide while
-the window re-learns what the restart could not set (measured: resetting ``rho`` to 1 at the
-restart made a wrap of the whole cartpole state, velocities included, lose the track again
-for 1,500 samples). A step the solver fails on also restarts the window at the next
-step (the estimate stays as it was; the prior is updated by the outputs the gate keeps), so a
-window the solver cannot solve is not retried forever.
+The first step that then rejects nothing (and has an output) ends the episode and restarts the
+window: it is emptied, its prior ``xbar`` is the Kalman update of the prediction
+``xpred ~ (., rho diag(P_arr))`` by the sample (:func:`restart_prior`), the sample itself is
+folded into that prior (gate weight 0), and the prior's weight is the inverse of that update's
+covariance until the window is full again. A lost track means the whole state is in doubt:
+with the running weight instead, states the outputs do not see (the cartpole's rates after a
+few samples of a wrong input) stayed pinned to their wrong values, each restart was followed
+by new rejections, and the MHE rejected 73 % of the clean samples for good (measured,
+``docs/reliability.md``). ``rho`` then shrinks by ``inflation`` per step without rejection, so
+the gate stays wide while the window re-learns (resetting ``rho`` to 1 at the restart made a
+wrap of the whole cartpole state lose the track again for 1,500 samples). A step the solver
+fails on also restarts the window at the next step (the estimate stays as it was; the prior is
+updated by the outputs the gate keeps), so a window the solver cannot solve is not retried
+forever.
 
-Why a restart and not a relaxed arrival weight (the first design): a window that keeps its
-old samples must explain a real jump by one huge process-noise step, and an arrival weight
-``P / rho`` with ``rho ~ 1e5`` makes the Gauss-Newton normal equations so ill-conditioned that
-its absolute step tolerance is never met; both locked the embedded MHE with MAX_ITERATIONS
-after a 45 rad jump of the measured cartpole angle (measured).
+Why a restart and not a relaxed arrival weight on the old window (the first design): a window
+that keeps its old samples must explain a real jump by one huge process-noise step, and an
+arrival weight ``P / rho`` with ``rho ~ 1e5`` makes the Gauss-Newton normal equations so
+ill-conditioned that its absolute step tolerance is never met; both locked the embedded MHE
+with MAX_ITERATIONS after a 45 rad jump of the measured cartpole angle (measured).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import SolverError
 from ..export import DiscreteModel
-from . import validation
+from . import arrival, validation
 from .gate import GateReport, GateState
-from .mhe_problem import MHESettings, ParamLayout, build_problem, gate_variances, measurement_function
+from .inputs import InputCheck
+from .mhe_problem import (
+    MHESettings,
+    ParamLayout,
+    build_problem,
+    gate_variances,
+    measurement_function,
+    mhe_settings,
+)
 
 NO_COVARIANCE = ("MHE has no state covariance: it solves a least-squares problem per sample and "
                  "propagates no P. The arrival-cost weight is `arrival_weight`.")
+
+
+@dataclass
+class _Next:
+    """What one step changes, committed only when the solve succeeds."""
+
+    p: np.ndarray
+    guess: np.ndarray
+    rejected: np.ndarray
+    observed: np.ndarray
+    u: np.ndarray
+    u_rejected: np.ndarray
+    arrival_cov: np.ndarray | None  # covariance of the first prior in force; None: the running one
 
 
 class MHE(GateReport):
@@ -57,7 +100,8 @@ class MHE(GateReport):
     Parameters
     ----------
     model : the discrete model ``x+ = F(x, u)``, ``y = h(x, u)`` (nominal, true or KNODE).
-    settings : horizon and weights; default ``MHESettings.from_system(model.system)``.
+    settings : horizon and weights; default ``MHESettings.from_system(model.system)``; the
+        steady-state arrival covariance of ``model`` is filled in (:func:`mhe_settings`).
 
     Attributes
     ----------
@@ -65,20 +109,24 @@ class MHE(GateReport):
     window : (N+1, nx) current window solution, oldest first.
     iterations : Ipopt iterations of the last step.
     rejected : (ny,) bool, the outputs the gate rejected in the last step.
-    last_status : 0 (OK) or 1 (MEASUREMENT_REJECTED), the C status of the last step.
-    rejections : outputs rejected since :meth:`reset`.
+    missing : (ny,) bool, the outputs the last step had no sample of.
+    input_rejected : (nu,) bool, the input components the last step replaced (:mod:`.inputs`).
+    last_status : status bits of the last step (0 OK, 1 output rejected, 2 input replaced).
+    rejections, input_rejections : outputs / input components rejected since :meth:`reset`.
     """
 
     def __init__(self, model: DiscreteModel, settings: MHESettings | None = None):
         self.model = model
-        self.settings = settings or MHESettings.from_system(model.system)
+        self.settings = mhe_settings(model, settings)
         self.problem = build_problem(model, self.settings, f"{model.system.name}_{model.kind}_mhe")
         self.layout: ParamLayout = self.problem.layout
         self.iterations = 0
         self.rejections = 0
         self._gate = GateState(self.settings.gate, model.ny)
+        self._inputs = InputCheck(self.settings.input_limits, model.nu)
+        self._missing = np.zeros(model.ny, dtype=bool)
         self._meas = measurement_function(model, "meas")
-        self._P_given = self._P_cov = self._R_weight = None
+        self._jac = arrival.transition_jacobian(model)
         self._p: np.ndarray | None = None
         self._window: np.ndarray | None = None
         self._count = 0
@@ -98,30 +146,38 @@ class MHE(GateReport):
 
     @property
     def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight ``P`` of the arrival cost given at :meth:`reset` (the gate's
-        recovery divides it by its inflation while a track is being recovered)."""
+        """(nx, nx) the weight of the arrival cost in force: the running weight, or the inverse
+        of a first prior's covariance carried forward (:mod:`.arrival`) after ``reset(x0, P0)``
+        or a restart."""
         self._started()
-        return self._P_given.copy()
+        nx = self.model.nx
+        return self._p[self.layout.slice("P")].reshape(nx, nx, order="F").copy()
 
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from the prior ``x0 (nx,)``, the first arrival ``xbar``.
 
-        ``P0 (nx, nx)``, if given, is the covariance of that prior: the arrival weight becomes
-        ``inv(P0)`` for the whole run (otherwise ``diag(1/arrival_std**2)`` from the settings).
+        ``P0 (nx, nx)``, if given, is the covariance of that prior: its inverse weighs the
+        arrival, and once the window slides the covariance is carried forward until it is no
+        larger than the running one (:mod:`.arrival`); it is also the gate's covariance
+        meanwhile. Without ``P0`` the running weight applies from the start. ``Q``, ``R`` and
+        the running weight go back to the settings' (undoing :meth:`set_noise`).
         """
         x0 = validation.vector("MHE.reset: x0", x0, self.model.nx)
         Q, R, P = self.settings.weights()
-        if P0 is not None:
-            P = arrival_weight_from_covariance(P0, self.model.nx)
+        P_first = P if P0 is None else arrival_weight_from_covariance(P0, self.model.nx)
+        arrival_cov = None if P0 is None else np.asarray(P0, dtype=float).copy()
         lay, n1 = self.layout, self.layout.horizon + 1
         p = np.zeros(lay.size)
         p[lay.slice("xbar")] = x0
-        for name, W in (("Q", Q), ("R", R), ("P", P)):
+        for name, W in (("Q", Q), ("R", R), ("P", P_first)):
             p[lay.slice(name)] = W.ravel(order="F")
         self._p, self._window, self._count = p, np.tile(x0, (n1, 1)), 0
-        self._P_given, self._P_cov, self._R_weight = P, np.linalg.inv(P), R
-        self._R_cov = np.linalg.inv(R)
+        self._P_run, self._P_run_cov = P, np.linalg.inv(P)
+        self._arrival_cov = arrival_cov
+        self._set_R(R)
         self._gate = GateState(self.settings.gate, self.model.ny)  # settings as of this reset
+        self._inputs = InputCheck(self.settings.input_limits, self.model.nu)
+        self._missing = np.zeros(self.model.ny, dtype=bool)
         self._restart = False
         self.rejections = 0
 
@@ -129,34 +185,74 @@ class MHE(GateReport):
         """Take the sample ``y (ny,)`` with ``u (nu,)``, the input applied since the previous one.
 
         The first step after :meth:`reset` takes sample 0: there is no transition and ``u``
-        only enters ``h``. Returns the estimate ``x (nx,)``.
+        only enters ``h``. NaN entries of ``y`` are missing outputs. Returns the estimate
+        ``x (nx,)``.
         """
         self._started()
-        u = validation.vector("MHE.step: u", u, self.model.nu)
-        y = validation.vector("MHE.step: y", y, self.model.ny)
-        p, guess, rejected, restart = self._advance(u, y)
+        u = validation.input_vector("MHE.step: u", u, self.model.nu)
+        y = validation.measurement("MHE.step: y", y, self.model.ny)
         try:
-            solution = self.problem.solver(x0=guess.ravel(), p=p)
+            with np.errstate(over="ignore", invalid="ignore"):
+                nxt = self._advance(u, y)
+        except (np.linalg.LinAlgError, SolverError) as exc:  # the bookkeeping of an absurd state
+            self._restart = True
+            raise SolverError(f"MHE.step (sample {self._count}): {exc} (estimator left as it "
+                              "was; the window restarts at the next step)") from exc
+        try:
+            solution = self.problem.solver(x0=nxt.guess.ravel(), p=nxt.p)
         except RuntimeError as exc:  # error_on_fail: nlpsol raises when Ipopt did not succeed
             self._restart = True  # the same window would fail again: restart it next step
             status = self.problem.solver.stats().get("return_status", "unknown")
             raise SolverError(f"MHE.step (sample {self._count}): Ipopt returned {status}") from exc
         self.iterations = int(self.problem.solver.stats()["iter_count"])
-        self._p, self._window = p, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
+        self._p, self._window = nxt.p, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
         self._count += 1
-        self._gate.record(rejected)
+        self._arrival_cov = nxt.arrival_cov
+        self._gate.record(nxt.rejected, nxt.observed)
+        self._inputs.record(nxt.u, nxt.u_rejected)
+        self._missing = ~nxt.observed
         self._restart = False
-        self.rejections += int(rejected.sum())
+        self.rejections += int(nxt.rejected.sum())
         return self.x
+
+    def predict(self, u: np.ndarray) -> np.ndarray:
+        """A sample without any measurement: ``step(u, y)`` with every output missing."""
+        return self.step(u, np.full(self.model.ny, np.nan))
+
+    def set_noise(self, Q=None, R=None, P_arrival=None) -> None:
+        """Change the weights of the running estimator; its window and estimate are kept.
+
+        ``Q (nx, nx)`` and ``R (ny, ny)`` are the process- and measurement-noise covariances
+        (the weights become their inverses, for every stage of the window from the next step
+        on, and ``R`` also sets the gate's); ``P_arrival (nx, nx)`` is the running arrival
+        covariance (in force from the next step, or, while a first prior's covariance is being
+        carried forward, once that has settled below it). All must be symmetric positive
+        definite. The next :meth:`reset`
+        returns to the settings' values.
+        """
+        self._started()
+        nx, ny, lay = self.model.nx, self.model.ny, self.layout
+        weights = {name: None if cov is None else
+                   arrival_weight_from_covariance(cov, n, where=f"MHE.set_noise: {name}")
+                   for name, cov, n in (("Q", Q, nx), ("R", R, ny), ("P_arrival", P_arrival, nx))}
+        if weights["Q"] is not None:
+            self._p[lay.slice("Q")] = weights["Q"].ravel(order="F")
+        if weights["R"] is not None:
+            self._p[lay.slice("R")] = weights["R"].ravel(order="F")
+            self._set_R(weights["R"])
+        if weights["P_arrival"] is not None:
+            self._P_run, self._P_run_cov = weights["P_arrival"], np.linalg.inv(weights["P_arrival"])
+            if self._arrival_cov is None:
+                self._p[lay.slice("P")] = self._P_run.ravel(order="F")
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray,
             P0: np.ndarray | None = None) -> np.ndarray:
         """Estimate a whole run: ``U (T, nu)``, ``Y (T, ny)`` -> ``X_hat (T, nx)``.
 
         Sample 0 uses ``Y[0]`` only (with a zero input in ``h``); sample ``k >= 1`` is
-        ``step(U[k-1], Y[k])``, so ``U[T-1]`` is not used.
+        ``step(U[k-1], Y[k])``, so ``U[T-1]`` is not used. NaN in ``Y`` marks a missing output.
         """
-        U, Y = validation.run_arrays("MHE.run", U, Y, self.model.nu, self.model.ny)
+        U, Y = validation.run_arrays("MHE.run", U, Y, self.model.nu, self.model.ny, missing=True)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
         X_hat[0] = self.step(np.zeros(self.model.nu), Y[0])
@@ -164,43 +260,73 @@ class MHE(GateReport):
             X_hat[k] = self.step(U[k - 1], Y[k])
         return X_hat
 
-    def _advance(self, u: np.ndarray, y: np.ndarray):
-        """Parameters, warm start, rejected outputs and whether the window restarts, for the
-        next sample (mirrored by ``<prefix>_step`` in C)."""
+    def _set_R(self, R_weight: np.ndarray) -> None:
+        self._R_weight, self._R_cov = R_weight, np.linalg.inv(R_weight)
+
+    def _advance(self, u: np.ndarray, y: np.ndarray) -> _Next:
+        """Parameters, warm start, gate masks, input and arrival covariance of the next sample
+        (mirrored by ``<prefix>_step`` in C)."""
         lay = self.layout
         p, guess = self._p.copy(), self._window.copy()
+        u, u_rejected = self._inputs.apply(u)
+        observed = ~np.isnan(y)
         U, Y = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("Y")].reshape(-1, lay.ny)
         mask, G = p[lay.slice("mask")], p[lay.slice("G")].reshape(-1, lay.ny)
+        arrival_cov = self._arrival_cov
         if self._count > 0:
-            if mask[0] == 1.0:  # window was full: the arrival moves on to the next sample
+            if mask[0] == 1.0:  # window was full: the arrival moves on
                 p[lay.slice("xbar")] = self._window[1]
+                arrival_cov = self._carried(p, arrival_cov)
+                weight = self._P_run if arrival_cov is None else _inverse(arrival_cov)
+                p[lay.slice("P")] = weight.ravel(order="F")
             for block in (U, Y, mask, G, guess):
                 block[:-1] = block[1:]
             guess[-1] = self.model.step(self._window[-1], u)
         rho = self._gate.inflation
         h, C = (np.asarray(v) for v in self._meas(guess[-1], u))
         h = h.ravel()
-        S = gate_variances(C, rho * self._P_cov, self._R_weight)
-        with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
-            rejected = self._gate.test((y - h) ** 2 / S)
+        innovation = np.where(observed, y, 0.0) - h
+        cov = self._P_run_cov if arrival_cov is None else arrival_cov
+        S = gate_variances(C, rho * cov, self._R_weight)
+        rejected = self._gate.test(innovation ** 2 / S, observed)  # absurd y: d2 = inf, rejected
         recovering = self._gate.streak >= self.settings.gate.recover_after
-        restart = self._count > 0 and (self._restart or (recovering and not rejected.any()))
-        if restart:
-            xbar = restart_prior(guess[-1], C, rho * self._P_cov, self._R_cov, y - h, rejected)
-            p, guess = self._restarted(p, xbar)
+        ends_episode = recovering and observed.any() and not rejected.any()
+        if self._count > 0 and (self._restart or ends_episode):
+            xbar, arrival_cov = restart_prior(guess[-1], C, rho * cov, self._R_cov, innovation,
+                                              rejected | ~observed)
+            p, guess = self._restarted(p, xbar, _inverse(arrival_cov))
             U, Y = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("Y")].reshape(-1, lay.ny)
             mask, G = p[lay.slice("mask")], p[lay.slice("G")].reshape(-1, lay.ny)
-        U[-1], Y[-1], mask[-1] = u, y, 1.0
-        G[-1] = 0.0 if restart else ~rejected  # a restart folds the sample into the prior
-        return p, guess, rejected, restart
+            G[-1] = 0.0  # the restart folds the sample into the prior
+        else:
+            G[-1] = observed & ~rejected
+        U[-1], Y[-1], mask[-1] = u, np.where(observed, y, 0.0), 1.0
+        return _Next(p, guess, rejected, observed, u, u_rejected, arrival_cov)
 
-    def _restarted(self, p: np.ndarray, xbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The parameters and guess of an empty window with prior ``xbar`` (the recovery's
-        restart: the sample is then taken as the first after a reset)."""
+    def _carried(self, p: np.ndarray, cov: np.ndarray | None) -> np.ndarray | None:
+        """The arrival covariance of the window's second stage from that of its first (the
+        one leaving), or ``None`` once it has settled below the running one (:mod:`.arrival`)."""
+        if cov is None:
+            return None
+        lay = self.layout
+        U, G = p[lay.slice("U")].reshape(-1, lay.nu), p[lay.slice("G")].reshape(-1, lay.ny)
+        x0 = self._window[0]
+        _, C = self._meas(x0, U[0])
+        A = np.asarray(self._jac(x0, U[1]))
+        Q_cov = _inverse(p[lay.slice("Q")].reshape(lay.nx, lay.nx, order="F"))
+        cov = arrival.propagate(cov, A, np.asarray(C), G[0] == 1.0, Q_cov, self._R_cov)
+        return None if arrival.settled(cov, self._P_run) else cov
+
+    def _restarted(self, p: np.ndarray, xbar: np.ndarray,
+                   P_first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The parameters and guess of an empty window with prior ``xbar`` weighted by
+        ``P_first`` (the recovery's restart: the sample is then taken as the first after a
+        reset)."""
         lay = self.layout
         fresh = np.zeros_like(p)
-        for name in ("Q", "R", "P"):
+        for name in ("Q", "R"):
             fresh[lay.slice(name)] = p[lay.slice(name)]
+        fresh[lay.slice("P")] = P_first.ravel(order="F")
         fresh[lay.slice("xbar")] = xbar
         return fresh, np.tile(xbar, (lay.horizon + 1, 1))
 
@@ -210,28 +336,41 @@ class MHE(GateReport):
         return self._window
 
 
+def _inverse(M: np.ndarray) -> np.ndarray:
+    """The symmetric inverse of a symmetric positive-definite matrix; :class:`SolverError` if
+    it has none (a covariance carried through an absurd state)."""
+    inv = np.linalg.inv(M)
+    if not np.all(np.isfinite(inv)):
+        raise SolverError("an arrival covariance is not invertible")
+    return 0.5 * (inv + inv.T)
+
+
 def restart_prior(x_pred: np.ndarray, C: np.ndarray, P: np.ndarray, R: np.ndarray,
-                  innovation: np.ndarray, rejected: np.ndarray) -> np.ndarray:
-    """The recovery's new prior: the Kalman update of ``x_pred ~ (., diag(P))`` by the outputs
-    the gate kept (``C = dh/dx``, ``R`` the measurement covariance); ``x_pred`` if none is kept.
+                  innovation: np.ndarray, left_out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The recovery's new prior and its covariance: the Kalman update of
+    ``x_pred ~ (., diag(P))`` by the outputs not ``left_out`` (rejected or missing; ``C = dh/dx``,
+    ``R`` the measurement covariance); ``(x_pred, diag(P))`` if none is left.
 
     The correlations of ``P`` are dropped: the innovation of a re-acquired track is gross, and
     through a correlation it would throw the unmeasured states (measured on the cartpole: a
     45 rad jump of the measured angle moved the angular rate by tens of rad/s and the track
-    was lost again); with ``diag(P)`` only the states the outputs see move.
+    was lost again); with ``diag(P)`` only the states the outputs see move, and the others keep
+    their inflated variance, so the restarted window re-learns them from its samples.
     """
-    keep = ~np.asarray(rejected, dtype=bool)
-    if not keep.any():
-        return x_pred.copy()
+    keep = ~np.asarray(left_out, dtype=bool)
     P = np.diag(np.diag(P))
+    if not keep.any():
+        return x_pred.copy(), P
     Ck = C[keep]
     S = Ck @ P @ Ck.T + R[np.ix_(keep, keep)]
-    return x_pred + P @ Ck.T @ np.linalg.solve(S, innovation[keep])
+    K = np.linalg.solve(S, Ck @ P).T
+    cov = P - K @ Ck @ P
+    return x_pred + K @ innovation[keep], 0.5 * (cov + cov.T)
 
 
-def arrival_weight_from_covariance(P0: np.ndarray, nx: int) -> np.ndarray:
+def arrival_weight_from_covariance(P0: np.ndarray, nx: int, where: str = "MHE.reset: P0") -> np.ndarray:
     """``inv(P0)`` for a symmetric positive-definite ``P0 (nx, nx)``, with clear errors."""
-    P0 = validation.covariance("MHE.reset: P0", P0, nx, definite=True)
+    P0 = validation.covariance(where, P0, nx, definite=True)
     L = np.linalg.cholesky(P0)
     L_inv = np.linalg.inv(L)
     return L_inv.T @ L_inv
