@@ -191,21 +191,27 @@ def test_missing_everything_is_a_prediction(linear):
 
 
 def test_gate_ignores_missing_outputs():
-    """A missing output is no rejection, and a step without outputs neither lengthens, ends
-    nor starts a recovery episode."""
+    """A missing output is no rejection; the streaks are per output, so a step without outputs
+    changes nothing and a slow output's rejections add up while a fast one is accepted."""
     gate = GateState(GateSettings(recover_after=2, inflation=2.0), 2)
     d2 = np.array([1e6, np.nan])
     assert gate.test(d2, np.array([False, False])).tolist() == [False, False]
     assert gate.test(d2, np.array([True, False])).tolist() == [True, False]
-    both = np.array([True, True])
-    none = np.array([False, False])
+    both, none = np.array([True, True]), np.array([False, False])
     gate.record(np.array([True, False]), both)
-    gate.record(np.array([True, True]), both)
-    assert (gate.streak, gate.inflation) == (2, 2.0)
+    assert gate.record(np.array([True, True]), both) == 2.0  # output 0's second rejection
+    assert (gate.streaks.tolist(), gate.inflation) == ([2, 1], 2.0)
     assert gate.record(np.zeros(2, bool), none) == 1.0  # a pure prediction: nothing changes
-    assert (gate.streak, gate.inflation, gate.status) == (2, 2.0, 0)
-    gate.record(np.zeros(2, bool), np.array([True, False]))  # one output seen and accepted
-    assert (gate.streak, gate.inflation) == (0, 1.0)
+    assert (gate.streaks.tolist(), gate.inflation, gate.status) == ([2, 1], 2.0, 0)
+    assert not gate.ends_episode(np.zeros(2, bool), np.array([False, True]))  # 1 not in episode
+    assert gate.ends_episode(np.zeros(2, bool), np.array([True, False]))
+    gate.record(np.zeros(2, bool), np.array([True, False]))  # output 0 seen and accepted
+    assert (gate.streaks.tolist(), gate.inflation) == ([0, 1], 1.0)
+    slow = GateState(GateSettings(recover_after=3, inflation=2.0), 2)
+    for k in range(9):  # output 1 every fourth step, always rejected; output 0 always fine
+        seen = np.array([True, k % 4 == 0])
+        slow.record(np.array([False, k % 4 == 0]), seen)
+    assert slow.streaks.tolist() == [0, 3] and slow.inflation == 2.0  # its third: recovery
 
 
 def test_set_noise_on_a_running_ukf_is_the_kalman_filter_retuned(linear):
@@ -350,3 +356,71 @@ def test_files_that_are_not_run_csvs(tmp_path):
     nul.write_bytes(b"t,u_F\x00\n")
     with pytest.raises(DataError, match="NUL bytes"):
         read_run(nul, cartpole)
+
+
+# -- the command line ---------------------------------------------------------------------------
+
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from learnest_codegen.cli import cli
+
+    result = CliRunner().invoke(cli, [str(a) for a in args])
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        raise AssertionError(f"uncaught {result.exception!r}") from result.exception
+    return result.exit_code, " ".join(result.output.split())
+
+
+@pytest.fixture(scope="module")
+def gappy_csv(tmp_path_factory):
+    """0.3 s of the cartpole with the pole angle at a quarter of the rate and a dropout of p."""
+    cartpole = get_system("cartpole")
+    run = simulation.simulate(cartpole, 1, duration=0.3)
+    y = run.y.copy()
+    y[np.arange(len(y)) % 4 != 0, 1] = np.nan
+    y[60:90, 0] = np.nan
+    path = tmp_path_factory.mktemp("gappy") / "gappy.csv"
+    write_run(Run(run.t, run.u, y, run.x, run.system), cartpole, path)
+    return path, run
+
+
+def test_estimate_takes_missing_measurements_and_a_wrong_start(gappy_csv, tmp_path):
+    """Both Python estimators run a gappy run from a start 3 sigma off (--x0, --P0 initial; the
+    MHE with --horizon 10): the rates begin at the guess and end where the same estimator
+    started at the true state ends."""
+    path, run = gappy_csv
+    missing = int(np.isnan(read_run(path, get_system("cartpole")).y).sum())
+    for estimator in ("ukf", "mhe"):
+        horizon = ["--horizon", "10"] if estimator == "mhe" else []
+        X = {}
+        for start, extra in (("wrong", ["--x0", "0.15,-0.3,0.45,-0.3", "--P0", "initial"]),
+                             ("true", [])):
+            out = tmp_path / f"{estimator}_{start}.csv"
+            code, text = _cli("estimate", "--data", path, "--estimator", estimator, "--backend",
+                              "python", *horizon, *extra, "--out", out)
+            assert code == 0 and f"{missing} missing" in text, text
+            X[start] = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:]
+        np.testing.assert_allclose(X["wrong"][0, [1, 3]], [-0.3, -0.3], atol=0.01)  # the guess
+        gap = np.abs(X["wrong"] - X["true"]).max(axis=1)
+        assert gap[-20:].max() < 0.3 * gap[0], (estimator, gap[0], gap[-20:].max())  # 0.04, 0.2
+
+
+def test_estimate_options_are_checked(gappy_csv, tmp_path):
+    path, _ = gappy_csv
+    out = tmp_path / "e.csv"
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--out", out)
+    assert code == 1 and "missing measurement(s)" in text and "--backend python" in text, text
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
+                      "--x0", "1,2", "--out", out)
+    assert code == 2 and "--x0" in text and "expected 4 finite comma-separated numbers" in text, text
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
+                      "--P0", "1,2,3", "--out", out)
+    assert code == 2 and "expected 'initial', 4 variances or 16 entries" in text, text
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
+                      "--horizon", "5", "--out", out)
+    assert code == 2 and "a horizon applies to the MHEs" in text, text
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
+                      "--P0", "1,0,0,0,0,1,0,0,0,0,-1,0,0,0,0,1", "--out", out)
+    assert code == 1 and "positive semidefinite" in text, text
+    code, text = _cli("estimate", "--data", "/dev/zero", "--estimator", "ukf", "--out", out)
+    assert code == 1 and "/dev/zero: not a regular file" in text, text

@@ -289,9 +289,7 @@ class MHE(GateReport):
         cov = self._P_run_cov if arrival_cov is None else arrival_cov
         S = gate_variances(C, rho * cov, self._R_weight)
         rejected = self._gate.test(innovation ** 2 / S, observed)  # absurd y: d2 = inf, rejected
-        recovering = self._gate.streak >= self.settings.gate.recover_after
-        ends_episode = recovering and observed.any() and not rejected.any()
-        if self._count > 0 and (self._restart or ends_episode):
+        if self._count > 0 and (self._restart or self._gate.ends_episode(rejected, observed)):
             xbar, arrival_cov = restart_prior(guess[-1], C, rho * cov, self._R_cov, innovation,
                                               rejected | ~observed)
             p, guess = self._restarted(p, xbar, _inverse(arrival_cov))
