@@ -160,3 +160,36 @@ def test_agrees_with_its_independent_reference(estimates, case):
     ref = estimates[(reference, "python")]
     diff = np.max(np.abs(estimates[case] - ref)) / np.max(np.abs(ref))
     assert diff < tolerance, f"{name}/{backend} differs from the {reference} reference by {diff:.2e}"
+
+
+#: The compiled MHEs weigh the arrival by inv(P0) for the whole run; the reference carries P0
+#: forward to the running weight (estimators/arrival.py). Their C follows with the C kit.
+P0_PENDING = pytest.mark.xfail(strict=True, reason="the compiled MHEs keep inv(P0) as the arrival "
+                               "weight for the whole run")
+
+
+@pytest.fixture(params=[pytest.param(c, marks=P0_PENDING, id=f"{c[0]}-{c[1]}")
+                        if c[1] == "c" and c[0] != "ukf" else pytest.param(c, id=f"{c[0]}-{c[1]}")
+                        for c in CASES])
+def start_case(request):
+    return request.param
+
+
+def test_converges_from_a_start_three_sigma_off(estimators, estimates, run, cartpole, start_case):
+    """Started 3 initial standard deviations off (alternating signs) with P0 = the initial
+    covariance, every estimator's error is within the clean run's band (``|e| <= |e_clean| +
+    rms_clean`` per state) from 0.4 s on (measured: UKF 0.16 s, MHE 0.28 s), and the gate
+    rejects no output after 0.1 s."""
+    case = start_case
+    est = estimators[case]
+    std = np.asarray(cartpole.noise.initial_std)
+    x0 = np.asarray(cartpole.x0) + 3 * std * np.array([1.0, -1.0, 1.0, -1.0])
+    X = est.run(run.u, run.y, x0, np.diag(std ** 2))
+    e, e_clean = np.abs(X - run.x), np.abs(estimates[case] - run.x)
+    rms = np.sqrt(np.mean(e_clean ** 2, axis=0))
+    settled = int(0.4 / cartpole.dt)
+    assert np.all(e[settled:] <= e_clean[settled:] + rms), np.max(e[settled:] - e_clean[settled:] - rms)
+    est.reset(x0, np.diag(std ** 2))
+    for k in range(T):
+        est.step(run.u[max(k - 1, 0)], run.y[k])
+        assert k < int(0.1 / cartpole.dt) or est.last_status == 0, k
