@@ -41,7 +41,7 @@ class Run:
     ----------
     t : (T,) sample times [s], strictly increasing.
     u : (T, nu) input applied from ``t[k]`` to ``t[k+1]``.
-    y : (T, ny) measurement at ``t[k]``.
+    y : (T, ny) measurement at ``t[k]``; NaN: no sample of that output at ``t[k]``.
     x : (T, nx) true state at ``t[k]``, or ``None`` for real recordings.
     system : name of the system the columns belong to.
     """
