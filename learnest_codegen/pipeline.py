@@ -23,7 +23,14 @@ from typing import TYPE_CHECKING, Any, Mapping, Union
 
 import numpy as np
 
-from .compilation import ESTIMATOR_NAMES, compile_estimators, estimator_dir, estimator_kind, resolve_model
+from .compilation import (
+    ESTIMATOR_NAMES,
+    compile_estimators,
+    estimator_dir,
+    estimator_kind,
+    estimator_settings,
+    resolve_model,
+)
 from .data import Run, check_sampling
 from .evaluation import EstimateResult, run_estimator
 from .export import DiscreteModel, hybrid_model
@@ -87,7 +94,8 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
-                   settings: Any = None, precision: str = "float64", gate: Any = None):
+                   settings: Any = None, precision: str = "float64", gate: Any = None,
+                   horizon: int | None = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -101,19 +109,24 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     precision : the C real type, ``"float64"`` or ``"float32"`` (UKF and embedded MHE).
     gate : a :class:`~learnest_codegen.estimators.gate.GateSettings` replacing the settings'
         innovation gate (default: the settings' own, on by default).
+    horizon : the MHE horizon N (MHEs only; default: the settings').
+
+    Both backends take their settings from
+    :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
+    same estimator.
     """
     resolved = resolve(model, system)
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
             raise ValueError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
-        chosen = settings or kind.default_settings(resolved.model)
-        return kind.python(resolved.model, chosen if gate is None else replace(chosen, gate=gate))
+        return kind.python(resolved.model, estimator_settings(estimator, resolved.model, settings,
+                                                              gate=gate, horizon=horizon))
     if backend != "c":
         raise ValueError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
     compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
                        settings={estimator: settings} if settings is not None else None,
-                       precision=precision, gate=gate)
+                       precision=precision, gate=gate, horizon=horizon)
     return load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
                           expect=expected_manifest(resolved))
 
@@ -130,10 +143,10 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
                       system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64", gate: Any = None):
+                      precision: str = "float64", gate: Any = None, horizon: int | None = None):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
     return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision, gate=gate)
+                          precision=precision, gate=gate, horizon=horizon)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,
@@ -156,19 +169,29 @@ def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: Sys
     return make_estimator(model, estimator, backend="python", system=system, settings=settings)
 
 
-def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: System | str | None = None,
-             label: str = "") -> EstimateResult:
+def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, P0: np.ndarray | None = None,
+             system: System | str | None = None, label: str = "") -> EstimateResult:
     """Run ``estimator`` over ``run`` from ``x0`` (default: the system's ``x0``) and time it.
 
-    ``system`` defaults to the built-in one the run names. The run must be sampled at the
-    system's ``dt``, the step the estimator was built for. The result's ``mse(run.x)`` scores it
-    when the truth is known.
+    ``P0`` is the covariance of ``x0`` (default: the estimator's own: the UKF's initial
+    covariance, the MHE's running arrival covariance); give it when ``x0`` is a doubtful
+    guess, e.g. ``initial_covariance(system)``. ``system`` defaults to the built-in one the run
+    names. The run must be sampled at the system's ``dt``, the step the estimator was built
+    for; its missing outputs (NaN) are left out. The result's ``mse(run.x)`` scores it when
+    the truth is known.
     """
     system = get_system(system or run.system)
     check_sampling(run, system.dt, label or "evaluate")
     x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
-    return run_estimator(estimator, run, x0, label or type(estimator).__name__)
+    return run_estimator(estimator, run, x0, label or type(estimator).__name__, P0)
+
+
+def initial_covariance(system: System | str) -> np.ndarray:
+    """``diag(initial_std**2)`` of ``system.noise``: the uncertainty of its ``x0``, the ``P0``
+    that goes with a guessed start."""
+    return np.diag(np.square(get_system(system).noise.initial_std))
 
 
 __all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "evaluate", "expected_manifest",
-           "load_estimator", "make_estimator", "reference_estimator", "resolve", "simulate", "train"]
+           "initial_covariance", "load_estimator", "make_estimator", "reference_estimator", "resolve",
+           "simulate", "train"]

@@ -12,6 +12,14 @@ every output is replaced by ``+-size`` (random sign). Reported per burst:
 - ``errors``: steps that raised (an error status of the C), and ``rejected``: samples with a
   rejected output.
 
+Input bursts (``u_rows``, Python references): the same lengths and sizes written into the
+input ``u`` instead (every component ``+-size``), once with the system's ``input_limits`` (the
+cartpole's +-50 N: 1e3 and 1e6 are replaced by the held input, 1e1 is plausible and used) and
+once without any limits (only the recovery repairs the state). Besides the two figures above
+they report ``samples_to_band``: samples after the burst until the error to the truth stays
+within the clean run's band (``|e|_i <= |e_clean|_i + rms_i``) -- after a wrong input an
+estimator can come back *closer* to the truth than the clean run and still differ from it.
+
 The clean run is also estimated with the gate off: ``clean`` reports the MSE with the gate on
 and off and the clean samples the gate rejected. Usage::
 
@@ -50,6 +58,15 @@ def clean_run(system_name: str, samples: int, seed: int = 1):
     return system, simulate(system, seed=seed, duration=samples * system.dt)
 
 
+def inject_u(U: np.ndarray, length: int, size: float, seed: int = 0) -> np.ndarray:
+    """``U`` with the inputs applied before samples ``BURST_START + 1 ..`` (``U[BURST_START]``
+    on, ``length`` of them) replaced by ``+-size``."""
+    Ub = U.copy()
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(length, U.shape[1]))
+    Ub[BURST_START:BURST_START + length] = size * signs
+    return Ub
+
+
 def inject(Y: np.ndarray, length: int, size: float, seed: int = 0) -> np.ndarray:
     """``Y`` with samples ``BURST_START .. BURST_START + length - 1`` replaced by ``+-size``."""
     Yb = Y.copy()
@@ -66,11 +83,14 @@ class Estimators:
         self.build_dir = Path(build_dir)
         self._built: set[str] = set()
 
-    def make(self, estimator: str, backend: str, gate: GateSettings | None = None):
+    def make(self, estimator: str, backend: str, gate: GateSettings | None = None,
+             limits: bool = True):
         kind = estimator_kind(estimator)
         settings = kind.default_settings(self.model)
         if gate is not None:
             settings = dataclasses.replace(settings, gate=gate)
+        if not limits:
+            settings = dataclasses.replace(settings, input_limits=None)
         if backend == "python":
             return (kind.python or estimator_kind("mhe").python)(self.model, settings)
         if estimator not in self._built:
@@ -89,11 +109,21 @@ def estimate(est, U: np.ndarray, Y: np.ndarray, x0) -> tuple[np.ndarray, np.ndar
         u = U[k - 1] if k else (U[0] if type(est).__name__.endswith("UKF") else np.zeros(U.shape[1]))
         try:
             X[k] = est.step(u, Y[k])
-            rejected[k] = est.last_status == 1
+            rejected[k] = bool(est.last_status & 1)
         except SolverError:
             errors += 1
             X[k] = est.x
     return X, rejected, errors
+
+
+def back_in_band(X: np.ndarray, X_clean: np.ndarray, X_true: np.ndarray, length: int) -> int:
+    """Samples after the burst until ``|x - x_true|_i <= |x_clean - x_true|_i + rms_i`` for
+    good (``rms`` the clean run's RMS error per state); ``len(X)`` if never."""
+    end = BURST_START + length
+    e, e_clean = np.abs(X - X_true), np.abs(X_clean - X_true)
+    rms = np.sqrt(np.mean(e_clean ** 2, axis=0))
+    outside = np.flatnonzero(np.any(e[end:] > e_clean[end:] + rms, axis=1))
+    return 0 if outside.size == 0 else int(outside[-1]) + 1
 
 
 def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -> tuple[int, float]:
@@ -105,12 +135,32 @@ def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -
     return to_recover, float(deviation[end + RECOVERY_BUDGET:].max())
 
 
+def input_rows(system_name: str, run, makers: "Estimators", estimator: str, X_clean: np.ndarray,
+               rms: np.ndarray, lengths=LENGTHS, sizes=SIZES) -> list[dict]:
+    """The input-burst rows of one Python estimator, with and without the input limits."""
+    rows = []
+    for limits in (True, False):
+        est = makers.make(estimator, "python", limits=limits)
+        for length in lengths:
+            for size in sizes:
+                X, rejected, errors = estimate(est, inject_u(run.u, length, size), run.y,
+                                               makers.system.x0)
+                to_recover, after = recovery(X, X_clean, rms, length)
+                rows.append({"system": system_name, "estimator": estimator, "backend": "python",
+                             "limits": limits, "burst": length, "size": size,
+                             "inputs_replaced": int(est.input_rejections),
+                             "samples_to_recover": to_recover, "max_error_after": after,
+                             "samples_to_band": back_in_band(X, X_clean, run.x, length),
+                             "errors": errors, "rejected": int(rejected.sum())})
+    return rows
+
+
 def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENGTHS, sizes=SIZES,
-          backends=BACKENDS) -> dict:
+          backends=BACKENDS, inputs: bool = True) -> dict:
     """The recovery table of one system (see the module docstring)."""
     system, run = clean_run(system_name, samples)
     makers = Estimators(system, build_dir)
-    rows, clean = [], []
+    rows, clean, u_rows = [], [], []
     for estimator, kinds in backends.items():
         for backend in kinds:
             start = time.process_time()
@@ -131,19 +181,32 @@ def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENG
                     rows.append({"system": system_name, "estimator": estimator, "backend": backend,
                                  "burst": length, "size": size, "samples_to_recover": to_recover,
                                  "max_error_after": after, "errors": errors,
-                                 "rejected": int(rejected.sum())})
+                                 "rejected": int(rejected.sum()),
+                                 "samples_to_band": back_in_band(X, X_clean, run.x, length)})
+            if inputs and backend == "python":
+                u_rows += input_rows(system_name, run, makers, estimator, X_clean, rms, lengths, sizes)
             clean[-1]["cpu_seconds"] = round(time.process_time() - start, 2)
     return {"system": system_name, "tolerance": TOLERANCE, "budget": RECOVERY_BUDGET,
-            "burst_start": BURST_START, "clean": clean, "rows": rows}
+            "burst_start": BURST_START, "clean": clean, "rows": rows, "u_rows": u_rows}
 
 
 def markdown(result: dict) -> str:
     lines = ["| system | estimator | backend | burst | size | rejected | samples to recover | "
-             "max error after | errors |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "max error after | samples to band | errors |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in result["rows"]:
         lines.append(f"| {r['system']} | {r['estimator']} | {r['backend']} | {r['burst']} | "
                      f"{r['size']:.0e} | {r['rejected']} | {r['samples_to_recover']} | "
-                     f"{r['max_error_after']:.2f} | {r['errors']} |")
+                     f"{r['max_error_after']:.2f} | {r['samples_to_band']} | {r['errors']} |")
+    if result.get("u_rows"):
+        lines += ["", "| system | estimator | input limits | burst | size | inputs replaced | "
+                  "outputs rejected | samples to recover | max error after | samples to band | "
+                  "errors |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for r in result["u_rows"]:
+            lines.append(f"| {r['system']} | {r['estimator']} | {'yes' if r['limits'] else 'no'} | "
+                         f"{r['burst']} | {r['size']:.0e} | {r['inputs_replaced']} | {r['rejected']} | "
+                         f"{r['samples_to_recover']} | {r['max_error_after']:.2f} | "
+                         f"{r['samples_to_band']} | {r['errors']} |")
     return "\n".join(lines)
 
 

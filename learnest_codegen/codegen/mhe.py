@@ -17,7 +17,13 @@ import casadi as cs
 import numpy as np
 
 from .. import toolchain
-from ..estimators.mhe_problem import IPOPT_OPTIONS, MHESettings, build_problem, measurement_function
+from ..estimators.mhe_problem import (
+    IPOPT_OPTIONS,
+    MHESettings,
+    build_problem,
+    measurement_function,
+    mhe_settings,
+)
 from ..export import DiscreteModel
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, comment, emit, resolve_prefix
@@ -31,14 +37,15 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     Parameters
     ----------
     model : the discrete model the estimator uses.
-    settings : horizon and default tuning (the tuning stays settable at run time);
-        default ``MHESettings.from_system(model.system)``.
+    settings : horizon and default weights (weights stay settable at run time);
+        default ``MHESettings.from_system(model.system)``; through
+        :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE.
     out_dir : the folder for this estimator (created).
     prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``.
     model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
     force : rebuild the library even when nothing changed.
     """
-    settings = settings or MHESettings.from_system(model.system)
+    settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     prefix = resolve_prefix(prefix, model, "mhe", "float64")
     problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)

@@ -31,7 +31,8 @@ def _read_dart(path: Path) -> list[Run]:
     from ..recordings import dart
 
     files = sorted(p for p in path.glob("*.csv")) if path.is_dir() else [path]
-    return [dart.read_recording(f) for f in files]
+    # the held encoder samples as samples, until the diagnosis takes missing outputs
+    return [dart.read_recording(f, dart.DartSettings(held="hold")) for f in files]
 
 
 # format -> (reader of a file or folder, the system its runs belong to; None: --system decides)
