@@ -19,11 +19,12 @@ rate within 2x and finite, a wrong start back in the band within 1 s with no rej
 
 The model: the cartpole KNODE fixture ``tests/data/model_b12bfa1`` (a net trained for 3
 epochs: the KNODE model's structure and cost, quickly; ``--model`` takes any model directory,
-``nominal`` or ``true``). Backends: ``python`` (the references); ``c`` runs the compiled
-libraries where their C API takes missing outputs and a covariance at reset, and lists them
-as skipped otherwise. Usage::
+``nominal`` or ``true``). Backends: ``python`` (the references) and ``c`` (the compiled
+libraries, in each of ``--precisions`` they are built in: the Ipopt MHE is float64 only).
+Usage::
 
     python scripts/bench_streams.py --out bench_streams.json
+    python scripts/bench_streams.py --backends c --precisions float64 float32 --out c.json
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ DROPOUT_START_S, DROPOUT_S, SLOW_EVERY = 4.0, 0.25, 4
 #: estimator -> backends that have it (mhe_gn's Python reference is the Ipopt MHE: the same
 #: problem; mhe_rti has none).
 BACKENDS = {"ukf": ("python", "c"), "mhe": ("python", "c"), "mhe_gn": ("c",), "mhe_rti": ("c",)}
+#: precisions each compiled estimator is generated in
+C_PRECISIONS = {"ukf": ("float64", "float32"), "mhe": ("float64",),
+                "mhe_gn": ("float64", "float32"), "mhe_rti": ("float64", "float32")}
 TARGETS = {"dropout_mse_ratio": 1.3, "quarter_mse_ratio": 2.0, "converged_s": 1.0}
 
 
@@ -81,8 +85,7 @@ def estimate(est, run, Y, x0, P0, *, drop: bool = False) -> dict:
     errors = 0
     start = time.process_time()
     for k in range(len(Y)):
-        first = run.u[0] if type(est).__name__.endswith("UKF") else np.zeros(run.u.shape[1])
-        u = run.u[k - 1] if k else first  # each estimator's run() convention for sample 0
+        u = run.u[max(k - 1, 0)]  # run()'s convention: sample 0 uses U[0] (only in h)
         if drop and k and np.isnan(Y[k]).any():
             X[k] = est.x
             continue
@@ -108,7 +111,8 @@ def converged_after(X, X_clean, x_true, dt) -> float | None:
     return float((outside[-1] + 1) * dt)
 
 
-def bench(model_arg: str, backends: tuple[str, ...], build_dir: Path, estimators=None) -> dict:
+def bench(model_arg: str, backends: tuple[str, ...], build_dir: Path, estimators=None,
+          precisions: tuple[str, ...] = ("float64",)) -> dict:
     system = ln.get_system("cartpole")
     run = ln.simulate(system, seed=1)
     resolved = ln.resolve(model_arg, system)
@@ -118,15 +122,17 @@ def bench(model_arg: str, backends: tuple[str, ...], build_dir: Path, estimators
     for name, kinds in BACKENDS.items():
         if estimators and name not in estimators:
             continue
-        for backend in kinds:
-            if backend not in backends:
-                continue
+        for backend, precision in ((b, p) for b in kinds if b in backends
+                                   for p in (("float64",) if b == "python" else
+                                             [p for p in precisions if p in C_PRECISIONS[name]])):
             kind = estimator_kind(name)
             if not takes_missing_outputs(kind.python if backend == "python" else kind.compiled):
-                skipped.append({"estimator": name, "backend": backend,
-                                "reason": "its C API takes no missing outputs yet"})
+                skipped.append({"estimator": name, "backend": backend, "precision": precision,
+                                "reason": "it takes no missing outputs"})
                 continue
-            est = ln.make_estimator(resolved, name, backend=backend, system=system, out=build_dir)
+            est = ln.make_estimator(resolved, name, backend=backend, system=system, out=build_dir,
+                                    precision=precision)
+            backend = backend if precision == "float64" else f"{backend} {precision}"
             clean = None
             for case, (Y, x0, give_P0) in cases.items():
                 start = np.asarray(system.x0) if x0 is None else x0
@@ -197,11 +203,14 @@ def main(argv=None) -> dict:
                         help="model directory, 'nominal' or 'true' (default: the KNODE fixture)")
     parser.add_argument("--backends", nargs="+", default=["python", "c"], choices=["python", "c"])
     parser.add_argument("--estimators", nargs="+", default=None, choices=list(BACKENDS))
+    parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
+                        choices=["float64", "float32"], help="of the compiled estimators")
     parser.add_argument("--build-dir", type=Path, default=Path("build/bench_streams"))
     parser.add_argument("--out", type=Path, default=Path("bench_streams.json"))
     args = parser.parse_args(argv)
     start = time.time()
-    result = bench(args.model, tuple(args.backends), args.build_dir, args.estimators)
+    result = bench(args.model, tuple(args.backends), args.build_dir, args.estimators,
+                   tuple(args.precisions))
     result.update(machine=platform.platform(), python=platform.python_version(),
                   wall_seconds=round(time.time() - start, 1))
     args.out.write_text(json.dumps(result, indent=1))

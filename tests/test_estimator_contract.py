@@ -52,24 +52,8 @@ def estimates(estimators, run, cartpole):
     return {case: est.run(run.u, run.y, np.asarray(cartpole.x0)) for case, est in estimators.items()}
 
 
-#: The compiled libraries take missing outputs, predict and set_noise (the C kit); their
-#: bindings do not report ``missing`` yet.
-KIT_PENDING = pytest.mark.xfail(strict=True, reason="the C bindings do not report `missing` yet")
-
-
-def _marked(c):
-    return pytest.param(c, marks=KIT_PENDING, id=f"{c[0]}-{c[1]}") if c[1] == "c" else \
-        pytest.param(c, id=f"{c[0]}-{c[1]}")
-
-
 @pytest.fixture(params=CASES, ids=lambda c: f"{c[0]}-{c[1]}")
 def case(request):
-    return request.param
-
-
-@pytest.fixture(params=[_marked(c) for c in CASES])
-def stream_case(request):
-    """Every case; the compiled ones are expected to fail until their C API takes streams."""
     return request.param
 
 
@@ -79,10 +63,10 @@ def test_keeps_the_protocol(estimators, cartpole, case):
     assert takes_missing_outputs(estimators[case])
 
 
-def test_missing_outputs_and_predict(estimators, run, cartpole, stream_case):
+def test_missing_outputs_and_predict(estimators, run, cartpole, case):
     """NaN in y is a missing output: a step without any output equals ``predict``, a step
     with one output missing leaves it out, and neither is a rejection or an error."""
-    est = estimators[stream_case]
+    est = estimators[case]
     est.reset(np.asarray(cartpole.x0))
     for k in range(30):
         est.step(run.u[max(k - 1, 0)], run.y[k])
@@ -162,25 +146,11 @@ def test_agrees_with_its_independent_reference(estimates, case):
     assert diff < tolerance, f"{name}/{backend} differs from the {reference} reference by {diff:.2e}"
 
 
-#: The compiled MHEs weigh the arrival by inv(P0) for the whole run; the reference carries P0
-#: forward to the running weight (estimators/arrival.py). Their C follows with the C kit.
-P0_PENDING = pytest.mark.xfail(strict=True, reason="the compiled MHEs keep inv(P0) as the arrival "
-                               "weight for the whole run")
-
-
-@pytest.fixture(params=[pytest.param(c, marks=P0_PENDING, id=f"{c[0]}-{c[1]}")
-                        if c[1] == "c" and c[0] != "ukf" else pytest.param(c, id=f"{c[0]}-{c[1]}")
-                        for c in CASES])
-def start_case(request):
-    return request.param
-
-
-def test_converges_from_a_start_three_sigma_off(estimators, estimates, run, cartpole, start_case):
+def test_converges_from_a_start_three_sigma_off(estimators, estimates, run, cartpole, case):
     """Started 3 initial standard deviations off (alternating signs) with P0 = the initial
     covariance, every estimator's error is within the clean run's band (``|e| <= |e_clean| +
     rms_clean`` per state) from 0.4 s on (measured: UKF 0.16 s, MHE 0.28 s), and the gate
     rejects no output after 0.1 s."""
-    case = start_case
     est = estimators[case]
     std = np.asarray(cartpole.noise.initial_std)
     x0 = np.asarray(cartpole.x0) + 3 * std * np.array([1.0, -1.0, 1.0, -1.0])

@@ -154,15 +154,16 @@ class MHE(GateReport):
         """Start over from the prior ``x0 (nx,)``, the first arrival ``xbar``.
 
         ``P0 (nx, nx)``, if given, is the covariance of that prior: its inverse weighs the
-        arrival, and once the window slides the covariance is carried forward until it is no
-        larger than the running one (:mod:`.arrival`); it is also the gate's covariance
-        meanwhile. Without ``P0`` the running weight applies from the start. ``Q``, ``R`` and
-        the running weight go back to the settings' (undoing :meth:`set_noise`).
+        arrival, and, when it is larger than the running arrival covariance, once the window
+        slides it is carried forward until it is no larger (:mod:`.arrival`); it is also the
+        gate's covariance meanwhile. Without ``P0`` the running weight applies from the start.
+        ``Q``, ``R`` and the running weight go back to the settings' (undoing :meth:`set_noise`).
         """
         x0 = validation.vector("MHE.reset: x0", x0, self.model.nx)
         Q, R, P = self.settings.weights()
         P_first = P if P0 is None else arrival_weight_from_covariance(P0, self.model.nx)
-        self._arrival_cov = None if P0 is None else np.asarray(P0, dtype=float).copy()
+        carried = P0 is not None and not arrival.settled(np.asarray(P0, dtype=float), P)
+        self._arrival_cov = np.asarray(P0, dtype=float).copy() if carried else None
         self._weights = (Q, R, P_first)
         self._P_run, self._P_run_cov = P, np.linalg.inv(P)
         self._R_cov = np.linalg.inv(R)
