@@ -408,8 +408,8 @@ def test_estimate_takes_missing_measurements_and_a_wrong_start(gappy_csv, tmp_pa
 def test_estimate_options_are_checked(gappy_csv, tmp_path):
     path, _ = gappy_csv
     out = tmp_path / "e.csv"
-    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--out", out)
-    assert code == 1 and "missing measurement(s)" in text and "--backend python" in text, text
+    code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--out", tmp_path / "c.csv")
+    assert code == 0 and "missing" in text, text  # the compiled estimators take them too
     code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
                       "--x0", "1,2", "--out", out)
     assert code == 2 and "--x0" in text and "expected 4 finite comma-separated numbers" in text, text

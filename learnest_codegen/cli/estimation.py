@@ -145,8 +145,8 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     """Run an estimator over a run; write t and one xhat_<state> column per state.
 
     Samples whose outputs the innovation gate rejected are counted in the summary line; they
-    are not errors. Empty y_ cells of the run are missing measurements (the Python backend
-    takes them; the compiled estimators once their C API does)."""
+    are not errors. Empty y_ cells of the run are missing measurements (both backends take
+    them)."""
     from ..compilation import check_horizon, estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):

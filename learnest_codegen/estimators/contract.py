@@ -33,9 +33,8 @@ fixed ``dt``) and is used as::
   2 an input component was replaced (none of them is an error).
 
 ``tests/test_estimator_contract.py`` runs every registered estimator, in Python and in C,
-through the same checks. The compiled libraries take missing outputs, ``predict`` and
-``set_noise`` once their C API has them; :func:`takes_missing_outputs` says whether an
-estimator does. Torch-free.
+through the same checks (the compiled libraries take missing outputs as validity flags);
+:func:`takes_missing_outputs` says whether an estimator keeps the whole contract. Torch-free.
 """
 
 from __future__ import annotations
