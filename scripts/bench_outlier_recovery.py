@@ -34,12 +34,18 @@ import argparse
 import dataclasses
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from learnest_codegen import get_system
-from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
+from learnest_codegen.compilation import (
+    compile_estimators,
+    estimator_dir,
+    estimator_kind,
+    estimator_settings,
+)
 from learnest_codegen.errors import SolverError
 from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.export import prior_model
@@ -101,9 +107,10 @@ class Estimators:
         # the C's input limits are compiled in: a build without them has its own folder
         out = self.build_dir if limits else self.build_dir / "no_input_limits"
         if (estimator, precision, limits) not in self._built:
+            free = replace(estimator_settings(estimator, self.model, precision=precision),
+                           input_limits=None)
             compile_estimators(self.model, out, model_hash="nominal", estimators=(estimator,),
-                               precision=precision,
-                               settings=None if limits else {estimator: settings})
+                               precision=precision, settings=None if limits else {estimator: free})
             self._built.add((estimator, precision, limits))
         est = kind.compiled(estimator_dir(out, self.model, estimator, precision))
         if gate is not None:
@@ -149,10 +156,11 @@ def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -
 
 def input_rows(system_name: str, run, makers: "Estimators", estimator: str, backend: str,
                precision: str, X_clean: np.ndarray, rms: np.ndarray, lengths=LENGTHS,
-               sizes=SIZES) -> list[dict]:
-    """The input-burst rows of one estimator, with and without the input limits."""
+               sizes=SIZES, without_limits: bool = True) -> list[dict]:
+    """The input-burst rows of one estimator, with the input limits and (Python always, the
+    compiled ones with ``without_limits``: a second build) without them."""
     rows = []
-    for limits in (True, False):
+    for limits in ((True, False) if backend == "python" or without_limits else (True,)):
         est = makers.make(estimator, backend, limits=limits, precision=precision)
         for length in lengths:
             for size in sizes:
@@ -169,7 +177,8 @@ def input_rows(system_name: str, run, makers: "Estimators", estimator: str, back
 
 
 def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENGTHS, sizes=SIZES,
-          backends=BACKENDS, inputs: bool = True, precisions=("float64",)) -> dict:
+          backends=BACKENDS, inputs: bool = True, precisions=("float64",),
+          c_without_limits: bool = True) -> dict:
     """The recovery table of one system (see the module docstring)."""
     system, run = clean_run(system_name, samples)
     makers = Estimators(system, build_dir)
@@ -202,7 +211,7 @@ def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENG
                                  "samples_to_band": back_in_band(X, X_clean, run.x, length)})
             if inputs:
                 u_rows += input_rows(system_name, run, makers, estimator, backend, precision,
-                                     X_clean, rms, lengths, sizes)
+                                     X_clean, rms, lengths, sizes, c_without_limits)
             clean[-1]["cpu_seconds"] = round(time.process_time() - start, 2)
     return {"system": system_name, "tolerance": TOLERANCE, "budget": RECOVERY_BUDGET,
             "burst_start": BURST_START, "clean": clean, "rows": rows, "u_rows": u_rows}
@@ -243,9 +252,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", type=Path, default=Path("bench_outlier_recovery.json"))
     parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
                         choices=["float64", "float32"], help="of the compiled estimators")
+    parser.add_argument("--c-with-limits-only", action="store_true",
+                        help="input bursts of the compiled estimators with the system's limits "
+                             "only (no second build without them)")
     args = parser.parse_args(argv)
-    results = [table(name, args.build_dir, samples=args.samples, precisions=tuple(args.precisions))
-               for name in args.systems]
+    results = [table(name, args.build_dir, samples=args.samples, precisions=tuple(args.precisions),
+                     c_without_limits=not args.c_with_limits_only) for name in args.systems]
     out = {"tables": results}
     args.out.write_text(json.dumps(out, indent=1))
     for r in results:
