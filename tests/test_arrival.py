@@ -65,6 +65,7 @@ def test_every_door_builds_the_same_mhe(cartpole, tmp_path):
 
     import learnest_codegen as ln
     from learnest_codegen.cli import cli
+    from learnest_codegen.codegen.emit import c_list
     from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe
     from learnest_codegen.compilation import estimator_settings
     from learnest_codegen.runtime.manifest import read_manifest
@@ -99,6 +100,7 @@ def test_every_door_builds_the_same_mhe(cartpole, tmp_path):
     doors["Cortex-M example"] = (20, read_manifest(gen.directory)["settings"])
     for door, (N, settings) in doors.items():
         assert settings == reference[N], door
-    P = np.linalg.inv(np.asarray(reference[20]["arrival_covariance"]))
-    config = (gen.directory / "estimator_config.h").read_text()
-    assert example.c_array("est_P", 0.5 * (P + P.T), (16,)) in config  # the weight the firmware gets
+    # the firmware starts from the header's defaults (init_default): the same arrival covariance
+    header = (gen.directory / f"{gen.prefix}.h").read_text()
+    P0 = c_list(np.asarray(reference[20]["arrival_covariance"]))
+    assert f"#define {gen.prefix.upper()}_DEFAULT_P0 {P0}" in header
