@@ -123,6 +123,7 @@ def knode_stream(system, T: int = 250):
     return U, Y
 
 
+@pytest.mark.slow  # five KNODE builds (the Ipopt MHE's takes minutes on a loaded machine)
 @pytest.mark.parametrize("name, precision", list(TOLERANCE))
 def test_compiled_knode_equals_python_on_a_stream(knode, name, precision):
     """The KNODE cartpole fixture on a multi-rate stream with a dropout, implausible inputs
