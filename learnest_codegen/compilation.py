@@ -39,15 +39,18 @@ def _registry() -> dict[str, EstimatorKind]:
     from .codegen.ukf import generate_ukf
     from .estimators.mhe import MHE
     from .estimators.mhe_gn import GaussNewtonSettings
-    from .estimators.mhe_problem import MHESettings, steady_state_arrival
+    from .estimators.mhe_problem import mhe_settings
     from .estimators.precision import PRECISIONS
     from .estimators.ukf import UKF, UKFSettings
     from .runtime.mhe import CompiledMHE
     from .runtime.mhe_gn import CompiledEmbeddedMHE
     from .runtime.ukf import CompiledUKF
 
-    def mhe_defaults(model: DiscreteModel) -> MHESettings:
-        return steady_state_arrival(model, MHESettings.from_system(model.system))
+    def mhe_defaults(model: DiscreteModel, **overrides):
+        return mhe_settings(model, **overrides)
+
+    def ukf_defaults(model: DiscreteModel, **overrides):
+        return UKFSettings.from_system(model.system, **overrides)
 
     def embedded(mode: str) -> Callable[..., Any]:
         def generate(model, settings, directory, *, model_hash: str = "", precision: str = "float64"):
@@ -58,8 +61,7 @@ def _registry() -> dict[str, EstimatorKind]:
 
     return {
         "mhe": EstimatorKind(mhe_defaults, generate_mhe, MHE, CompiledMHE),
-        "ukf": EstimatorKind(lambda model: UKFSettings.from_system(model.system), generate_ukf, UKF,
-                             CompiledUKF, tuple(PRECISIONS)),
+        "ukf": EstimatorKind(ukf_defaults, generate_ukf, UKF, CompiledUKF, tuple(PRECISIONS)),
         # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser,
         # so that MHE is its Python reference
         "mhe_gn": EstimatorKind(mhe_defaults, embedded("converged"), MHE, CompiledEmbeddedMHE,
@@ -122,28 +124,63 @@ def estimator_dir(out: Path, model: DiscreteModel, name: str, precision: str = "
     return Path(out) / f"{model.system.name}_{model.kind}_{name}{suffix}"
 
 
+#: The estimators with a moving horizon (``horizon`` applies to them).
+MHE_NAMES = ("mhe", "mhe_gn", "mhe_rti")
+
+
+def check_horizon(estimators: tuple[str, ...], horizon: int | None) -> None:
+    """Raise :class:`ValueError` when a ``horizon`` is given but no MHE is among ``estimators``."""
+    if horizon is not None and not any(name in MHE_NAMES for name in estimators):
+        raise ValueError(f"a horizon applies to the MHEs {list(MHE_NAMES)}, not to {list(estimators)}")
+
+
+def estimator_settings(name: str, model: DiscreteModel, settings: Any = None, *,
+                       precision: str = "float64", gate: Any = None, horizon: int | None = None):
+    """The settings estimator ``name`` of ``model`` is built with: the one door for the
+    compiled libraries and the Python references alike.
+
+    ``settings`` (default: the system's, as ``learnest-compile``; a float32 UKF gets its alpha
+    raised, :func:`float32_ukf_settings`), then ``gate`` replaces the innovation gate and
+    ``horizon`` the MHE horizon; an MHE's steady-state arrival covariance is computed for
+    ``model`` (:func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`).
+    """
+    kind = estimator_kind(name)
+    if horizon is not None and name not in MHE_NAMES:
+        raise ValueError(f"{name}: a horizon applies to the MHEs {list(MHE_NAMES)} only")
+    chosen = settings or kind.default_settings(model)
+    if name == "ukf" and precision == "float32" and settings is None:
+        chosen = float32_ukf_settings(chosen)
+    if gate is not None:
+        chosen = replace(chosen, gate=gate)
+    if name in MHE_NAMES:
+        from .estimators.mhe_problem import mhe_settings
+
+        chosen = mhe_settings(model, chosen, **({} if horizon is None else {"horizon": horizon}))
+    return chosen
+
+
 def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str,
                        estimators: tuple[str, ...] = DEFAULT_ESTIMATORS,
                        settings: Mapping[str, Any] | None = None,
-                       precision: str = "float64", gate: Any = None) -> dict[str, Any]:
+                       precision: str = "float64", gate: Any = None,
+                       horizon: int | None = None) -> dict[str, Any]:
     """Generate and build ``estimators`` for ``model`` under ``out``; returns name -> result.
 
     ``precision`` (``"float64"`` or ``"float32"``) is the C real type; an estimator that is
     not generated in it raises :class:`ValueError`. ``gate`` (a
     :class:`~learnest_codegen.estimators.gate.GateSettings`) replaces the innovation gate of
-    every estimator's settings.
+    every estimator's settings, ``horizon`` the horizon of every MHE's (see
+    :func:`estimator_settings`).
     """
     problem = precision_problem(estimators, precision)
     if problem:
         raise SettingsError(problem)
-    kinds = {name: estimator_kind(name) for name in estimators}
+    check_horizon(estimators, horizon)
     results = {}
-    for name, kind in kinds.items():
-        chosen = (settings or {}).get(name) or kind.default_settings(model)
-        if name == "ukf" and precision == "float32" and not (settings or {}).get(name):
-            chosen = float32_ukf_settings(chosen)
-        if gate is not None:
-            chosen = replace(chosen, gate=gate)
+    for name in estimators:
+        kind = estimator_kind(name)
+        chosen = estimator_settings(name, model, (settings or {}).get(name), precision=precision,
+                                    gate=gate, horizon=horizon if name in MHE_NAMES else None)
         directory = estimator_dir(Path(out), model, name, precision)
         extra = {} if precision == "float64" else {"precision": precision}
         with atomic_dir(directory) as tmp:

@@ -4,6 +4,12 @@ Columns: ``t`` [s], ``u_<input>``, ``y_<output>`` and, when truth is known, ``x_
 named after the system's signals. Loading validates the columns against the system, checks that
 time increases strictly and that every value is finite, and says exactly what is wrong.
 
+Missing measurements. An empty (or ``nan``) cell in a ``y_`` column means "no sample of this
+output at this time" -- a sensor slower than the run's rate, a dropout -- and is read as NaN,
+the estimators' convention for a missing output (``estimators/contract.py``). Time, input and
+truth cells must be numbers: an input is what was applied, and the estimators hold it between
+samples themselves. :func:`write_run` writes a missing output as an empty cell.
+
 Every model and compiled estimator steps at its system's ``dt``; a run sampled at another rate
 would be estimated (or trained on) silently wrong, so :func:`check_sampling` compares the two and
 :func:`resample` puts a run on the right grid when the user asks for it.
@@ -12,7 +18,6 @@ would be estimated (or trained on) silently wrong, so :func:`check_sampling` com
 from __future__ import annotations
 
 import csv
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +41,7 @@ class Run:
     ----------
     t : (T,) sample times [s], strictly increasing.
     u : (T, nu) input applied from ``t[k]`` to ``t[k+1]``.
-    y : (T, ny) measurement at ``t[k]``.
+    y : (T, ny) measurement at ``t[k]``; NaN: no sample of that output at ``t[k]``.
     x : (T, nx) true state at ``t[k]``, or ``None`` for real recordings.
     system : name of the system the columns belong to.
     """
@@ -66,6 +71,11 @@ class Run:
     def __len__(self) -> int:
         return self.t.shape[0]
 
+    @property
+    def missing(self) -> np.ndarray:
+        """(T, ny) bool: the outputs without a sample (NaN in ``y``)."""
+        return np.isnan(self.y)
+
 
 def columns(system: System, with_truth: bool) -> list[str]:
     """The CSV header of a run of ``system``."""
@@ -74,52 +84,112 @@ def columns(system: System, with_truth: bool) -> list[str]:
 
 
 def write_run(run: Run, system: System, path: str | Path) -> Path:
-    """Write ``run`` as CSV (full double precision), atomically (whole file or none)."""
+    """Write ``run`` as CSV (full double precision), atomically (whole file or none); a missing
+    output (NaN) is an empty cell."""
     path = Path(path)
     blocks = [run.t[:, None], run.u, run.y] + ([run.x] if run.x is not None else [])
     table = np.hstack(blocks)
+    cells = np.char.mod("%.17g", table)
+    cells[np.isnan(table)] = ""
     with atomic_file(path) as tmp, tmp.open("w", newline="") as fh:
         fh.write(",".join(columns(system, run.x is not None)) + "\n")
-        np.savetxt(fh, table, delimiter=",", fmt="%.17g")
+        fh.writelines(",".join(row) + "\n" for row in cells)
     return path
 
 
 def read_run(path: str | Path, system: System) -> Run:
-    """Read and validate a run CSV of ``system``; raise :class:`DataError` on any problem."""
+    """Read and validate a run CSV of ``system``; raise :class:`DataError` on any problem.
+
+    Empty or ``nan`` cells of ``y_`` columns are missing outputs (NaN in ``Run.y``); anything
+    else that is not a finite real number is an error naming the file, the column and the row.
+    A UTF-8 byte-order mark is accepted.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"run file {path} not found")
-    with path.open(newline="") as fh:
-        header = next(csv.reader(fh), None)
-    if not header:
-        raise DataError(f"{path}: empty file, expected a header with columns {columns(system, False)}")
-    header = [h.strip() for h in header]
-    missing = [c for c in columns(system, False) if c not in header]
-    if missing:
-        raise DataError(f"{path}: missing columns {missing} for system {system.name!r} (has {header})")
-    try:
-        with warnings.catch_warnings():  # an empty table is reported below as a DataError
-            warnings.simplefilter("ignore", UserWarning)
-            table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
-        raise DataError(f"{path}: non-numeric content: {exc}") from exc
-    if table.shape[0] < 2:
-        raise DataError(f"{path}: need at least 2 samples, got {table.shape[0]}")
-    col = {name: i for i, name in enumerate(header)}
-    bad = np.argwhere(~np.isfinite(table))
-    if bad.size:
-        r, c = bad[0]
-        raise DataError(f"{path}: non-finite value in column {header[c]!r} at data row {r + 1} "
-                        f"({len(bad)} non-finite values in all)")
-    t = table[:, col["t"]]
+    header, rows = _read_table(path, columns(system, False))
+    where = {name: i for i, name in enumerate(header)}
+    truth_cols = [f"x_{n}" for n in system.state_names]
+    used = columns(system, all(c in where for c in truth_cols))
+    data = {name: _column(path, name, [r[where[name]] for r in rows]) for name in used}
+    for name in used:
+        bad = ~np.isfinite(data[name])
+        if name.startswith("y_"):
+            bad &= ~np.isnan(data[name])  # NaN: a missing output
+        if bad.any():
+            r = int(np.argmax(bad))
+            if np.isnan(data[name][r]):
+                why = "an empty or NaN value", "only measurement (y_) cells may be left empty (missing)"
+            else:
+                why = "an infinite value", "leave a measurement cell empty for a missing sample"
+            raise DataError(f"{path}: {why[0]} in column {name!r} at data row {r + 1} "
+                            f"({int(bad.sum())} in that column); {why[1]}")
+    t = data["t"]
     steps = np.diff(t)
     if np.any(steps <= 0):
         k = int(np.argmax(steps <= 0))
         raise DataError(f"{path}: time must increase strictly; t[{k + 1}]={t[k + 1]} after t[{k}]={t[k]}")
-    pick = lambda prefix, names: table[:, [col[f"{prefix}_{n}"] for n in names]]  # noqa: E731
-    truth_cols = [f"x_{n}" for n in system.state_names]
-    x = pick("x", system.state_names) if all(c in col for c in truth_cols) else None
+    pick = lambda prefix, names: np.column_stack([data[f"{prefix}_{n}"] for n in names])  # noqa: E731
+    x = pick("x", system.state_names) if "x_" + system.state_names[0] in data else None
     return Run(t, pick("u", system.input_names), pick("y", system.output_names), x, system.name)
+
+
+def _read_table(path: Path, required: list[str]) -> tuple[list[str], list[list[str]]]:
+    """The header and the rows of a run CSV, with one-line errors for what is not one."""
+    if not path.exists():
+        raise FileNotFoundError(f"run file {path} not found")
+    if not path.is_file():
+        raise DataError(f"{path}: not a regular file (a folder or a device); expected a run CSV")
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")  # a byte-order mark is not part of the first name
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise DataError(f"{path}: not UTF-8 text (byte {exc.start}, line {line}: "
+                        f"{raw[exc.start:exc.start + 1]!r}); save the run CSV as UTF-8") from exc
+    if "\x00" in text:
+        raise DataError(f"{path}: holds NUL bytes; expected a run CSV (text)")
+    table = [row for row in csv.reader(text.splitlines()) if row]
+    if not table:
+        raise DataError(f"{path}: empty file, expected a header with columns {required}")
+    header = [h.strip() for h in table[0]]
+    repeated = sorted({h for h in header if header.count(h) > 1})
+    if repeated:
+        raise DataError(f"{path}: column(s) {repeated} appear more than once in the header")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise DataError(f"{path}: missing columns {missing} (has {header})")
+    rows = table[1:]
+    ragged = [i for i, r in enumerate(rows) if len(r) != len(header)]
+    if ragged:
+        r = ragged[0]
+        raise DataError(f"{path}: data row {r + 1} has {len(rows[r])} values, the header "
+                        f"{len(header)} ({len(ragged)} such rows)")
+    if len(rows) < 2:
+        raise DataError(f"{path}: need at least 2 samples, got {len(rows)}")
+    return header, rows
+
+
+def _column(path: Path, name: str, cells: list[str]) -> np.ndarray:
+    """The cells of one column as floats; an empty cell is NaN, text is an error."""
+    cells = [c.strip() or "nan" for c in cells]
+    try:
+        return np.asarray(cells, dtype=float)
+    except ValueError:
+        for r, c in enumerate(cells):
+            try:
+                float(c)
+            except ValueError:
+                hint = " (a complex number: give its real part)" if _is_complex(c) else ""
+                raise DataError(f"{path}: non-numeric value {c!r} in column {name!r} at data row "
+                                f"{r + 1}{hint}") from None
+        raise
+
+
+def _is_complex(cell: str) -> bool:
+    try:
+        complex(cell.replace(" ", ""))
+    except ValueError:
+        return False
+    return True
 
 
 def check_sampling(run: Run, dt: float, where: str, *, rtol: float = SAMPLING_RTOL,
@@ -147,7 +217,9 @@ def resample(run: Run, dt: float) -> Run:
     """``run`` on the uniform grid ``t[0] + k dt`` that fits inside it.
 
     Measurements and truth are interpolated linearly; the input is held (zero-order hold, the
-    convention of :class:`Run`: ``u[k]`` applies from ``t[k]`` to ``t[k+1]``).
+    convention of :class:`Run`: ``u[k]`` applies from ``t[k]`` to ``t[k+1]``). A resampled
+    output is missing where either raw sample it lies between is (an interpolation would
+    invent a sample the sensor never took).
     """
     if not dt > 0:
         raise SettingsError(f"resample: need dt > 0, got {dt}")

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .data import Run
-from .errors import ShapeError
+from .errors import DataError, ShapeError
+from .estimators.contract import takes_missing_outputs
 
 
 @dataclass(frozen=True)
@@ -45,10 +46,23 @@ def mse_per_state(x_hat: np.ndarray, x_true: np.ndarray) -> np.ndarray:
     return np.mean((x_hat - x_true) ** 2, axis=0)
 
 
-def run_estimator(estimator, run: Run, x0: np.ndarray, label: str) -> EstimateResult:
-    """Run ``estimator.run`` over a whole run and time it."""
+def run_estimator(estimator, run: Run, x0: np.ndarray, label: str,
+                  P0: np.ndarray | None = None) -> EstimateResult:
+    """Run ``estimator.run`` over a whole run from ``x0`` (and ``P0``, default: the estimator's
+    own) and time it.
+
+    A run with missing outputs (NaN in ``y``) needs an estimator that takes them
+    (:func:`~learnest_codegen.estimators.contract.takes_missing_outputs`); otherwise this
+    raises :class:`DataError` rather than letting it fail at the first gap.
+    """
+    missing = int(np.isnan(run.y).sum())
+    if missing and not takes_missing_outputs(estimator):
+        first = int(np.argwhere(np.isnan(run.y))[0, 0])
+        raise DataError(f"{label}: the run has {missing} missing measurement(s) (empty y cells, "
+                        f"the first at sample {first}), which {type(estimator).__name__} does not "
+                        "take yet; use the Python reference (--backend python)")
     start = time.perf_counter()
-    x_hat = estimator.run(run.u, run.y, np.asarray(x0, dtype=float))
+    x_hat = estimator.run(run.u, run.y, np.asarray(x0, dtype=float), P0)
     seconds = time.perf_counter() - start
     return EstimateResult(label, np.asarray(x_hat), seconds / len(run),
                           int(getattr(estimator, "rejections", 0)))

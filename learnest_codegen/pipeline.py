@@ -23,7 +23,14 @@ from typing import TYPE_CHECKING, Any, Mapping, Union
 
 import numpy as np
 
-from .compilation import ESTIMATOR_NAMES, compile_estimators, estimator_dir, estimator_kind, resolve_model
+from .compilation import (
+    ESTIMATOR_NAMES,
+    compile_estimators,
+    estimator_dir,
+    estimator_kind,
+    estimator_settings,
+    resolve_model,
+)
 from .data import Run, check_sampling
 from .errors import ModelMismatchError, SettingsError
 from .evaluation import EstimateResult, run_estimator
@@ -96,7 +103,8 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
-                   settings: Any = None, precision: str = "float64", gate: Any = None):
+                   settings: Any = None, precision: str = "float64", gate: Any = None,
+                   horizon: int | None = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -110,18 +118,22 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     precision : the C real type, ``"float64"`` or ``"float32"`` (UKF and embedded MHE).
     gate : a :class:`~learnest_codegen.estimators.gate.GateSettings` replacing the settings'
         innovation gate (default: the settings' own, on by default).
+    horizon : the MHE horizon N (MHEs only; default: the settings').
+
+    Both backends take their settings from
+    :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
+    same estimator.
     """
     resolved = resolve(model, system)
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
             raise SettingsError(f"{estimator} has no Python reference (its C defines it); use backend 'c'")
-        chosen = settings or kind.default_settings(resolved.model)
-        chosen = chosen if gate is None else replace(chosen, gate=gate)
+        chosen = estimator_settings(estimator, resolved.model, settings, gate=gate, horizon=horizon)
         return _with_system(kind.python(resolved.model, chosen), resolved.model.system)
     if backend != "c":
         raise SettingsError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
-    compile_model(resolved, out, (estimator,), precision=precision, gate=gate,
+    compile_model(resolved, out, (estimator,), precision=precision, gate=gate, horizon=horizon,
                   settings={estimator: settings} if settings is not None else None)
     return _with_system(load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
                                        expect=expected_manifest(resolved)), resolved.model.system)
@@ -129,13 +141,15 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
 
 def compile_model(model: ModelLike, out: str | Path, estimators: tuple[str, ...] = ("mhe", "ukf"), *,
                   system: System | str | None = None, settings: Mapping[str, Any] | None = None,
-                  precision: str = "float64", gate: Any = None) -> dict[str, Any]:
+                  precision: str = "float64", gate: Any = None,
+                  horizon: int | None = None) -> dict[str, Any]:
     """Generate and build ``estimators`` of ``model`` under ``out`` (one folder each, see
-    :func:`~learnest_codegen.compilation.compile_estimators`), each with a record of where the
-    model's system comes from, so that :func:`load_estimator` finds it; returns name -> result."""
+    :func:`~learnest_codegen.compilation.compile_estimators`, which also says what ``gate`` and
+    ``horizon`` replace), each with a record of where the model's system comes from, so that
+    :func:`load_estimator` finds it; returns name -> result."""
     resolved = resolve(model, system)
     results = compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=estimators,
-                                 settings=settings, precision=precision, gate=gate)
+                                 settings=settings, precision=precision, gate=gate, horizon=horizon)
     from .learning.source import system_source, write_sidecar
 
     record = system_source(resolved.model.system)
@@ -165,10 +179,10 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
                       system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64", gate: Any = None):
+                      precision: str = "float64", gate: Any = None, horizon: int | None = None):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
     return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision, gate=gate)
+                          precision=precision, gate=gate, horizon=horizon)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,
@@ -217,20 +231,29 @@ def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: Sys
     return make_estimator(model, estimator, backend="python", system=system, settings=settings)
 
 
-def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, system: System | str | None = None,
-             label: str = "") -> EstimateResult:
+def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, P0: np.ndarray | None = None,
+             system: System | str | None = None, label: str = "") -> EstimateResult:
     """Run ``estimator`` over ``run`` from ``x0`` (default: the system's ``x0``) and time it.
 
-    ``system`` defaults to the estimator's own (:func:`estimator_system`). The run must be
-    sampled at the system's ``dt``, the step the estimator was built for. The result's
+    ``P0`` is the covariance of ``x0`` (default: the estimator's own: the UKF's initial
+    covariance, the MHE's running arrival covariance); give it when ``x0`` is a doubtful
+    guess, e.g. ``initial_covariance(system)``. ``system`` defaults to the estimator's own
+    (:func:`estimator_system`). The run must be sampled at the system's ``dt``, the step the
+    estimator was built for; its missing outputs (NaN) are left out. The result's
     ``mse(run.x)`` scores it when the truth is known.
     """
     system = get_system(system) if system is not None else estimator_system(estimator)
     check_sampling(run, system.dt, label or "evaluate")
     x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
-    return run_estimator(estimator, run, x0, label or type(estimator).__name__)
+    return run_estimator(estimator, run, x0, label or type(estimator).__name__, P0)
+
+
+def initial_covariance(system: System | str) -> np.ndarray:
+    """``diag(initial_std**2)`` of ``system.noise``: the uncertainty of its ``x0``, the ``P0``
+    that goes with a guessed start."""
+    return np.diag(np.square(get_system(system).noise.initial_std))
 
 
 __all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "compile_model", "estimator_system",
-           "evaluate", "expected_manifest", "load_estimator", "make_estimator", "reference_estimator",
-           "resolve", "simulate", "train"]
+           "evaluate", "expected_manifest", "initial_covariance", "load_estimator", "make_estimator",
+           "reference_estimator", "resolve", "simulate", "train"]

@@ -12,10 +12,20 @@ every output is replaced by ``+-size`` (random sign). Reported per burst:
 - ``errors``: steps that raised (an error status of the C), and ``rejected``: samples with a
   rejected output.
 
+Input bursts (``u_rows``, every estimator, Python and compiled in each precision): the same
+lengths and sizes written into the input ``u`` instead (every component ``+-size``), once with
+the system's ``input_limits`` (the cartpole's +-50 N: 1e3 and 1e6 are replaced by the held
+input, 1e1 is plausible and used) and once without any limits (only the recovery repairs the
+state; the compiled estimators are then built from settings without limits). Besides the two figures above
+they report ``samples_to_band``: samples after the burst until the error to the truth stays
+within the clean run's band (``|e|_i <= |e_clean|_i + rms_i``) -- after a wrong input an
+estimator can come back *closer* to the truth than the clean run and still differ from it.
+
 The clean run is also estimated with the gate off: ``clean`` reports the MSE with the gate on
 and off and the clean samples the gate rejected. Usage::
 
     python scripts/bench_outlier_recovery.py --out bench_outlier_recovery.json
+    python scripts/bench_outlier_recovery.py --systems cartpole --precisions float64 float32
 """
 
 from __future__ import annotations
@@ -24,12 +34,18 @@ import argparse
 import dataclasses
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from learnest_codegen import get_system
-from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
+from learnest_codegen.compilation import (
+    compile_estimators,
+    estimator_dir,
+    estimator_kind,
+    estimator_settings,
+)
 from learnest_codegen.errors import SolverError
 from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.export import prior_model
@@ -43,11 +59,23 @@ RECOVERY_BUDGET = 60  # samples after the burst by which every estimator must be
 # estimator -> backends; mhe_gn's Python reference is the Ipopt MHE (the same problem), and
 # mhe_rti has none (its C defines it)
 BACKENDS = {"ukf": ("python", "c"), "mhe": ("python", "c"), "mhe_gn": ("c",), "mhe_rti": ("c",)}
+#: precisions each compiled estimator is generated in
+C_PRECISIONS = {"ukf": ("float64", "float32"), "mhe": ("float64",),
+                "mhe_gn": ("float64", "float32"), "mhe_rti": ("float64", "float32")}
 
 
 def clean_run(system_name: str, samples: int, seed: int = 1):
     system = get_system(system_name)
     return system, simulate(system, seed=seed, duration=samples * system.dt)
+
+
+def inject_u(U: np.ndarray, length: int, size: float, seed: int = 0) -> np.ndarray:
+    """``U`` with the inputs applied before samples ``BURST_START + 1 ..`` (``U[BURST_START]``
+    on, ``length`` of them) replaced by ``+-size``."""
+    Ub = U.copy()
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(length, U.shape[1]))
+    Ub[BURST_START:BURST_START + length] = size * signs
+    return Ub
 
 
 def inject(Y: np.ndarray, length: int, size: float, seed: int = 0) -> np.ndarray:
@@ -64,19 +92,30 @@ class Estimators:
     def __init__(self, system, build_dir: Path):
         self.system, self.model = system, prior_model(system)
         self.build_dir = Path(build_dir)
-        self._built: set[str] = set()
+        self._built: set[tuple[str, str, bool]] = set()
 
-    def make(self, estimator: str, backend: str, gate: GateSettings | None = None):
+    def make(self, estimator: str, backend: str, gate: GateSettings | None = None,
+             limits: bool = True, precision: str = "float64"):
         kind = estimator_kind(estimator)
         settings = kind.default_settings(self.model)
-        if gate is not None:
-            settings = dataclasses.replace(settings, gate=gate)
+        if not limits:
+            settings = dataclasses.replace(settings, input_limits=None)
         if backend == "python":
+            if gate is not None:
+                settings = dataclasses.replace(settings, gate=gate)
             return (kind.python or estimator_kind("mhe").python)(self.model, settings)
-        if estimator not in self._built:
-            compile_estimators(self.model, self.build_dir, model_hash="nominal", estimators=(estimator,))
-            self._built.add(estimator)
-        return kind.compiled(estimator_dir(self.build_dir, self.model, estimator), settings=settings)
+        # the C's input limits are compiled in: a build without them has its own folder
+        out = self.build_dir if limits else self.build_dir / "no_input_limits"
+        if (estimator, precision, limits) not in self._built:
+            free = replace(estimator_settings(estimator, self.model, precision=precision),
+                           input_limits=None)
+            compile_estimators(self.model, out, model_hash="nominal", estimators=(estimator,),
+                               precision=precision, settings=None if limits else {estimator: free})
+            self._built.add((estimator, precision, limits))
+        est = kind.compiled(estimator_dir(out, self.model, estimator, precision))
+        if gate is not None:
+            est.settings = dataclasses.replace(est.settings, gate=gate)
+        return est
 
 
 def estimate(est, U: np.ndarray, Y: np.ndarray, x0) -> tuple[np.ndarray, np.ndarray, int]:
@@ -86,14 +125,24 @@ def estimate(est, U: np.ndarray, Y: np.ndarray, x0) -> tuple[np.ndarray, np.ndar
     rejected = np.zeros(len(Y), dtype=bool)
     errors = 0
     for k in range(len(Y)):
-        u = U[k - 1] if k else (U[0] if type(est).__name__.endswith("UKF") else np.zeros(U.shape[1]))
+        u = U[max(k - 1, 0)]  # run()'s convention: sample 0 uses U[0] (only in h)
         try:
             X[k] = est.step(u, Y[k])
-            rejected[k] = est.last_status == 1
+            rejected[k] = bool(est.last_status & 1)
         except SolverError:
             errors += 1
             X[k] = est.x
     return X, rejected, errors
+
+
+def back_in_band(X: np.ndarray, X_clean: np.ndarray, X_true: np.ndarray, length: int) -> int:
+    """Samples after the burst until ``|x - x_true|_i <= |x_clean - x_true|_i + rms_i`` for
+    good (``rms`` the clean run's RMS error per state); ``len(X)`` if never."""
+    end = BURST_START + length
+    e, e_clean = np.abs(X - X_true), np.abs(X_clean - X_true)
+    rms = np.sqrt(np.mean(e_clean ** 2, axis=0))
+    outside = np.flatnonzero(np.any(e[end:] > e_clean[end:] + rms, axis=1))
+    return 0 if outside.size == 0 else int(outside[-1]) + 1
 
 
 def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -> tuple[int, float]:
@@ -105,21 +154,47 @@ def recovery(X: np.ndarray, X_clean: np.ndarray, rms: np.ndarray, length: int) -
     return to_recover, float(deviation[end + RECOVERY_BUDGET:].max())
 
 
+def input_rows(system_name: str, run, makers: "Estimators", estimator: str, backend: str,
+               precision: str, X_clean: np.ndarray, rms: np.ndarray, lengths=LENGTHS,
+               sizes=SIZES, without_limits: bool = True) -> list[dict]:
+    """The input-burst rows of one estimator, with the input limits and (Python always, the
+    compiled ones with ``without_limits``: a second build) without them."""
+    rows = []
+    for limits in ((True, False) if backend == "python" or without_limits else (True,)):
+        est = makers.make(estimator, backend, limits=limits, precision=precision)
+        for length in lengths:
+            for size in sizes:
+                X, rejected, errors = estimate(est, inject_u(run.u, length, size), run.y,
+                                               makers.system.x0)
+                to_recover, after = recovery(X, X_clean, rms, length)
+                rows.append({"system": system_name, "estimator": estimator, "backend": backend,
+                             "precision": precision, "limits": limits, "burst": length, "size": size,
+                             "inputs_replaced": int(est.input_rejections),
+                             "samples_to_recover": to_recover, "max_error_after": after,
+                             "samples_to_band": back_in_band(X, X_clean, run.x, length),
+                             "errors": errors, "rejected": int(rejected.sum())})
+    return rows
+
+
 def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENGTHS, sizes=SIZES,
-          backends=BACKENDS) -> dict:
+          backends=BACKENDS, inputs: bool = True, precisions=("float64",),
+          c_without_limits: bool = True) -> dict:
     """The recovery table of one system (see the module docstring)."""
     system, run = clean_run(system_name, samples)
     makers = Estimators(system, build_dir)
-    rows, clean = [], []
+    rows, clean, u_rows = [], [], []
     for estimator, kinds in backends.items():
-        for backend in kinds:
+        for backend, precision in ((b, p) for b in kinds
+                                   for p in (("float64",) if b == "python" else
+                                             [p for p in precisions if p in C_PRECISIONS[estimator]])):
             start = time.process_time()
-            est = makers.make(estimator, backend)
+            est = makers.make(estimator, backend, precision=precision)
             X_clean, rej_clean, err_clean = estimate(est, run.u, run.y, system.x0)
-            X_off, _, _ = estimate(makers.make(estimator, backend, GateSettings(threshold=0)),
-                                   run.u, run.y, system.x0)
+            X_off, _, _ = estimate(makers.make(estimator, backend, GateSettings(threshold=0),
+                                               precision=precision), run.u, run.y, system.x0)
             rms = np.sqrt(np.mean((X_clean - run.x) ** 2, axis=0))
-            clean.append({"estimator": estimator, "backend": backend, "samples": samples,
+            clean.append({"estimator": estimator, "backend": backend, "precision": precision,
+                          "samples": samples,
                           "mse_gate_on": float(np.mean((X_clean - run.x) ** 2)),
                           "mse_gate_off": float(np.mean((X_off - run.x) ** 2)),
                           "clean_samples_rejected": int(rej_clean.sum()), "errors": err_clean,
@@ -129,22 +204,44 @@ def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENG
                     X, rejected, errors = estimate(est, run.u, inject(run.y, length, size), system.x0)
                     to_recover, after = recovery(X, X_clean, rms, length)
                     rows.append({"system": system_name, "estimator": estimator, "backend": backend,
-                                 "burst": length, "size": size, "samples_to_recover": to_recover,
+                                 "precision": precision, "burst": length, "size": size,
+                                 "samples_to_recover": to_recover,
                                  "max_error_after": after, "errors": errors,
-                                 "rejected": int(rejected.sum())})
+                                 "rejected": int(rejected.sum()),
+                                 "samples_to_band": back_in_band(X, X_clean, run.x, length)})
+            if inputs:
+                u_rows += input_rows(system_name, run, makers, estimator, backend, precision,
+                                     X_clean, rms, lengths, sizes, c_without_limits)
             clean[-1]["cpu_seconds"] = round(time.process_time() - start, 2)
     return {"system": system_name, "tolerance": TOLERANCE, "budget": RECOVERY_BUDGET,
-            "burst_start": BURST_START, "clean": clean, "rows": rows}
+            "burst_start": BURST_START, "clean": clean, "rows": rows, "u_rows": u_rows}
 
 
 def markdown(result: dict) -> str:
     lines = ["| system | estimator | backend | burst | size | rejected | samples to recover | "
-             "max error after | errors |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "max error after | samples to band | errors |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in result["rows"]:
-        lines.append(f"| {r['system']} | {r['estimator']} | {r['backend']} | {r['burst']} | "
+        lines.append(f"| {r['system']} | {r['estimator']} | {_backend(r)} | {r['burst']} | "
                      f"{r['size']:.0e} | {r['rejected']} | {r['samples_to_recover']} | "
-                     f"{r['max_error_after']:.2f} | {r['errors']} |")
+                     f"{r['max_error_after']:.2f} | {r['samples_to_band']} | {r['errors']} |")
+    if result.get("u_rows"):
+        lines += ["", "| system | estimator | backend | input limits | burst | size | inputs replaced | "
+                  "outputs rejected | samples to recover | max error after | samples to band | "
+                  "errors |",
+                  "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for r in result["u_rows"]:
+            lines.append(f"| {r['system']} | {r['estimator']} | {_backend(r)} | "
+                         f"{'yes' if r['limits'] else 'no'} | "
+                         f"{r['burst']} | {r['size']:.0e} | {r['inputs_replaced']} | {r['rejected']} | "
+                         f"{r['samples_to_recover']} | {r['max_error_after']:.2f} | "
+                         f"{r['samples_to_band']} | {r['errors']} |")
     return "\n".join(lines)
+
+
+def _backend(row: dict) -> str:
+    precision = row.get("precision", "float64")
+    return row["backend"] if precision == "float64" else f"{row['backend']} {precision}"
 
 
 def main(argv=None) -> dict:
@@ -153,8 +250,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--samples", type=int, default=400)
     parser.add_argument("--build-dir", type=Path, default=Path("build/outlier_recovery"))
     parser.add_argument("--out", type=Path, default=Path("bench_outlier_recovery.json"))
+    parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
+                        choices=["float64", "float32"], help="of the compiled estimators")
+    parser.add_argument("--c-with-limits-only", action="store_true",
+                        help="input bursts of the compiled estimators with the system's limits "
+                             "only (no second build without them)")
     args = parser.parse_args(argv)
-    results = [table(name, args.build_dir, samples=args.samples) for name in args.systems]
+    results = [table(name, args.build_dir, samples=args.samples, precisions=tuple(args.precisions),
+                     c_without_limits=not args.c_with_limits_only) for name in args.systems]
     out = {"tables": results}
     args.out.write_text(json.dumps(out, indent=1))
     for r in results:

@@ -291,6 +291,8 @@ def test_errors_name_the_call_and_keep_the_state(folders, cartpole, run):
     window = est.window
     with pytest.raises(DataError, match="valid"):
         est.step(data.u[9], data.y[10], valid=[1, 2])
+    y = est.real_array([np.nan, 0.0])  # NaN in an output marked valid (NULL: all valid)
     with pytest.raises(SolverError, match="NONFINITE_INPUT"):
-        est.check_status("step", est._c["predict"](est._handle, est.real_array([np.nan])))
+        est.check_status("step", est._c["step"](est._handle, est.real_array([0.0]), y.ctypes.data,
+                                                None))
     np.testing.assert_array_equal(est.window, window)

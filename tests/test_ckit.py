@@ -24,7 +24,7 @@ from learnest_codegen import NoiseModel, Signal, System, get_system
 from learnest_codegen.codegen.templates import kit_files, write_kit
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
-from learnest_codegen.estimators.mhe_problem import MHESettings
+from learnest_codegen.estimators.mhe_problem import MHESettings, mhe_settings
 from learnest_codegen.export import prior_model
 from learnest_codegen.runtime.limits import LIMITS
 from learnest_codegen.runtime.status import STATUS_NAMES
@@ -238,15 +238,17 @@ def test_gate_equals_the_python_gate(libraries, cc):
 # -- the MHE window ------------------------------------------------------------------------
 
 def test_window_equals_the_python_mhe_bookkeeping(libraries):
-    """The C window (shift, arrival update, per-output weights G, gate, restart) against the
-    Python MHE's own ``_advance`` over a random sequence: missing outputs, outliers that trip
-    the gate and its recovery, failed solves that restart the window. Both are given the same
-    stand-in solutions; every array of the window and the warm start must be equal (the
-    restart prior to rounding: one solves with numpy, the other by Cholesky)."""
+    """The C window (shift, arrival update, per-output weights G, gate, restart, the arrival
+    weight carried after a restart) against the Python MHE's own ``_advance`` over a random
+    sequence: missing outputs, outliers that trip the gate and its recovery, failed solves that
+    restart the window. Both are given the same stand-in solutions; every array of the window
+    and the warm start must be equal (the restart prior and the carried arrival weight to
+    rounding: one solves with numpy, the other by Cholesky)."""
     k = libraries("kit_core", "gcc", "double")
     cartpole = get_system("cartpole")
     model = prior_model(cartpole)
-    settings = MHESettings.from_system(cartpole, horizon=N, gate=GateSettings(recover_after=3))
+    settings = mhe_settings(model, MHESettings.from_system(cartpole, horizon=N,
+                                                           gate=GateSettings(recover_after=3)))
     mhe = MHE(model, settings)
     rng = np.random.default_rng(3)
     x0 = np.array(cartpole.x0, dtype=float)
@@ -257,7 +259,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
     gate = settings.gate
     k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e12, restype=None)
-    n1, restarts, rejections = N + 1, 0, 0
+    n1, restarts, rejections, carried_steps = N + 1, 0, 0, 0
     for step in range(300):
         u = rng.normal(size=1)
         y = model.measure(mhe.x, u) + 0.01 * rng.normal(size=2)
@@ -270,9 +272,14 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
             mhe._restart = True
             k("kt_mhe_fail", m, restype=None)
         x_pred = model.step(mhe.x, u) if has_previous else x0  # the warm start's last state
-        window, guess, rejected = mhe._advance(u, y, valid)
+        # where a carried arrival covariance moves on: the leaving stage X[0] (Python's _carried)
+        H0 = np.asarray(mhe._meas(mhe._window[0], mhe._now.U[0])[1])
+        A0 = np.asarray(mhe._jac(mhe._window[0], mhe._now.U[1]))
+        nxt = mhe._advance(u, y, valid)
+        window, guess, rejected = nxt.window, nxt.guess, nxt.rejected
         h, C = (np.asarray(v) for v in mhe._meas(x_pred, u))
-        k("kt_mhe_advance", m, int(has_previous), k.a(u), k.a(x_pred), restype=None)
+        k("kt_mhe_advance", m, int(has_previous), k.a(u), k.a(x_pred), k.a(H0.T), k.a(A0.T),
+          restype=None)
         rej, restarted = np.zeros(2, dtype=np.intc), ctypes.c_int()
         any_c = k("kt_mhe_gate", m, g, int(has_previous), k.a(u), k.a(y), valid.astype(np.uint8),
                   k.a(h.ravel()), k.a(C.T), rej, ctypes.byref(restarted))
@@ -294,12 +301,18 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
             np.testing.assert_array_equal(Xn, guess.ravel(), err_msg=f"step {step}")
         X = guess + 1e-3 * rng.normal(size=guess.shape)  # a stand-in solution, the same for both
         k("kt_mhe_commit", m, k.a(X.ravel()), restype=None)
-        mhe._now, mhe._window, mhe._count = window, X, mhe._count + 1
-        mhe._gate.record(rejected, valid)
-        mhe._restart = False
+        mhe._commit(nxt, X)
+        Qc, Rc, Pc = np.zeros((4, 4)), np.zeros((2, 2)), np.zeros((4, 4))
+        k("kt_mhe_weights", m, Qc, Rc, Pc, restype=None)
+        carried = mhe._arrival_cov is not None
+        assert k("kt_mhe_carried", m) == int(carried), f"step {step}"
+        np.testing.assert_allclose(Pc, mhe.arrival_weight, rtol=1e-9,
+                                   atol=1e-9 * np.abs(mhe.arrival_weight).max(), err_msg=f"step {step}")
+        carried_steps += carried
         k("kt_gate_record", g, rej, valid.astype(np.uint8), restype=ctypes.c_double)
         rejections += int(rejected.sum())
-    assert restarts >= 3 and rejections >= 6  # the recovery and the failures were exercised
+    # the recovery, the failures and the carried arrival covariance were exercised
+    assert restarts >= 3 and rejections >= 6 and carried_steps >= 3 * n1
 
 
 # -- the kit's estimators over a linear model ----------------------------------------------
@@ -388,10 +401,11 @@ def test_embedded_mhe_equals_the_ipopt_mhe_with_missing_outputs(libraries, linea
     samples without any: the same estimates to 1e-7."""
     k = libraries("kit_gn", cc, "double")
     system, model, matrices, run, valid = linear
-    settings = MHESettings.from_system(system, horizon=6)
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))  # as every door
     Q, R, P0 = settings.covariances()
     x0 = np.array(system.x0, dtype=float)
     memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0  # the running arrival covariance: the same
     gate = settings.gate
     assert k("tgn_set_gate", h, gate.threshold, gate.recover_after, gate.inflation) == 0
     T = 120
@@ -404,6 +418,7 @@ def test_embedded_mhe_equals_the_ipopt_mhe_with_missing_outputs(libraries, linea
     # samples 43..49 have no output: the window after sample 49 is its arrival prior and six
     # predictions, F of each state with the input of the next sample
     memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0
     assert k("tgn_run", h, 50, k.a(run.u[:50]), k.a(Y[:50]), valid[:50].astype(np.uint8),
              k.a(np.zeros((50, 2)))) == 0
     window = k.a(np.zeros((7, 2)))

@@ -212,6 +212,32 @@ def test_read_flight_trims_resamples_and_converts(tmp_path):
     assert flight.run.system == "quadrotor"
 
 
+def test_held_position_and_accelerometer_rows_are_missing(tmp_path):
+    """A row repeating the previous position (or accelerometer) exactly is a held value: the
+    grid sample at it has that output missing, the other output and the neighbours stay;
+    ``held="hold"`` reads the file as before."""
+    cols, p, a, flying = _flight_table(gap_at=None)
+    n = len(cols["t"])  # a real Vicon never repeats a pose exactly on the ground either
+    for i, name in enumerate(nb.POSITION):
+        cols[name] = cols[name] + 1e-5 * np.sin(0.7 * np.arange(n) + i)
+    air = np.flatnonzero(flying & (p[:, 2] > 0.3))
+    k_pos, k_acc = int(air[50]), int(air[120])
+    for name in nb.POSITION:
+        cols[name][k_pos] = cols[name][k_pos - 1]
+    for name in nb.ACCEL:
+        cols[name][k_acc] = cols[name][k_acc - 1]
+    path = _write(tmp_path / "B9_held_rep1.csv", cols)
+    flight, before = nb.read_flight(path), nb.read_flight(path, held="hold")
+    first = flight.trimmed[0]
+    missing = np.argwhere(np.isnan(flight.run.y))
+    assert sorted({(r + first, c // 3) for r, c in missing}) == [(k_pos, 0), (k_acc, 1)]
+    assert not np.isnan(before.run.y).any()
+    fresh = ~np.isnan(flight.run.y)
+    np.testing.assert_allclose(flight.run.y[fresh], before.run.y[fresh], atol=1e-9)
+    with pytest.raises(ValueError, match="held must be one of"):
+        nb.read_flight(path, held="drop")
+
+
 def test_thrust_vector_is_body_z_times_throttle():
     rot = Rotation.from_euler("xyz", [[0.2, -0.1, 1.0]])
     got = nb.thrust_vector(rot.as_quat(), np.array([0.8]))
@@ -330,6 +356,9 @@ def _nanobench():
 def test_real_flights_load():
     flights = [nb.read_flight(p) for p in nb.list_flights(_nanobench())]
     assert len(flights) >= 2
+    # the dataset interpolates its onboard streams onto the Vicon clock: no held output is
+    # left inside a trimmed flight, so held="missing" changes nothing (docs/recordings.md)
+    assert not any(np.isnan(f.run.y).any() for f in flights)
     for f in flights:
         assert f.duration > 10.0 and f.run.y.shape[1] == 6
         assert np.all(f.run.y[:, 2] > 0.15)  # trimmed: airborne only

@@ -14,7 +14,14 @@
  *   learnest_est_state(h)                     the current estimate (NX)
  * and the generated glue defines LEARNEST_PREFIX, LEARNEST_DT, LEARNEST_MAGIC,
  * LEARNEST_FINGERPRINT, LEARNEST_WORKSPACE_BYTES, LEARNEST_DEFAULT_X0/_P0/_Q/_R and the
- * gate's LEARNEST_DEFAULT_THRESHOLD/_RECOVER_AFTER/_INFLATION, LEARNEST_MAX_INFLATION.
+ * gate's LEARNEST_DEFAULT_THRESHOLD/_RECOVER_AFTER/_INFLATION, LEARNEST_MAX_INFLATION, and,
+ * when the system gives input limits, LEARNEST_INPUT_LO/_HI (NU initialisers each).
+ *
+ * The input check (estimators/inputs.py, line by line): each component u_i must be finite and,
+ * with limits, in [LEARNEST_INPUT_LO_i, LEARNEST_INPUT_HI_i]; one that is not is replaced by
+ * its last accepted value (zero clipped into the limits before any) and the step returns the
+ * status bit LEARNEST_INPUT_REJECTED (2), OR-ed with LEARNEST_MEASUREMENT_REJECTED (1). An input
+ * drives the prediction, which the innovation gate sees only once the state is already off.
  */
 #ifndef LEARNEST_API_H
 #define LEARNEST_API_H
@@ -32,12 +39,44 @@ LEARNEST_KIT int learnest_handle_ok(const LEARNEST_HANDLE* h) {
 LEARNEST_STATIC_ASSERT(sizeof(LEARNEST_HANDLE) + LEARNEST_ALIGN <= LEARNEST_WORKSPACE_BYTES,
                        workspace_bytes_bounds_the_handle);
 
-/* Counters and gate of a fresh start (the gate keeps its settings). */
+#ifdef LEARNEST_INPUT_LO
+static const learnest_real learnest_input_lo[LEARNEST_NU] = LEARNEST_INPUT_LO;
+static const learnest_real learnest_input_hi[LEARNEST_NU] = LEARNEST_INPUT_HI;
+#endif
+
+/* used = u with every implausible component replaced by its last accepted value; rejected[i]
+ * says which were; 1 when any was. */
+LEARNEST_KIT int learnest_input_check(const struct learnest_common* c, const learnest_real* u,
+                                      learnest_real* used, int* rejected) {
+  int i, any = 0;
+  for (i = 0; i < LEARNEST_NU; ++i) {
+    int ok = isfinite(u[i]) != 0;
+#ifdef LEARNEST_INPUT_LO
+    ok = ok && u[i] >= learnest_input_lo[i] && u[i] <= learnest_input_hi[i];
+#endif
+    used[i] = ok ? u[i] : c->u_held[i];
+    rejected[i] = !ok;
+    any |= !ok;
+  }
+  return any;
+}
+
+/* Counters, gate and input check of a fresh start (the gate keeps its settings). */
 LEARNEST_KIT void learnest_start(LEARNEST_HANDLE* h, const learnest_real* x0,
                                  const learnest_tuning* t) {
+  int i;
   h->c.samples = 0;
   h->c.rejections = 0;
   memset(h->c.rejected, 0, sizeof h->c.rejected);
+  h->c.input_rejections = 0;
+  memset(h->c.input_rejected, 0, sizeof h->c.input_rejected);
+  for (i = 0; i < LEARNEST_NU; ++i) {  /* zero clipped into the limits */
+    h->c.u_held[i] = 0;
+#ifdef LEARNEST_INPUT_LO
+    if (h->c.u_held[i] < learnest_input_lo[i]) h->c.u_held[i] = learnest_input_lo[i];
+    if (h->c.u_held[i] > learnest_input_hi[i]) h->c.u_held[i] = learnest_input_hi[i];
+#endif
+  }
   learnest_gate_restart(&h->c.gate);
   learnest_est_start(h, x0, t);
 }
@@ -120,26 +159,31 @@ int LEARNEST_API(set_noise)(LEARNEST_HANDLE* h, const learnest_real* Q, const le
 
 int LEARNEST_API(step)(LEARNEST_HANDLE* h, const learnest_real* u, const learnest_real* y,
                        const unsigned char* valid) {
-  learnest_real ys[LEARNEST_NY];
+  learnest_real ys[LEARNEST_NY], us[LEARNEST_NU];
   unsigned char v[LEARNEST_NY];
-  int j, code, rejected[LEARNEST_NY];
+  int j, code, u_any, rejected[LEARNEST_NY], u_rejected[LEARNEST_NU];
   if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
   if (!u || learnest_check_flags(valid, LEARNEST_NY) != LEARNEST_OK) return LEARNEST_BAD_ARGUMENT;
   for (j = 0; j < LEARNEST_NY; ++j) v[j] = valid ? valid[j] : 1;
   if (!y && learnest_any_valid(v, LEARNEST_NY)) return LEARNEST_BAD_ARGUMENT;
-  if (!learnest_all_finite(u, LEARNEST_NU)) return LEARNEST_NONFINITE_INPUT;
   for (j = 0; j < LEARNEST_NY; ++j) {  /* a missing output's value is never read */
     if (v[j] && !isfinite(y[j])) return LEARNEST_NONFINITE_INPUT;
     ys[j] = v[j] ? y[j] : 0;
   }
-  code = learnest_est_step(h, u, ys, v, rejected);
+  u_any = learnest_input_check(&h->c, u, us, u_rejected);
+  code = learnest_est_step(h, us, ys, v, rejected);
   if (code < 0) return code;
   if (h->c.samples < INT_MAX) ++h->c.samples;  /* saturates: years of samples at 1 kHz */
   memcpy(h->c.rejected, rejected, sizeof h->c.rejected);
   for (j = 0; j < LEARNEST_NY; ++j) {
     if (h->c.rejections < INT_MAX) h->c.rejections += rejected[j];
   }
-  return code;
+  memcpy(h->c.u_held, us, sizeof h->c.u_held);
+  memcpy(h->c.input_rejected, u_rejected, sizeof h->c.input_rejected);
+  for (j = 0; j < LEARNEST_NU; ++j) {
+    if (h->c.input_rejections < INT_MAX) h->c.input_rejections += u_rejected[j];
+  }
+  return code | (u_any ? LEARNEST_INPUT_REJECTED : 0);
 }
 
 int LEARNEST_API(predict)(LEARNEST_HANDLE* h, const learnest_real* u) {
@@ -184,6 +228,17 @@ int LEARNEST_API(get_rejected)(const LEARNEST_HANDLE* h, int* rejected) {
 
 int LEARNEST_API(rejections)(const LEARNEST_HANDLE* h) {
   return learnest_handle_ok(h) ? h->c.rejections : LEARNEST_NOT_INITIALISED;
+}
+
+int LEARNEST_API(get_input_rejected)(const LEARNEST_HANDLE* h, int* rejected) {
+  if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
+  if (!rejected) return LEARNEST_BAD_ARGUMENT;
+  memcpy(rejected, h->c.input_rejected, sizeof h->c.input_rejected);
+  return LEARNEST_OK;
+}
+
+int LEARNEST_API(input_rejections)(const LEARNEST_HANDLE* h) {
+  return learnest_handle_ok(h) ? h->c.input_rejections : LEARNEST_NOT_INITIALISED;
 }
 
 int LEARNEST_API(samples)(const LEARNEST_HANDLE* h) {

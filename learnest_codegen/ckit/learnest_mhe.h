@@ -1,7 +1,8 @@
 /* learnest_mhe.h -- what the Ipopt MHE and the embedded Gauss-Newton MHE share: the problem of
  * a sample (window and weights, laid out as ParamLayout in estimators/mhe_problem.py), their
- * tuning from covariances, the innovation gate of a new sample and the recovery's restart
- * (estimators/mhe.py is the Python reference, line by line).
+ * tuning from covariances, the arrival weight (the running one, or a first prior's covariance
+ * carried forward, estimators/arrival.py), the innovation gate of a new sample and the
+ * recovery's restart (estimators/mhe.py is the Python reference, line by line).
  *
  * Include after learnest_kit.h with LEARNEST_NX, LEARNEST_NU, LEARNEST_NY, LEARNEST_N.
  */
@@ -23,18 +24,30 @@ struct learnest_mhe_problem {
   learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];
 };
 
-/* Tuning as init/reset take it (covariances, row-major, symmetrised) and the weights. */
+/* Tuning as init/reset take it (covariances, row-major, symmetrised) and the weights: P_cov
+ * the first prior's covariance, W_cov the running arrival covariance (learnest_mhe_tune sets
+ * it to P_cov; the API's init/reset to the build's default). */
 struct learnest_mhe_tuning {
   learnest_real P_cov[LEARNEST_NXX], Q_cov[LEARNEST_NXX], R_cov[LEARNEST_NYY];
   learnest_real P[LEARNEST_NXX], Q[LEARNEST_NXX], R[LEARNEST_NYY];
+  learnest_real W_cov[LEARNEST_NXX], W[LEARNEST_NXX];
 };
 
+/* The arrival weight P of a problem is the running weight W (the inverse of the running
+ * arrival covariance P_cov: the build's default, or set_arrival's) unless a first prior's
+ * covariance is being carried: after init/reset with a P0 larger than P_cov, and after a
+ * recovery restart (the restart prior's covariance). While the window fills, P is the first
+ * prior's weight; once it is full and slides, the carried covariance C goes forward by the EKF
+ * recursion (learnest_mhe_carry) until it is no larger than P_cov, and P = inv(C) meanwhile. */
 struct learnest_mhe {
   struct learnest_mhe_problem now;   /* the last solved problem */
   struct learnest_mhe_problem next;  /* the problem being solved */
   learnest_real X[LEARNEST_NW];      /* the solution of now, oldest stage first */
   learnest_real Xn[LEARNEST_NW];     /* the warm start of next, then its solution */
-  learnest_real P_cov[LEARNEST_NXX], R_cov[LEARNEST_NYY];  /* for the gate (row-major) */
+  learnest_real P_cov[LEARNEST_NXX], W[LEARNEST_NXX];  /* the running arrival covariance, weight */
+  learnest_real Q_cov[LEARNEST_NXX], R_cov[LEARNEST_NYY];  /* row-major (symmetric) */
+  learnest_real C[LEARNEST_NXX], Cn[LEARNEST_NXX];  /* carried covariance of now's, next's prior */
+  int carried, carried_next;         /* whether C, Cn are in force */
   int restart;                       /* the next step empties the window */
 };
 
@@ -66,6 +79,8 @@ LEARNEST_KIT int learnest_mhe_tune(struct learnest_mhe_tuning* t, const learnest
   if (P0) {
     memcpy(t->P_cov, c.P_cov, sizeof c.P_cov);
     memcpy(t->P, c.P, sizeof c.P);
+    memcpy(t->W_cov, c.P_cov, sizeof c.P_cov);
+    memcpy(t->W, c.P, sizeof c.P);
   }
   if (Q) {
     memcpy(t->Q_cov, c.Q_cov, sizeof c.Q_cov);
@@ -78,32 +93,156 @@ LEARNEST_KIT int learnest_mhe_tune(struct learnest_mhe_tuning* t, const learnest
   return LEARNEST_OK;
 }
 
-/* The weights and covariances of t into m (the problem the next step starts from). */
-LEARNEST_KIT void learnest_mhe_set_tuning(struct learnest_mhe* m, const struct learnest_mhe_tuning* t) {
-  memcpy(m->now.Q, t->Q, sizeof m->now.Q);  /* symmetric: row- and column-major alike */
-  memcpy(m->now.R, t->R, sizeof m->now.R);
-  memcpy(m->now.P, t->P, sizeof m->now.P);
-  memcpy(m->P_cov, t->P_cov, sizeof m->P_cov);
-  memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
+/* 1 when the covariance A (NX x NX, symmetric) is no larger than the running arrival
+ * covariance P_cov: (1 + eps) P_cov - A is positive definite (estimators/arrival.py settled:
+ * the largest eigenvalue of W A is at most 1 + eps; eps 1e-9, float 1e-4 for rounding). */
+LEARNEST_KIT int learnest_mhe_settled(const struct learnest_mhe* m, const learnest_real* A) {
+  const learnest_real eps = LEARNEST_IS_FLOAT ? (learnest_real)1e-4 : (learnest_real)1e-9;
+  learnest_real D[LEARNEST_NXX];
+  int i;
+  for (i = 0; i < LEARNEST_NXX; ++i) D[i] = (1 + eps) * m->P_cov[i] - A[i];
+  return learnest_cholesky(D, LEARNEST_NX);
 }
 
-/* Start over from the prior x0 with tuning t. */
+/* The arrival weight in force once the carried covariance of a problem is cov (carried) or
+ * none: P = inv(cov), or W when cov is not carried or has no finite inverse (then it stops
+ * being carried). */
+LEARNEST_KIT void learnest_mhe_weigh_arrival(const struct learnest_mhe* m, const learnest_real* cov,
+                                             int* carried, learnest_real* P) {
+  learnest_real L[LEARNEST_NXX];
+  if (*carried && learnest_spd_inverse(cov, LEARNEST_NX, P, L)) {
+    learnest_symmetrise(P, LEARNEST_NX);
+    return;
+  }
+  *carried = 0;
+  memcpy(P, m->W, sizeof m->W);
+}
+
+/* Start over from the prior x0 with tuning t: the first prior's weight t->P, carried forward
+ * when its covariance is larger than the running one. */
 LEARNEST_KIT void learnest_mhe_reset(struct learnest_mhe* m, const learnest_real* x0,
                                      const struct learnest_mhe_tuning* t) {
   memset(m, 0, sizeof *m);
   learnest_window_reset(&m->now.w, x0);
-  learnest_mhe_set_tuning(m, t);
+  memcpy(m->now.Q, t->Q, sizeof m->now.Q);  /* symmetric: row- and column-major alike */
+  memcpy(m->now.R, t->R, sizeof m->now.R);
+  memcpy(m->now.P, t->P, sizeof m->now.P);
+  memcpy(m->P_cov, t->W_cov, sizeof m->P_cov);
+  memcpy(m->W, t->W, sizeof m->W);
+  memcpy(m->Q_cov, t->Q_cov, sizeof m->Q_cov);
+  memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
+  m->carried = !learnest_mhe_settled(m, t->P_cov);
+  if (m->carried) memcpy(m->C, t->P_cov, sizeof m->C);
   learnest_window_fill(m->X, x0);
 }
 
+/* Run-time tuning from t's given parts (Q, R: every stage from the next step on; P: the
+ * running arrival covariance, in force now unless a first prior's is being carried). */
+LEARNEST_KIT void learnest_mhe_set_tuning(struct learnest_mhe* m, const struct learnest_mhe_tuning* t,
+                                          int P, int Q, int R) {
+  if (Q) {
+    memcpy(m->now.Q, t->Q, sizeof m->now.Q);
+    memcpy(m->Q_cov, t->Q_cov, sizeof m->Q_cov);
+  }
+  if (R) {
+    memcpy(m->now.R, t->R, sizeof m->now.R);
+    memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
+  }
+  if (P) {
+    memcpy(m->P_cov, t->P_cov, sizeof m->P_cov);
+    memcpy(m->W, t->P, sizeof m->W);
+    if (!m->carried) memcpy(m->now.P, m->W, sizeof m->W);
+  }
+}
+
+/* The carried covariance of the window's second stage from that of its first (the one
+ * leaving, solved state X[0]): cov <- A (cov - K H cov) A^T + Q_cov, K the Kalman gain of the
+ * outputs that stage kept (G[0]), H = dh/dx(X[0], U[0]) (NY x NX) and A = dF/dx(X[0], U[1])
+ * (NX x NX), both column-major; cov row-major (symmetric). */
+LEARNEST_KIT void learnest_mhe_carry(const struct learnest_mhe* m, const learnest_real* H,
+                                     const learnest_real* A, learnest_real* cov) {
+  learnest_real HP[LEARNEST_NY * LEARNEST_NX], S[LEARNEST_NYY], Si[LEARNEST_NYY], L[LEARNEST_NYY];
+  learnest_real AP[LEARNEST_NXX];
+  const learnest_real* G = m->now.w.G;
+  int i, j, l, any = 0;
+  for (j = 0; j < LEARNEST_NY; ++j) any |= G[j] == 1;
+  if (any) {
+    for (j = 0; j < LEARNEST_NY; ++j) {  /* HP = M H cov (row j of output j) */
+      for (i = 0; i < LEARNEST_NX; ++i) {
+        learnest_real v = 0;
+        for (l = 0; l < LEARNEST_NX; ++l) v += H[j + l * LEARNEST_NY] * cov[l * LEARNEST_NX + i];
+        HP[j * LEARNEST_NX + i] = G[j] == 1 ? v : 0;
+      }
+    }
+    for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (H cov H^T + R) M + (I - M) */
+      for (l = 0; l < LEARNEST_NY; ++l) {
+        learnest_real v = m->R_cov[j * LEARNEST_NY + l];
+        for (i = 0; i < LEARNEST_NX; ++i) v += HP[j * LEARNEST_NX + i] * H[l + i * LEARNEST_NY];
+        S[j * LEARNEST_NY + l] = (G[j] == 1 && G[l] == 1) ? v : (j == l ? 1 : 0);
+      }
+    }
+    if (learnest_spd_inverse(S, LEARNEST_NY, Si, L)) {
+      for (i = 0; i < LEARNEST_NX; ++i) {  /* cov -= HP^T Si HP */
+        for (l = 0; l < LEARNEST_NX; ++l) {
+          learnest_real v = 0;
+          for (j = 0; j < LEARNEST_NY; ++j) {
+            learnest_real t = 0;
+            int k;
+            for (k = 0; k < LEARNEST_NY; ++k) t += Si[j * LEARNEST_NY + k] * HP[k * LEARNEST_NX + l];
+            v += HP[j * LEARNEST_NX + i] * t;
+          }
+          cov[i * LEARNEST_NX + l] -= v;
+        }
+      }
+    }
+  }
+  for (i = 0; i < LEARNEST_NX; ++i) {  /* AP = A cov */
+    for (l = 0; l < LEARNEST_NX; ++l) {
+      learnest_real v = 0;
+      for (j = 0; j < LEARNEST_NX; ++j) v += A[i + j * LEARNEST_NX] * cov[j * LEARNEST_NX + l];
+      AP[i * LEARNEST_NX + l] = v;
+    }
+  }
+  for (i = 0; i < LEARNEST_NX; ++i) {  /* cov = AP A^T + Q_cov */
+    for (l = 0; l < LEARNEST_NX; ++l) {
+      learnest_real v = m->Q_cov[i * LEARNEST_NX + l];
+      for (j = 0; j < LEARNEST_NX; ++j) v += AP[i * LEARNEST_NX + j] * A[l + j * LEARNEST_NX];
+      cov[i * LEARNEST_NX + l] = v;
+    }
+  }
+  learnest_symmetrise(cov, LEARNEST_NX);
+}
+
+/* 1 when the next step's window slides while a first prior's covariance is carried: the
+ * caller then gives learnest_mhe_advance H = dh/dx(X[0], U[0]) and A = dF/dx(X[0], U[1]) of
+ * the current window. */
+LEARNEST_KIT int learnest_mhe_carries(const struct learnest_mhe* m, int has_previous) {
+  return has_previous && m->now.w.mask[0] == 1 && m->carried;
+}
+
 /* next and its warm start Xn from now and X: the window moves on one stage when a sample was
- * taken before (has_previous) and opens the new sample's stage with input u. The caller then
- * predicts the last stage of the warm start, Xn[N] = F(X[N], u) (when has_previous). */
+ * taken before (has_previous) and opens the new sample's stage with input u. When the window
+ * was full the arrival moves on: its weight becomes W, or, while a covariance is carried
+ * (learnest_mhe_carries: H and A given, else NULL), the inverse of the carried one until it
+ * has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
+ * (when has_previous). */
 LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
-                                       const learnest_real* u) {
+                                       const learnest_real* u, const learnest_real* H,
+                                       const learnest_real* A) {
   memcpy(&m->next, &m->now, sizeof m->next);
   memcpy(m->Xn, m->X, sizeof m->Xn);
+  memcpy(m->Cn, m->C, sizeof m->Cn);
+  m->carried_next = m->carried;
   if (has_previous) {
+    if (m->now.w.mask[0] == 1) {  /* the arrival moves on */
+      if (m->carried_next && H && A) {
+        learnest_mhe_carry(m, H, A, m->Cn);
+        if (learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
+      } else {
+        m->carried_next = 0;
+      }
+      learnest_mhe_weigh_arrival(m, m->Cn, &m->carried_next, m->next.P);
+    }
     learnest_window_shift(&m->next.w, m->X);
     learnest_shift(m->Xn, LEARNEST_NX, LEARNEST_N + 1);
   }
@@ -111,17 +250,20 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
 }
 
 /* The recovery's new prior (estimators/mhe.py restart_prior): the Kalman update of x_pred
- * with covariance rho diag(P_cov) (its correlations dropped) by the outputs kept (keep[j]),
- * C = dh/dx (NY x NX, column-major), R_cov (row-major) and innovation nu. xbar = x_pred when
- * no output is kept or S is not positive definite. */
+ * with covariance Pd = rho diag(P_cov) (its correlations dropped) by the outputs kept
+ * (keep[j]), C = dh/dx (NY x NX, column-major), R_cov (row-major) and innovation nu: xbar and
+ * its covariance cov = Pd - K C Pd (row-major). xbar = x_pred and cov = Pd when no output is
+ * kept or S is not positive definite. */
 LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const learnest_real* C,
                                          const learnest_real* P_cov, learnest_real rho,
                                          const learnest_real* R_cov, const learnest_real* nu,
-                                         const int* keep, learnest_real* xbar) {
+                                         const int* keep, learnest_real* xbar, learnest_real* cov) {
   learnest_real PCt[LEARNEST_NX * LEARNEST_NY], S[LEARNEST_NYY], Si[LEARNEST_NYY];
   learnest_real L[LEARNEST_NYY], z[LEARNEST_NY];
   int i, j, l;
   for (i = 0; i < LEARNEST_NX; ++i) xbar[i] = x_pred[i];
+  for (i = 0; i < LEARNEST_NXX; ++i) cov[i] = 0;
+  for (i = 0; i < LEARNEST_NX; ++i) cov[i * LEARNEST_NX + i] = rho * P_cov[i * LEARNEST_NX + i];
   for (i = 0; i < LEARNEST_NX; ++i) {  /* PCt = rho diag(P) C^T M */
     for (j = 0; j < LEARNEST_NY; ++j) {
       learnest_real v = P_cov[i * LEARNEST_NX + i] * C[j + i * LEARNEST_NY];
@@ -143,27 +285,43 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
   for (i = 0; i < LEARNEST_NX; ++i) {
     for (j = 0; j < LEARNEST_NY; ++j) xbar[i] += PCt[i * LEARNEST_NY + j] * z[j];
   }
+  for (i = 0; i < LEARNEST_NX; ++i) {  /* cov -= PCt Si PCt^T */
+    for (l = 0; l < LEARNEST_NX; ++l) {
+      learnest_real v = 0;
+      for (j = 0; j < LEARNEST_NY; ++j) {
+        learnest_real t = 0;
+        int k;
+        for (k = 0; k < LEARNEST_NY; ++k) t += Si[j * LEARNEST_NY + k] * PCt[l * LEARNEST_NY + k];
+        v += PCt[i * LEARNEST_NY + j] * t;
+      }
+      cov[i * LEARNEST_NX + l] -= v;
+    }
+  }
+  learnest_symmetrise(cov, LEARNEST_NX);
 }
 
 /* The innovation gate of the new sample (u, y, valid) and the recovery's restart, after
  * learnest_mhe_advance and the prediction of Xn[N]: h and C = dh/dx (column-major) at
  * x_pred = Xn[N]; a valid output's d2 = (y - h)^2 / S_jj with
- * S_jj = rho (C P_cov C^T)_jj + R_cov_jj. A restart (after a failed step, or on the step that
- * ends a recovery episode, learnest_gate_ends_episode) empties the window around
- * learnest_restart_prior and folds the sample into it. Weighs the sample's outputs
- * (G); sets rejected (NY) and *restarted; returns 1 when an output was rejected. */
+ * S_jj = rho (C P_arr C^T)_jj + R_cov_jj, P_arr the carried covariance of next's prior if
+ * any, else the running P_cov. A restart (after a failed step, or on the step that ends a
+ * recovery episode, learnest_gate_ends_episode) empties the window around
+ * learnest_restart_prior, folds the sample into it and carries the prior's covariance
+ * (its inverse is the arrival weight). Weighs the sample's outputs (G); sets rejected (NY)
+ * and *restarted; returns 1 when an output was rejected. */
 LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest_gate* g,
                                    int has_previous, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    const learnest_real* h, const learnest_real* C, int* rejected,
                                    int* restarted) {
-  learnest_real d2[LEARNEST_NY], nu[LEARNEST_NY], xbar[LEARNEST_NX];
+  learnest_real d2[LEARNEST_NY], nu[LEARNEST_NY], xbar[LEARNEST_NX], cov[LEARNEST_NXX];
+  const learnest_real* P_arr = m->carried_next ? m->Cn : m->P_cov;
   int i, j, k, any, keep[LEARNEST_NY];
   for (i = 0; i < LEARNEST_NY; ++i) {
     learnest_real s = 0;
     for (j = 0; j < LEARNEST_NX; ++j) {
       for (k = 0; k < LEARNEST_NX; ++k) {
-        s += C[i + j * LEARNEST_NY] * m->P_cov[j * LEARNEST_NX + k] * C[i + k * LEARNEST_NY];
+        s += C[i + j * LEARNEST_NY] * P_arr[j * LEARNEST_NX + k] * C[i + k * LEARNEST_NY];
       }
     }
     s = g->rho * s + m->R_cov[i * LEARNEST_NY + i];
@@ -174,11 +332,14 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
   *restarted = has_previous && (m->restart || learnest_gate_ends_episode(g, rejected, valid));
   if (*restarted) {
-    learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, m->P_cov, g->rho, m->R_cov, nu,
-                           keep, xbar);
+    learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, P_arr, g->rho, m->R_cov, nu,
+                           keep, xbar, cov);
     learnest_window_reset(&m->next.w, xbar);
     learnest_window_open(&m->next.w, u);
     learnest_window_fill(m->Xn, xbar);
+    memcpy(m->Cn, cov, sizeof m->Cn);
+    m->carried_next = 1;
+    learnest_mhe_weigh_arrival(m, m->Cn, &m->carried_next, m->next.P);
     for (j = 0; j < LEARNEST_NY; ++j) keep[j] = 0;  /* the sample is in the prior */
   }
   learnest_window_weigh(&m->next.w, y, keep);
@@ -189,6 +350,8 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
 LEARNEST_KIT void learnest_mhe_commit(struct learnest_mhe* m) {
   memcpy(&m->now, &m->next, sizeof m->now);
   memcpy(m->X, m->Xn, sizeof m->X);
+  memcpy(m->C, m->Cn, sizeof m->C);
+  m->carried = m->carried_next;
   m->restart = 0;
 }
 

@@ -1,5 +1,7 @@
 /* learnest_mhe_api.h -- the API of both MHEs: learnest_api.h's, and the window, the arrival
- * covariance and its run-time tuning.
+ * covariance and its run-time tuning. init/reset's P0 is the covariance of the first prior
+ * x0 (carried forward while larger than the running arrival covariance, learnest_mhe.h);
+ * set_arrival/get_arrival are the running arrival covariance (default: the build's).
  *
  * Included at the end of learnest_mhe_gn.h and learnest_mhe_ipopt.h, whose LEARNEST_HANDLE
  * has struct learnest_mhe m, and which define before it learnest_est_defaults, _start, _step
@@ -10,30 +12,26 @@
 
 #include "learnest_mhe.h"
 
+/* init/reset: P0 the first prior's covariance, Q, R; the running arrival covariance goes back
+ * to the build's default (LEARNEST_DEFAULT_P0, set_arrival changes it). */
 LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
                                    const learnest_real* Q, const learnest_real* R) {
-  return learnest_mhe_tune(t, P0, Q, R);
-}
-
-/* The covariances in use, from the handle (the inverse of the weights is not recomputed). */
-LEARNEST_KIT void learnest_mhe_tuning_of(const LEARNEST_HANDLE* h, struct learnest_mhe_tuning* t) {
-  memcpy(t->P, h->m.now.P, sizeof t->P);
-  memcpy(t->Q, h->m.now.Q, sizeof t->Q);
-  memcpy(t->R, h->m.now.R, sizeof t->R);
-  memcpy(t->P_cov, h->m.P_cov, sizeof t->P_cov);
-  memcpy(t->R_cov, h->m.R_cov, sizeof t->R_cov);
+  static const learnest_real W_cov[LEARNEST_NXX] = LEARNEST_DEFAULT_P0;
+  int code = learnest_mhe_tune(t, P0, Q, R);
+  if (code != LEARNEST_OK) return code;
+  return learnest_mhe_covariance(W_cov, LEARNEST_NX, t->W_cov, t->W);
 }
 
 /* Run-time tuning: new covariances for the next steps; the window, its solution and the gate
- * stay. NULL keeps one. */
-LEARNEST_KIT int learnest_mhe_retune(LEARNEST_HANDLE* h, const learnest_real* P0,
+ * stay. NULL keeps one. P_arr is the running arrival covariance (learnest_mhe_set_tuning). */
+LEARNEST_KIT int learnest_mhe_retune(LEARNEST_HANDLE* h, const learnest_real* P_arr,
                                      const learnest_real* Q, const learnest_real* R) {
   struct learnest_mhe_tuning t;
   int code;
-  learnest_mhe_tuning_of(h, &t);
-  code = learnest_mhe_tune(&t, P0, Q, R);
+  memset(&t, 0, sizeof t);
+  code = learnest_mhe_tune(&t, P_arr, Q, R);
   if (code != LEARNEST_OK) return code;
-  learnest_mhe_set_tuning(&h->m, &t);
+  learnest_mhe_set_tuning(&h->m, &t, P_arr != 0, Q != 0, R != 0);
   learnest_est_retuned(h);
   return LEARNEST_OK;
 }
@@ -59,6 +57,13 @@ int LEARNEST_API(get_arrival)(const LEARNEST_HANDLE* h, learnest_real* P0) {
   if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
   if (!P0) return LEARNEST_BAD_ARGUMENT;
   memcpy(P0, h->m.P_cov, sizeof h->m.P_cov);
+  return LEARNEST_OK;
+}
+
+int LEARNEST_API(get_arrival_weight)(const LEARNEST_HANDLE* h, learnest_real* P) {
+  if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
+  if (!P) return LEARNEST_BAD_ARGUMENT;
+  memcpy(P, h->m.now.P, sizeof h->m.now.P);  /* symmetric: row- and column-major alike */
   return LEARNEST_OK;
 }
 

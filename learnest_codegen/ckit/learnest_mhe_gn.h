@@ -46,7 +46,13 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    int* rejected) {
   struct learnest_mhe* m = &h->m;
   int has_previous = h->c.samples > 0, code, steps, any, restarted;
-  learnest_mhe_advance(m, has_previous, u);
+  learnest_real H0[LEARNEST_NY * LEARNEST_NX], A0[LEARNEST_NXX], v0[LEARNEST_NX];
+  int carries = learnest_mhe_carries(m, has_previous);
+  if (carries) {  /* the arrival's covariance moves on with the window (learnest_mhe.h) */
+    learnest_model_node(&h->model, m->X, m->now.w.U, v0, H0);
+    learnest_model_stage(&h->model, m->X, m->now.w.U + LEARNEST_NU, v0, A0);
+  }
+  learnest_mhe_advance(m, has_previous, u, carries ? H0 : 0, carries ? A0 : 0);
   if (has_previous) {
     learnest_model_F(&h->model, m->X + LEARNEST_N * LEARNEST_NX, u, m->Xn + LEARNEST_N * LEARNEST_NX);
   }
@@ -55,6 +61,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                           h->gn.lin.h + LEARNEST_N * LEARNEST_NY,
                           h->gn.lin.C + LEARNEST_N * LEARNEST_NY * LEARNEST_NX, rejected, &restarted);
   if (restarted) learnest_gn_linearise(&h->model, &m->next.w, m->Xn, &h->gn.lin);
+  learnest_gn_scale(&h->gn, &m->next);  /* the arrival weight may have changed */
   code = learnest_gn_solve(&h->gn, &h->model, &m->next.w, m->Xn, &steps);
   if (code == LEARNEST_OK && !learnest_all_finite(m->Xn, LEARNEST_NW)) code = LEARNEST_NONFINITE_RESULT;
   if (code != LEARNEST_OK) {

@@ -154,3 +154,40 @@ def gate_settings(threshold: float, recover_after: int, inflation: float):
 
     gate = GateSettings(threshold=threshold, recover_after=recover_after, inflation=inflation)
     return None if gate == GateSettings() else gate
+
+
+HORIZON = click.option("--horizon", type=click.IntRange(min=1), default=None,
+                       help="MHE horizon N, the samples in the window minus one (mhe, mhe_gn, "
+                            "mhe_rti; default 20)")
+
+
+def parse_vector(text: str | None, n: int, option: str) -> np.ndarray | None:
+    """``"a,b,c"`` as an ``(n,)`` array of finite numbers (``None`` stays ``None``)."""
+    if text is None:
+        return None
+    try:
+        values = np.array([float(v) for v in text.replace(" ", "").split(",")])
+    except ValueError as exc:
+        raise click.BadParameter(f"expected {n} comma-separated numbers, got {text!r}",
+                                 param_hint=option) from exc
+    if values.shape != (n,) or not np.all(np.isfinite(values)):
+        raise click.BadParameter(f"expected {n} finite comma-separated numbers, got {text!r}",
+                                 param_hint=option)
+    return values
+
+
+def parse_covariance(text: str | None, system, option: str = "--P0") -> np.ndarray | None:
+    """``--P0``: ``initial`` (the system's ``initial_std**2``), nx variances (the diagonal) or
+    nx*nx entries row by row; ``None`` stays ``None`` (the estimator's own)."""
+    if text is None:
+        return None
+    n = system.nx
+    if text.strip() == "initial":
+        return np.diag(np.square(system.noise.initial_std))
+    count = len(text.split(","))
+    if count == n:
+        return np.diag(parse_vector(text, n, option))
+    if count == n * n:
+        return parse_vector(text, n * n, option).reshape(n, n)
+    raise click.BadParameter(f"expected 'initial', {n} variances or {n * n} entries, got {count} "
+                             "values", param_hint=option)

@@ -13,11 +13,14 @@ from .common import (
     ESTIMATOR_CHOICES,
     ESTIMATOR_HELP,
     FORCE,
+    HORIZON,
     PRECISION_HELP,
     RESAMPLE,
     SYSTEM_HELP,
     friendly,
     gate_settings,
+    parse_covariance,
+    parse_vector,
     read_run,
     resolve_system,
     system_named,
@@ -27,13 +30,17 @@ from .common import (
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
              estimators: tuple[str, ...], precision: str = "float64", gate=None,
-             force: bool = False) -> dict:
-    from ..compilation import estimator_dir, precision_problem
+             force: bool = False, horizon: int | None = None) -> dict:
+    from ..compilation import check_horizon, estimator_dir, precision_problem
     from ..outputs import claim_output
     from ..pipeline import compile_model, resolve
 
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
+    try:
+        check_horizon(estimators, horizon)
+    except ValueError as exc:
+        raise click.UsageError(f"--horizon: {exc}") from exc
     if nominal:
         model, system = "nominal", system_named(system_name or "cartpole")
     else:
@@ -44,7 +51,8 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
         claim_output(estimator_dir(Path(out), resolved, name, precision),
                      inputs=(model_dir,) if model_dir else (), force=force, kind="dir")
-    results = compile_model(model, out, estimators, system=system, precision=precision, gate=gate)
+    results = compile_model(model, out, estimators, system=system, precision=precision, gate=gate,
+                            horizon=horizon)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused
@@ -65,6 +73,7 @@ COMPILE_OPTIONS = [
                  show_default=True, help=PRECISION_HELP),
     click.option("--force", is_flag=True,
                  help="replace existing estimator folders (an unchanged library is reused)"),
+    HORIZON,
 ]
 
 
@@ -77,33 +86,34 @@ def _with_compile_options(fn):
 @click.command("compile")
 @_with_compile_options
 @friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, force, gate_threshold,
-                gate_recover_after, gate_inflation) -> None:
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
+                gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
     Each estimator gets its own folder under --out, written whole or not at all; an existing
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force)
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, force,
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
                        gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
     Each estimator gets its own folder under --out, written whole or not at all; an existing
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force)
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon)
 
 
 @click.command()
 @click.option("--system", "system_name", default=None,
               help=SYSTEM_HELP + " (default: the one --model or --compiled records; cartpole otherwise)")
-@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="run CSV")
+@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True,
+              help="run CSV (empty y_ cells: missing measurements)")
 @click.option("--estimator", type=click.Choice(ESTIMATOR_CHOICES), required=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
@@ -111,25 +121,38 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
               help="compiled estimator directory (C backend; default: compile on demand)")
 @click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
               show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
+@HORIZON
+@click.option("--x0", "x0_text", default=None,
+              help="initial state guess, one comma-separated value per state (default: the "
+                   "system's x0)")
+@click.option("--P0", "P0_text", default=None,
+              help="covariance of the initial guess: 'initial' (the system's initial_std**2), "
+                   "one variance per state (the diagonal) or nx*nx entries row by row (default: "
+                   "the estimator's own: UKF initial_std**2, MHE the steady-state arrival)")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
 @with_gate_options
 @RESAMPLE
 @FORCE
 @friendly
-def estimate(system_name, data, estimator, model, backend, compiled, precision, out, gate_threshold,
-             gate_recover_after, gate_inflation, resample, force) -> None:
+def estimate(system_name, data, estimator, model, backend, compiled, precision, horizon, x0_text,
+             P0_text, out, gate_threshold, gate_recover_after, gate_inflation, resample, force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state.
 
     With a model directory (--model) or a compiled folder (--compiled) the system is the one it
     records. When the run holds the truth, the summary gives the MSE over all states and the RMS
     error of each state in its unit. Samples whose outputs the innovation gate rejected are
-    counted in the summary line; they are not errors."""
-    from ..compilation import estimator_kind, precision_problem
+    counted in the summary line; they are not errors. Empty y_ cells of the run are missing
+    measurements (both backends take them)."""
+    from ..compilation import check_horizon, estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
         raise click.UsageError(precision_problem((estimator,), precision))
     if backend == "python" and estimator_kind(estimator).python is None:
         raise click.UsageError(f"{estimator} has no Python reference (its C defines it); use --backend c")
+    try:
+        check_horizon((estimator,), horizon)
+    except ValueError as exc:
+        raise click.UsageError(f"--horizon: {exc}") from exc
     from ..evaluation import mse, run_estimator
     from ..outputs import atomic_file, claim_output
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
@@ -137,16 +160,21 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)
     system = resolve_system(system_name, model, compiled if backend == "c" else None)
+    x0 = parse_vector(x0_text, system.nx, "--x0")
+    P0 = parse_covariance(P0_text, system)
     run = read_run(data, system, resample)
     resolved = resolve(model, system)
     gate = gate_settings(gate_threshold, gate_recover_after, gate_inflation)
     if backend == "c" and compiled is not None:
-        est = load_estimator(compiled, expect={"estimator": estimator, **expected_manifest(resolved)},
+        expect = {"estimator": estimator, **expected_manifest(resolved)}
+        est = load_estimator(compiled, expect={**expect, **({} if horizon is None else {"horizon": horizon})},
                              gate=gate)
     else:  # compiled on demand next to the output (reused while the model is unchanged)
         est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
-                             out=Path(out).resolve().parent / ".learnest_compiled", gate=gate)
-    result = run_estimator(est, run, np.asarray(system.x0, float), f"{estimator}:{model}:{backend}")
+                             out=Path(out).resolve().parent / ".learnest_compiled", gate=gate,
+                             horizon=horizon)
+    result = run_estimator(est, run, np.asarray(system.x0, float) if x0 is None else x0,
+                           f"{estimator}:{model}:{backend}", P0)
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
     with atomic_file(out) as tmp:
         np.savetxt(tmp, np.column_stack([run.t, result.x_hat]), delimiter=",", header=header,
@@ -155,6 +183,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     if run.x is not None:
         line += f", MSE vs truth {mse(result.x_hat, run.x):.4e} (all states)"
     line += f", {result.rejections} output(s) rejected by the innovation gate"
+    missing = int(run.missing.sum())
+    if missing:
+        line += f", {missing} missing"
+    input_rejections = int(getattr(est, "input_rejections", 0))
+    if input_rejections:
+        line += f", {input_rejections} implausible input(s) replaced"
     click.echo(line)
     if run.x is not None:  # one figure per state, in its own unit
         rms = np.sqrt(np.mean((result.x_hat - run.x) ** 2, axis=0))

@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from ..config import DEFAULT_TRAINING, TABLE1_CARTPOLE_TRAINING
-from .common import SYSTEM_HELP, friendly, system_named
+from .common import SYSTEM_HELP, friendly, parse_covariance, parse_vector, system_named
 
 
 @click.command()
@@ -33,9 +33,15 @@ from .common import SYSTEM_HELP, friendly, system_named
               help="keep the moving average of the weights (decay per step; 0 = the weights "
                    "themselves, as the paper)")
 @click.option("--no-python-mhe", is_flag=True, help="skip the (slow) Python reference MHE")
+@click.option("--x0", "x0_text", default=None,
+              help="initial state guess of every estimator, one comma-separated value per state "
+                   "(default: the system's x0)")
+@click.option("--P0", "P0_text", default=None,
+              help="its covariance: 'initial', nx variances or nx*nx entries (default: each "
+                   "estimator's own)")
 @friendly
 def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_decay, weight_average,
-         no_python_mhe) -> None:
+         no_python_mhe, x0_text, P0_text) -> None:
     """Simulate, train, compile and compare nominal and KNODE estimators on a test run.
 
     The training defaults are ``DEFAULT_TRAINING`` (learnest_codegen.config), as ``learnest
@@ -44,8 +50,11 @@ def demo(system_name, out, epochs, observer, duration, refine, restarts, weight_
 
     training = replace(DEFAULT_TRAINING, epochs=epochs, refine=refine, restarts=restarts,
                        weight_decay=weight_decay, weight_average=weight_average)
-    report = run_demo(system_named(system_name), out, training=training, observer=observer,
-                      python_mhe=not no_python_mhe, duration=duration)
+    system = system_named(system_name)
+    report = run_demo(system, out, training=training, observer=observer,
+                      python_mhe=not no_python_mhe, duration=duration,
+                      x0=parse_vector(x0_text, system.nx, "--x0"),
+                      P0=parse_covariance(P0_text, system))
     click.echo("\n" + report.table())
     click.echo(f"\nfigures: {', '.join(report.figures)}\nreport: {Path(out) / 'report.json'}")
 

@@ -18,6 +18,7 @@ then writes the folder (docs/c_kit.md):
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 import textwrap
 import time
@@ -237,8 +238,28 @@ def _values(model: DiscreteModel, design: Design, prefix: str, model_header: Pat
         "default_options": "".join(f"#define {P}_DEFAULT_{k} {v}\n" for k, v in design.options.items()),
         "declarations": "".join(templates.render(name, {"p": prefix, "P": P})
                                 for name in design.declarations),
+        **_input_limits(P, design.settings.get("input_limits")),
         **design.doc,
     }
+
+
+def _input_limits(P: str, limits) -> dict[str, str]:
+    """The header's ``<PREFIX>_INPUT_LO/_HI`` and the glue's ``LEARNEST_INPUT_LO/_HI`` from the
+    settings' ``input_limits`` (the system file's): the C API's input check (learnest_api.h).
+    Without limits only finiteness is checked."""
+    if not limits:
+        return {"input_limits": "/* No input limits: the step checks only that u is finite. */\n",
+                "glue_input": "", "input_rule": ""}
+
+    def bound(v: float) -> str:
+        return repr(float(v)) if math.isfinite(v) else ("HUGE_VAL" if v > 0 else "-HUGE_VAL")
+
+    lo, hi = ("{" + ", ".join(bound(pair[i]) for pair in limits) + "}" for i in (0, 1))
+    return {"input_limits": (f"/* Plausible inputs (the system's input_limits), per component of u; "
+                             f"HUGE_VAL is <math.h>'s. */\n#define {P}_INPUT_LO {lo}\n"
+                             f"#define {P}_INPUT_HI {hi}\n"),
+            "glue_input": f"#define LEARNEST_INPUT_LO {P}_INPUT_LO\n#define LEARNEST_INPUT_HI {P}_INPUT_HI\n",
+            "input_rule": f" or is outside [{P}_INPUT_LO, {P}_INPUT_HI]"}
 
 
 def _max_of(names: list[str]) -> str:

@@ -17,7 +17,13 @@ import casadi as cs
 import numpy as np
 
 from .. import toolchain
-from ..estimators.mhe_problem import IPOPT_OPTIONS, MHESettings, build_problem, measurement_function
+from ..estimators.mhe_problem import (
+    IPOPT_OPTIONS,
+    MHESettings,
+    build_problem,
+    measurement_function,
+    mhe_settings,
+)
 from ..export import DiscreteModel
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, comment, emit, resolve_prefix
@@ -31,19 +37,23 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     Parameters
     ----------
     model : the discrete model the estimator uses.
-    settings : horizon and default tuning (the tuning stays settable at run time);
-        default ``MHESettings.from_system(model.system)``.
+    settings : horizon and default weights (weights stay settable at run time);
+        default ``MHESettings.from_system(model.system)``; through
+        :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE.
     out_dir : the folder for this estimator (created).
     prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``.
     model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
     force : rebuild the library even when nothing changed.
     """
-    settings = settings or MHESettings.from_system(model.system)
+    settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     prefix = resolve_prefix(prefix, model, "mhe", "float64")
     problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     F = cs.Function(f"{prefix}_model_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
-    functions = (problem.solver, F, measurement_function(model, f"{prefix}_model_node"))
+    stage = cs.Function(f"{prefix}_model_stage", [x, u],  # the carried arrival covariance's A
+                        [model.F(x, u), cs.densify(cs.jacobian(model.F(x, u), x))], ["x", "u"],
+                        ["F", "A"])
+    functions = (problem.solver, F, measurement_function(model, f"{prefix}_model_node"), stage)
     offsets = problem.layout.offsets()
     include, lib = toolchain.casadi_dirs()
     design = Design(
@@ -52,7 +62,8 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
         hooks={"LEARNEST_MODEL_SOLVER": problem.solver.name(),
                "LEARNEST_MODEL_SOLVER_CHECKOUT": f"{problem.solver.name()}_checkout",
                "LEARNEST_MODEL_SOLVER_RELEASE": f"{problem.solver.name()}_release",
-               "LEARNEST_MODEL_F": F.name(), "LEARNEST_MODEL_NODE": functions[2].name()},
+               "LEARNEST_MODEL_F": F.name(), "LEARNEST_MODEL_NODE": functions[2].name(),
+               "LEARNEST_MODEL_STAGE": stage.name()},
         defaults=mhe_defaults(model, settings), gate=settings.gate, precision="float64",
         settings=settings.to_json(), solver=None, horizon=settings.horizon,
         doc=header_doc(settings, "Ipopt"), declarations=("mhe.h.in",),
@@ -72,11 +83,12 @@ def mhe_defaults(model: DiscreteModel, settings: MHESettings) -> dict[str, np.nd
 
 def mhe_workspace(nx: int, nu: int, ny: int, horizon: int, *, solution: bool) -> dict[str, int]:
     """What the MHEs' handles hold besides CasADi's work arrays (``codegen/emit.py``): the
-    common part, two problems, two windows of states, the gate's covariances."""
+    common part (with the input check's), two problems, two windows of states, the running
+    arrival covariance and weight, Q and R covariances, two carried arrival covariances."""
     n1, nw = horizon + 1, (horizon + 1) * nx
     problem = nx + n1 * (nu + 2 * ny + 1) + 2 * nx * nx + ny * ny
-    reals = 4 + 2 * problem + 2 * nw + nx * nx + ny * ny + (nw if solution else 0)
-    return {"reals": reals, "ints": 6 + ny, "members": 24}
+    reals = 4 + nu + 2 * problem + 2 * nw + 5 * nx * nx + ny * ny + (nw if solution else 0)
+    return {"reals": reals, "ints": 9 + ny + nu, "members": 34}
 
 
 def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
@@ -104,12 +116,16 @@ def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
         "threads": ("\n *   The Ipopt MHE: use one library from one thread at a time (each solve "
                     "checks a\n *   memory out of CasADi's static pool)." if solver == "Ipopt" else ""),
         "covariance_rule": "each must be symmetric positive definite (the cost weighs by their "
-                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE.",
+                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE. P0 is the\n * "
+                           "covariance of the first prior x0: larger than the running arrival "
+                           "covariance\n * (the build's default, set_arrival), it is carried "
+                           "forward with the window until it\n * is no larger (after a recovery "
+                           "restart, the restart prior's covariance too).",
         "set_noise_keeps": "the window, its solution and the gate",
         "gate_doc": "before a sample enters the window, each valid output's innovation\n"
                     " *   against h(xpred, u) at the warm start's last state xpred is normalised "
                     "by\n *   S_jj = rho (C P0 C^T)_jj + R_jj (C = dh/dx at xpred, P0 the arrival "
-                    "covariance).",
+                    "covariance in force).",
         "recovery_doc": "rho is multiplied by it; the first step that then\n"
                         " *   accepts its outputs restarts the window (emptied, its prior the "
                         "Kalman update of\n *   xpred by the sample), and rho shrinks again "

@@ -13,7 +13,7 @@ from pathlib import Path
 import casadi as cs
 
 from ..estimators.mhe_gn import GaussNewtonSettings
-from ..estimators.mhe_problem import MHESettings
+from ..estimators.mhe_problem import MHESettings, mhe_settings
 from ..export import DiscreteModel
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, emit, resolve_prefix
@@ -27,9 +27,10 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
 
     The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
     tolerance and precision (default converged, float64). The default prefix is
-    ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32`` appended in float32).
+    ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32`` appended in float32). The settings
+    go through :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE's.
     """
-    settings = settings or MHESettings.from_system(model.system)
+    settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
     prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision)

@@ -213,7 +213,8 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                   "Q": settings.Q(), "R": settings.R()},
         gate=settings.gate, precision=precision, settings=settings.to_json(), solver=None,
         horizon=None, doc=header_doc(settings), declarations=("ukf.h.in",),
-        workspace={"reals": 4 + nx + 2 * nx * nx + ny * ny, "ints": 5 + ny, "members": 16})
+        workspace={"reals": 4 + nx + 2 * nx * nx + ny * ny + model.nu, "ints": 6 + ny + model.nu,
+                   "members": 19})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 

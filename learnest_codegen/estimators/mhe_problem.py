@@ -54,6 +54,10 @@ import numpy as np
 from ..errors import SettingsError, ShapeError
 from ..runtime.limits import check_option
 from .gate import GateSettings
+from .inputs import check_limits
+
+#: Where the arrival covariance comes from (:attr:`MHESettings.arrival`).
+ARRIVALS = ("steady_state", "arrival_std")
 
 if TYPE_CHECKING:  # for annotations only
     from ..export import DiscreteModel
@@ -93,6 +97,14 @@ class MHESettings:
     arrival_covariance : optional full (nx, nx) covariance of the arrival prior; when given it
         replaces ``arrival_std`` (P = its inverse). :func:`steady_state_arrival` fills it with
         the steady-state Kalman covariance, which is what the arrival cost should summarise.
+    arrival : where the arrival covariance comes from while ``arrival_covariance`` is not
+        given: ``"steady_state"`` (default), the steady-state Kalman prior covariance of the
+        model the estimator is built for, filled in by :func:`mhe_settings` (every MHE, Python
+        or generated, goes through it, so every door gives the same arrival cost);
+        ``"arrival_std"``, ``diag(arrival_std**2)``.
+    gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
+    input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
+        (:mod:`.inputs`); ``None``: only finiteness is checked.
     """
 
     horizon: int = 20
@@ -100,11 +112,18 @@ class MHESettings:
     measurement_std: tuple[float, ...]
     arrival_std: tuple[float, ...]
     arrival_covariance: tuple[tuple[float, ...], ...] | None = None
+    arrival: str = "steady_state"
     gate: GateSettings = GateSettings()
+    input_limits: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         object.__setattr__(self, "horizon", check_option("horizon", self.horizon, "MHESettings.horizon"))
+        if self.arrival not in ARRIVALS:
+            raise ValueError(f"MHESettings.arrival must be one of {ARRIVALS}, got {self.arrival!r}")
+        if self.input_limits is not None:
+            limits = check_limits(self.input_limits, len(tuple(self.input_limits)), "MHESettings")
+            object.__setattr__(self, "input_limits", limits)
         for name in ("process_std", "measurement_std", "arrival_std"):
             values = tuple(float(v) for v in np.atleast_1d(getattr(self, name)))
             if not values or not all(math.isfinite(v) and v > 0 for v in values):
@@ -123,21 +142,36 @@ class MHESettings:
 
     @classmethod
     def from_system(cls, system: "System", **overrides) -> "MHESettings":
-        """Settings from ``system.noise`` (arrival std = ``initial_std``), with ``overrides``."""
+        """Settings from ``system.noise`` (arrival std = ``initial_std``) and the system's input
+        limits, with ``overrides``. The steady-state arrival covariance needs the model: it is
+        filled in when an estimator is built (:func:`mhe_settings`)."""
         noise = system.noise
         defaults = {"process_std": noise.process_std, "measurement_std": noise.measurement_std,
-                    "arrival_std": noise.initial_std}
+                    "arrival_std": noise.initial_std, "input_limits": system.input_limits}
         return cls(**{**defaults, **overrides})
 
-    def check(self, nx: int, ny: int, where: str) -> None:
-        """Raise :class:`ShapeError` unless the std tuples have ``nx, ny, nx`` entries."""
+    def check(self, nx: int, ny: int, where: str, nu: int | None = None) -> None:
+        """Raise :class:`ShapeError` unless the std tuples have ``nx, ny, nx`` entries (and the
+        input limits ``nu`` pairs, when ``nu`` is given)."""
         for name, n in (("process_std", nx), ("measurement_std", ny), ("arrival_std", nx)):
             got = len(getattr(self, name))
             if got != n:
                 raise ShapeError(f"{where}: MHESettings.{name} needs {n} values, got {got}")
+        if nu is not None:
+            check_limits(self.input_limits, nu, where)
+
+    @property
+    def resolved(self) -> bool:
+        """Whether the arrival covariance is known (False: steady state, not computed yet)."""
+        return self.arrival_covariance is not None or self.arrival == "arrival_std"
 
     def weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(Q (nx, nx), R (ny, ny), P (nx, nx))``, the inverse covariances."""
+        if not self.resolved:
+            raise ValueError("MHESettings: the steady-state arrival covariance is computed from "
+                             "the model; build the estimator with its model (MHE(model, "
+                             "settings), or mhe_settings(model, settings)), or set "
+                             "arrival='arrival_std'")
         Q, R, P = (np.diag(1.0 / np.square(getattr(self, name)))
                    for name in ("process_std", "measurement_std", "arrival_std"))
         if self.arrival_covariance is not None:
@@ -153,14 +187,42 @@ class MHESettings:
         if self.arrival_covariance is not None:
             P = np.asarray(self.arrival_covariance, dtype=float)
         return Q, R, P
+    def initial_covariance(self) -> np.ndarray:
+        """``diag(arrival_std**2)``: the uncertainty of the first prior ``x0`` (the system's
+        ``initial_std``), what a caller passes as ``P0`` to start from a doubtful guess."""
+        return np.diag(np.square(self.arrival_std))
 
     def to_json(self) -> dict:
-        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "gate"}
+        skip = ("gate",) + (("input_limits",) if self.input_limits is None else ())
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in skip}
         return {**json.loads(json.dumps(data)), "gate": self.gate.to_json()}  # tuples -> lists
 
     @classmethod
     def from_json(cls, data: dict) -> "MHESettings":
+        data = dict(data)
+        if "arrival" not in data:  # written before the field: a covariance was given, or not
+            data["arrival"] = "arrival_std" if data.get("arrival_covariance") is None else "steady_state"
         return cls(**data)
+
+
+def mhe_settings(model: "DiscreteModel", settings: MHESettings | None = None,
+                 **overrides) -> MHESettings:
+    """The settings every MHE of ``model`` uses: the one door to them.
+
+    ``settings`` (default ``MHESettings.from_system(model.system, **overrides)``; with both,
+    ``overrides`` replace fields of ``settings``) checked against the model, with the
+    steady-state arrival covariance of ``model`` filled in when ``arrival`` asks for it and
+    none is given (:func:`steady_state_arrival`). The Python MHE, the code generators, the
+    pipeline and the command line all call it, so ``MHE(model)``, ``generate_mhe(model, None)``
+    and ``MHESettings.from_system(system, horizon=10)`` given to either build the same
+    estimator.
+    """
+    if settings is None:
+        settings = MHESettings.from_system(model.system, **overrides)
+    elif overrides:
+        settings = dataclasses.replace(settings, **overrides)
+    settings.check(model.nx, model.ny, f"MHE for {model.system.name} ({model.kind})", model.nu)
+    return settings if settings.resolved else steady_state_arrival(model, settings)
 
 
 def steady_state_arrival(model: "DiscreteModel", settings: MHESettings,

@@ -4,6 +4,12 @@ The generated C filter (``codegen/ukf.py``) reproduces this filter's arithmetic;
 tests compare the two. Both share the sample convention of :meth:`UKF.run`: sample 0 is an
 update only, every later sample a predict with the input held since the previous sample
 followed by an update.
+
+Real streams (:mod:`.contract`): an output that is NaN in ``y`` is missing and left out of the
+update (FilterPy's update on the outputs that remain; none: the prediction stands, so a step
+always predicts), :meth:`UKF.predict` is such a step without any output, :meth:`UKF.set_noise`
+changes ``Q`` and ``R`` of the running filter, and ``u`` passes the input check
+(:mod:`.inputs`) before it is used.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from ..runtime.limits import check_option
 from ..systems import System
 from . import validation
 from .gate import GateReport, GateSettings, GateState
+from .inputs import InputCheck, check_limits
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -36,6 +43,8 @@ class UKFSettings:
     initial_std : (nx,) stds of the initial uncertainty, ``P0 = diag(initial_std**2)``.
         Every std is in ``[1e-100, 1e100]`` (``runtime/limits.py``).
     gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
+    input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
+        (:mod:`.inputs`); ``None``: only finiteness is checked.
     """
 
     alpha: float = 0.1
@@ -45,9 +54,13 @@ class UKFSettings:
     measurement_std: tuple[float, ...]
     initial_std: tuple[float, ...]
     gate: GateSettings = GateSettings()
+    input_limits: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
+        if self.input_limits is not None:
+            limits = check_limits(self.input_limits, len(tuple(self.input_limits)), "UKFSettings")
+            object.__setattr__(self, "input_limits", limits)
         for name in ("alpha", "beta", "kappa"):
             value = float(getattr(self, name))
             if not math.isfinite(value):
@@ -69,7 +82,7 @@ class UKFSettings:
         if unknown:
             raise TypeError(f"UKFSettings has no field(s) {sorted(unknown)}")
         noise = {name: getattr(system.noise, name) for name in _STD_FIELDS}
-        return cls(**{**noise, **overrides})
+        return cls(**{**noise, "input_limits": system.input_limits, **overrides})
 
     def validate_for(self, model: DiscreteModel) -> None:
         """Raise :class:`ShapeError` unless the std lengths match ``model.nx`` and ``model.ny``."""
@@ -81,9 +94,13 @@ class UKFSettings:
         # The sigma points scale P by alpha**2 (n + kappa); it must stay positive.
         if not self.alpha**2 * (model.nx + self.kappa) > 0:
             raise SettingsError(f"UKFSettings: need kappa > -nx = {-model.nx}, got {self.kappa}")
+        check_limits(self.input_limits, model.nu, "UKFSettings")
 
     def to_json(self) -> dict:
         data = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        data["input_limits"] = None if self.input_limits is None else [list(p) for p in self.input_limits]
+        if data["input_limits"] is None:
+            del data["input_limits"]  # the manifests of builds without limits stay as they were
         return {**data, "gate": self.gate.to_json()}
 
     def Q(self) -> np.ndarray:
@@ -106,7 +123,7 @@ class UKF(GateReport):
     ``(y_j - zp_j)^2 / S_jj`` exceeds ``settings.gate.threshold`` is left out (FilterPy's update
     on the other outputs; none left: the prediction), and after ``recover_after`` consecutive
     steps with rejections each further one multiplies the variances (the diagonal of ``P``)
-    by ``inflation``.
+    by ``inflation``. A missing output (NaN) is left out the same way but is no rejection.
 
     Parameters
     ----------
@@ -116,8 +133,10 @@ class UKF(GateReport):
     Attributes
     ----------
     rejected : (ny,) bool, the outputs the gate rejected in the last step.
-    last_status : 0 (OK) or 1 (MEASUREMENT_REJECTED), the C status of the last step.
-    rejections : outputs rejected since :meth:`reset`.
+    missing : (ny,) bool, the outputs the last step had no sample of.
+    input_rejected : (nu,) bool, the input components the last step replaced (:mod:`.inputs`).
+    last_status : status bits of the last step (0 OK, 1 output rejected, 2 input replaced).
+    rejections, input_rejections : outputs / input components rejected since :meth:`reset`.
     """
 
     def __init__(self, model: DiscreteModel, settings: UKFSettings | None = None):
@@ -134,6 +153,8 @@ class UKF(GateReport):
                                          points=self._points)
         self._kf.Q, self._kf.R = s.Q(), s.R()
         self._gate = GateState(s.gate, model.ny)
+        self._inputs = InputCheck(s.input_limits, model.nu)
+        self._missing = np.zeros(model.ny, dtype=bool)
         self.rejections = 0
         self._first: bool | None = None  # None until reset(): no state to filter from
 
@@ -144,12 +165,18 @@ class UKF(GateReport):
         return self.model.measure(x, u)
 
     def reset(self, x0, P0=None) -> None:
-        """Start from mean ``x0 (nx,)`` and covariance ``P0 (nx, nx)`` (default settings.P0())."""
+        """Start from mean ``x0 (nx,)`` and covariance ``P0 (nx, nx)`` (default settings.P0()).
+
+        ``Q`` and ``R`` go back to the settings' (undoing :meth:`set_noise`).
+        """
         nx = self.model.nx
-        self._kf.x = validation.vector("UKF.reset x0", x0, nx).copy()
-        P0 = self.settings.P0() if P0 is None else P0
-        self._kf.P = validation.covariance("UKF.reset P0", P0, nx).copy()
+        x0 = validation.vector("UKF.reset x0", x0, nx).copy()
+        P0 = validation.covariance("UKF.reset P0", self.settings.P0() if P0 is None else P0, nx)
+        self._kf.x, self._kf.P = x0, P0.copy()
+        self._kf.Q, self._kf.R = self.settings.Q(), self.settings.R()
         self._gate = GateState(self.settings.gate, self.model.ny)  # as of this reset
+        self._inputs = InputCheck(self.settings.input_limits, self.model.nu)
+        self._missing = np.zeros(self.model.ny, dtype=bool)
         self.rejections = 0
         self._first = True
 
@@ -161,14 +188,15 @@ class UKF(GateReport):
         (NaN: missing; or those ``valid (ny,)`` marks): a missing output contributes nothing,
         none leaves the prediction, evaluating ``h`` at the same ``u``. Raises
         :class:`SolverError` (state unchanged) if the covariance stops being positive definite.
-        An output the gate rejects is not an error (see the class).
+        A rejected output or input is not an error (see the class).
         """
         self._require_reset("step")
-        u = validation.vector("UKF.step u", u, self.model.nu)
+        u = validation.input_vector("UKF.step u", u, self.model.nu)
         y, mask = validation.measurements("UKF.step y", y, valid, self.model.ny)
         if y.shape != (self.model.ny,):
             raise ShapeError(f"UKF.step y: expected shape ({self.model.ny},), got {y.shape}")
-        valid = np.ones(self.model.ny, dtype=bool) if mask is None else mask
+        observed = np.ones(self.model.ny, dtype=bool) if mask is None else mask
+        u, u_rejected = self._inputs.apply(u)
         saved = self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f.copy()
         try:
             if self._first:
@@ -177,7 +205,7 @@ class UKF(GateReport):
                 self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
             else:
                 self._kf.predict(u=u)
-            rejected = self._gated_update(u, y, valid)
+            rejected = self._gated_update(u, y, observed)
         except np.linalg.LinAlgError as exc:  # Cholesky of a non-positive-definite P
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"UKF.step: {exc} (state left as before this step)") from exc
@@ -190,24 +218,49 @@ class UKF(GateReport):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc
         # recovery: the variances grow, the covariances stay (see estimators/gate.py)
-        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, valid)
+        self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, observed)
+        self._inputs.record(u, u_rejected)
+        self._missing = ~observed
         self.rejections += int(rejected.sum())
         self._first = False
         return self.x
 
-    def _gated_update(self, u: np.ndarray, y: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        """FilterPy's update on the valid outputs the gate keeps; returns the rejected mask."""
+    def predict(self, u) -> np.ndarray:
+        """A sample without any measurement: ``step(u, y)`` with every output missing."""
+        return self.step(u, np.full(self.model.ny, np.nan))
+
+    def set_noise(self, Q=None, R=None, P_arrival=None) -> None:
+        """Change the process-noise covariance ``Q (nx, nx)`` and/or the measurement-noise
+        covariance ``R (ny, ny)`` of the running filter; its state, covariance and gate are
+        kept (the next :meth:`reset` returns to the settings' values; the C ``set_noise``).
+
+        ``P_arrival`` is the MHEs' arrival covariance; a UKF has none (its ``P`` is set by
+        :meth:`reset`), so giving it raises :class:`TypeError`.
+        """
+        self._require_reset("set_noise")
+        if P_arrival is not None:
+            raise TypeError("UKF.set_noise: a UKF has no arrival cost (P_arrival); its "
+                            "covariance P is set by reset(x0, P0)")
+        nx, ny = self.model.nx, self.model.ny
+        Q = None if Q is None else validation.covariance("UKF.set_noise Q", Q, nx)
+        R = None if R is None else validation.covariance("UKF.set_noise R", R, ny, definite=True)
+        if Q is not None:
+            self._kf.Q = Q.copy()
+        if R is not None:
+            self._kf.R = R.copy()
+
+    def _gated_update(self, u: np.ndarray, y: np.ndarray, observed: np.ndarray) -> np.ndarray:
+        """FilterPy's update on the ``observed`` outputs the gate keeps; returns the rejected mask."""
         from filterpy.kalman import unscented_transform
 
         kf = self._kf
-        if not valid.any():  # a pure prediction
-            kf.update(None)
-            return np.zeros(self.model.ny, dtype=bool)
-        sigmas_h = np.atleast_2d([self._hx(s, u) for s in kf.sigmas_f])
-        zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
-        with np.errstate(over="ignore"):  # an absurd y gives d2 = inf: rejected
-            rejected = self._gate.test((y - zp) ** 2 / np.diag(S), valid)
-        keep = valid & ~rejected
+        rejected = np.zeros(self.model.ny, dtype=bool)
+        if observed.any():
+            sigmas_h = np.atleast_2d([self._hx(s, u) for s in kf.sigmas_f])
+            zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
+            with np.errstate(over="ignore", invalid="ignore"):  # an absurd y gives d2 = inf: rejected
+                rejected = self._gate.test((y - zp) ** 2 / np.diag(S), observed)
+        keep = observed & ~rejected
         if keep.all():
             kf.update(y, u=u)
         elif not keep.any():
@@ -216,23 +269,6 @@ class UKF(GateReport):
             kf.update(y[keep], R=kf.R[np.ix_(keep, keep)],
                       hx=lambda x, u: self._hx(x, u)[keep], u=u)
         return rejected
-
-    def predict(self, u) -> np.ndarray:
-        """A sample without measurement: ``step(u, y, valid=all False)``."""
-        return self.step(u, np.zeros(self.model.ny), np.zeros(self.model.ny, dtype=bool))
-
-    def set_noise(self, Q=None, R=None, P_arrival=None) -> None:
-        """New process- and measurement-noise covariances (None keeps one) from the next step
-        on; the state and its covariance stay (the C ``set_noise``). The UKF has no arrival
-        cost: ``P_arrival`` is refused."""
-        self._require_reset("set_noise")
-        if P_arrival is not None:
-            raise SettingsError("UKF.set_noise: P_arrival is the MHEs' arrival covariance; the UKF has "
-                             "no arrival cost")
-        if Q is not None:
-            self._kf.Q = validation.covariance("UKF.set_noise Q", Q, self.model.nx).copy()
-        if R is not None:
-            self._kf.R = validation.covariance("UKF.set_noise R", R, self.model.ny).copy()
 
     @property
     def x(self) -> np.ndarray:
@@ -246,6 +282,16 @@ class UKF(GateReport):
         self._require_reset("P")
         return self._kf.P.copy()
 
+    @property
+    def Q(self) -> np.ndarray:
+        """The process-noise covariance in use ``(nx, nx)`` (a copy)."""
+        return self._kf.Q.copy()
+
+    @property
+    def R(self) -> np.ndarray:
+        """The measurement-noise covariance in use ``(ny, ny)`` (a copy)."""
+        return self._kf.R.copy()
+
     def _require_reset(self, what: str) -> None:
         if self._first is None:
             raise RuntimeError(f"UKF.{what}: call reset(x0) first")
@@ -256,7 +302,7 @@ class UKF(GateReport):
         Parameters
         ----------
         U : (T, nu) inputs; ``U[k]`` is applied from sample k to sample k+1.
-        Y : (T, ny) measurements.
+        Y : (T, ny) measurements; NaN marks a missing output.
         x0, P0 : initial mean ``(nx,)`` and covariance ``(nx, nx)``.
         valid : (T, ny) which outputs each sample holds (None: those that are not NaN).
 
@@ -266,10 +312,9 @@ class UKF(GateReport):
             sample k >= 1 is ``step(U[k-1], Y[k])``.
         """
         Y, mask = validation.measurements("UKF.run", Y, valid, self.model.ny)
-        U, Y = validation.run_arrays("UKF.run", U, Y, self.model.nu, self.model.ny)
+        U, Y = validation.run_arrays("UKF.run", U, Y, self.model.nu, self.model.ny, missing=True)
         self.reset(x0, P0)
         X_hat = np.empty((len(Y), self.model.nx))
         for k in range(len(Y)):
             X_hat[k] = self.step(U[max(k - 1, 0)], Y[k], None if mask is None else mask[k])
         return X_hat
-

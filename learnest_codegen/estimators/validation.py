@@ -3,7 +3,14 @@
 Shapes fail with :class:`~learnest_codegen.errors.ShapeError`, values (non-finite numbers, a
 covariance that is not symmetric positive semidefinite) with
 :class:`~learnest_codegen.errors.DataError`; both are ``ValueError``\\ s. Each message names the
-call and the argument (``where``).
+call and the argument (``where``). A complex value is refused (its imaginary part would be
+dropped silently by a float conversion).
+
+Measurements may be missing: :func:`measurement` and ``run_arrays(..., missing=True)`` take NaN
+in ``y`` as "no sample of this output" (the convention of :mod:`.contract`); an infinite ``y``
+is still an error; :func:`measurements` turns them into validity flags (the C API's form).
+Inputs go to the estimators' plausibility check (:mod:`.inputs`), so :func:`input_vector`
+checks their shape only.
 """
 
 from __future__ import annotations
@@ -16,31 +23,43 @@ from ..errors import DataError, ShapeError
 COVARIANCE_RTOL = 1e-9
 
 
-def real(where: str, value) -> np.ndarray:
-    """``value`` as a float64 array; complex or non-numeric values raise :class:`DataError`
-    (numpy would drop an imaginary part with a warning, or fail with a TypeError)."""
-    a = np.asarray(value)
-    if np.iscomplexobj(a):
-        raise DataError(f"{where}: complex values are not accepted (got {a.dtype})")
+def real_array(where: str, value) -> np.ndarray:
+    """``value`` as a float64 array; a complex or non-numeric value raises :class:`DataError`."""
+    if np.iscomplexobj(value):
+        raise DataError(f"{where}: expected real numbers, got complex values")
     try:
-        return np.ascontiguousarray(a, dtype=float)
+        return np.ascontiguousarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise DataError(f"{where}: expected real numbers, got {a.dtype} values ({exc})") from exc
+        raise DataError(f"{where}: expected real numbers, got {type(value).__name__} ({exc})") from exc
+
+
+def input_vector(where: str, value, n: int) -> np.ndarray:
+    """``value`` as a float64 ``(n,)`` array; NaN and infinite entries pass (see :mod:`.inputs`)."""
+    v = real_array(where, value)
+    if v.shape != (n,):
+        raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
+    return v
 
 
 def vector(where: str, value, n: int) -> np.ndarray:
     """``value`` as a finite float64 ``(n,)`` array."""
-    v = real(where, value)
-    if v.shape != (n,):
-        raise ShapeError(f"{where}: expected shape ({n},), got {v.shape}")
+    v = input_vector(where, value, n)
     if not np.all(np.isfinite(v)):
         raise DataError(f"{where}: non-finite value in {v}")
     return v
 
 
+def measurement(where: str, value, n: int) -> np.ndarray:
+    """``value`` as a float64 ``(n,)`` array in which NaN means missing; infinity raises."""
+    v = input_vector(where, value, n)
+    if np.any(np.isinf(v)):
+        raise DataError(f"{where}: infinite value in {v} (NaN marks a missing output)")
+    return v
+
+
 def matrix(where: str, value, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` as a finite float64 array of ``shape``; the rows holding non-finite values are named."""
-    a = real(where, value)
+    a = real_array(where, value)
     if a.shape != tuple(shape):
         raise ShapeError(f"{where}: expected shape {tuple(shape)}, got {a.shape}")
     finite = np.isfinite(a)
@@ -68,18 +87,26 @@ def covariance(where: str, value, n: int, *, definite: bool = False) -> np.ndarr
     return a
 
 
-def run_arrays(where: str, U, Y, nu: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
-    """``U (T, nu)``, ``Y (T, ny)`` as finite float64 arrays with the same ``T >= 1``."""
-    U, Y = real(f"{where}: U", U), real(f"{where}: Y", Y)
+def run_arrays(where: str, U, Y, nu: int, ny: int, *,
+               missing: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``U (T, nu)``, ``Y (T, ny)`` as float64 arrays with the same ``T >= 1``, finite unless
+    ``missing``: then NaN in ``Y`` marks a missing output and ``U`` is left to the input check
+    (an infinite ``Y`` still raises)."""
+    U, Y = real_array(f"{where}: U", U), real_array(f"{where}: Y", Y)
     if U.ndim != 2 or Y.ndim != 2 or U.shape[1] != nu or Y.shape[1] != ny \
             or len(U) != len(Y) or len(Y) < 1:
         raise ShapeError(f"{where}: expected U (T, {nu}) and Y (T, {ny}) with T >= 1, "
                          f"got {U.shape} and {Y.shape}")
-    for name, A in (("U", U), ("Y", Y)):
-        if not np.all(np.isfinite(A)):
-            row = int(np.argwhere(~np.isfinite(A))[0, 0])
+    checks = (("Y", Y, np.isinf),) if missing else (("U", U, _nonfinite), ("Y", Y, _nonfinite))
+    for name, A, bad in checks:
+        if np.any(bad(A)):
+            row = int(np.argwhere(bad(A))[0, 0])
             raise DataError(f"{where}: {name} has a non-finite value at sample {row}")
     return np.ascontiguousarray(U), np.ascontiguousarray(Y)
+
+
+def _nonfinite(a: np.ndarray) -> np.ndarray:
+    return ~np.isfinite(a)
 
 
 def flags(where: str, valid, shape: tuple[int, ...]) -> np.ndarray | None:
@@ -103,7 +130,7 @@ def measurements(where: str, Y, valid, ny: int) -> tuple[np.ndarray, np.ndarray 
     estimators never read them), the validity as None when every output is present. An
     infinite value, or a NaN marked valid, raises :class:`DataError`.
     """
-    Y = np.array(Y, dtype=float)
+    Y = np.array(real_array(where, Y))
     if Y.ndim not in (1, 2) or Y.shape[-1] != ny:
         raise ShapeError(f"{where}: expected shape ({ny},) or (T, {ny}), got {Y.shape}")
     mask = flags(f"{where} valid", valid, Y.shape)

@@ -47,11 +47,13 @@ class DemoReport:
 def run_demo(system: System, out: str | Path, *, training: TrainingSettings = DEFAULT_TRAINING,
              observer: str | None = None, train_seed: int = 0, test_seed: int = 1,
              include_true: bool = True, python_mhe: bool = True,
-             duration: float | None = None) -> DemoReport:
+             duration: float | None = None, x0: np.ndarray | None = None,
+             P0: np.ndarray | None = None) -> DemoReport:
     """Run the whole pipeline on ``system`` and write everything under ``out``.
 
     ``training`` defaults to :data:`~learnest_codegen.config.DEFAULT_TRAINING`; its ``seed`` is
-    replaced by ``train_seed``.
+    replaced by ``train_seed``. Every estimator starts from ``x0`` (default: the system's) with
+    covariance ``P0`` (default: each estimator's own).
     """
     out = Path(out)
     report = DemoReport()
@@ -76,7 +78,9 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = DE
 
     models = [resolve("nominal", system), resolve(trained)]
     models += [resolve("true", system)] if include_true else []
-    x0 = np.asarray(system.x0, dtype=float)
+    x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
+    report.meta["x0"] = x0.tolist()
+    report.meta["P0"] = None if P0 is None else np.asarray(P0).tolist()
     results: dict[tuple[str, str, str], EstimateResult] = {}
     for model in models:
         kind = model.model.kind
@@ -90,11 +94,11 @@ def run_demo(system: System, out: str | Path, *, training: TrainingSettings = DE
         for name, estimator in compiled.items():
             suffix = " (true dynamics)" if kind == "true" else ""
             label = f"{LABELS[kind]}{name.upper()}{suffix}"
-            results[(kind, name, "C")] = run_estimator(estimator, test_run, x0, label)
+            results[(kind, name, "C")] = run_estimator(estimator, test_run, x0, label, P0)
             if name == "ukf" or python_mhe:
                 say(f"running the Python reference {label}")
                 python = make_estimator(model, name, backend="python")
-                results[(kind, name, "python")] = run_estimator(python, test_run, x0, label)
+                results[(kind, name, "python")] = run_estimator(python, test_run, x0, label, P0)
 
     for (_, name, backend), res in results.items():
         nominal = results.get(("nominal", name, backend))

@@ -22,6 +22,15 @@ agrees with Vicon to a few cm; its acceleration is gravity-free). Beside it lies
 3. **Run.** ``y = [p, a_world]`` with ``a_world = R(q) (9.81 acc_g) - [0, 0, 9.81]`` [m/s^2];
    ``u = [R(q) e3 * pwm, vbat]`` with ``pwm`` the mean motor PWM over 65535 (the inputs of
    :data:`~learnest_codegen.systems.quadrotor.QUADROTOR`).
+4. **Held measurements.** A row whose Vicon position (all three coordinates) or accelerometer
+   (all three axes) repeats the row before exactly is a held value, not a new sample: with
+   ``held="missing"`` (the default) the grid sample nearest to it has that output missing
+   (NaN), with ``held="hold"`` it is used as before. In the NanoBench files this finds 2 held
+   positions in 17 flights (both outside the trimmed flights) and no held accelerometer row:
+   the dataset interpolates its onboard streams onto the Vicon clock
+   (its metadata counts e.g. 1,997 IMU rows for 2,725 Vicon rows) rather than holding them,
+   so every accelerometer row is an interpolation of a ~73 Hz stream (``docs/recordings.md``).
+   The inputs (motors, battery) are held as logged: that is what was applied.
 
 :func:`reference_states` gives the paper's baseline states from Vicon position alone: the
 position itself, and velocity and acceleration from a Savitzky-Golay filter.
@@ -49,6 +58,9 @@ MOTORS = tuple(f"motor_motor_m{i}" for i in range(1, 5))
 VBAT = "pwr_pm_vbat"
 ONBOARD = tuple(f"est_stateEstimate_{n}" for n in ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az"))
 REQUIRED = ("t", *POSITION, *QUATERNION, *ACCEL, *MOTORS, VBAT, *ONBOARD)
+#: Measured channel groups whose exact repeat marks a held (not re-sampled) value.
+MEASURED = {"position": POSITION, "acceleration": ACCEL}
+HELD = ("missing", "hold")
 
 # The paper's baseline: "a window length of 150 and a polynomial of order 2" at ~100 Hz. We read
 # 150 as samples (1.5 s; a window in seconds would be absurd at 150). scipy accepts even windows
@@ -213,11 +225,30 @@ def read_metadata(path: Path) -> dict:
     return out
 
 
-def _resample(t: np.ndarray, columns: dict[str, np.ndarray], dt: float):
-    """Every column on the uniform grid ``k dt`` from the first sample; quaternions by slerp."""
+def held_rows(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per measured group (:data:`MEASURED`): (N,) bool, the rows that repeat the row before."""
+    out = {}
+    for group, names in MEASURED.items():
+        values = np.column_stack([columns[n] for n in names])
+        out[group] = np.r_[False, np.all(np.diff(values, axis=0) == 0, axis=1)]
+    return out
+
+
+def _resample(t: np.ndarray, columns: dict[str, np.ndarray], dt: float,
+              held: dict[str, np.ndarray] | None = None):
+    """Every column on the uniform grid ``k dt`` from the first sample; quaternions by slerp.
+
+    ``out["missing_<group>"]`` marks the grid samples whose nearest row is ``held`` in that
+    group (the values themselves are interpolated as ever: trimming and the reference use
+    them).
+    """
     t = t - t[0]  # relative time: absolute host times would lose digits on the grid
     grid = dt * np.arange(int(np.floor(t[-1] / dt + 1e-6)) + 1)
     out = {name: np.interp(grid, t, values) for name, values in columns.items()}
+    nearest = np.clip(np.searchsorted(t, grid), 1, len(t) - 1)
+    nearest -= (grid - t[nearest - 1]) < (t[nearest] - grid)
+    for group, rows in (held or {}).items():
+        out[f"missing_{group}"] = rows[nearest]
     quat = np.stack([columns[n] for n in QUATERNION], axis=1)
     norms = np.linalg.norm(quat, axis=1)
     if np.any(np.abs(norms - 1.0) > 0.1):
@@ -243,7 +274,8 @@ def airborne_span(height: np.ndarray, pwm: np.ndarray, trim_height_m: float) -> 
 
 def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0.15,
                 max_gap_s: float = 0.05, max_accel_mps2: float = 20.0,
-                savgol_window: int = SAVGOL_WINDOW, savgol_order: int = SAVGOL_ORDER) -> Flight:
+                savgol_window: int = SAVGOL_WINDOW, savgol_order: int = SAVGOL_ORDER,
+                held: str = "missing") -> Flight:
     """Read a NanoBench flight CSV into a trimmed, uniformly sampled :class:`Flight`.
 
     Parameters
@@ -260,17 +292,21 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
     max_gap_s : the longest sample interval that is filled by resampling [s].
     savgol_window, savgol_order : the reference filter (:func:`reference_states`); it runs on
         the whole log before trimming, so the trimmed flight has no filter edge inside.
+    held : ``"missing"``: a held position or accelerometer value is a missing output (NaN);
+        ``"hold"``: it is used as a sample (see the module docstring, step 4).
 
     Raises
     ------
     DataError : missing columns, non-numeric or non-finite values, time not increasing, a gap
         longer than ``max_gap_s``, a bad quaternion, no airborne part.
     """
+    if held not in HELD:
+        raise ValueError(f"read_flight: held must be one of {HELD}, got {held!r}")
     path = Path(path)
     columns = read_table(path)
     t = columns.pop("t")
     timing = check_timing(t, str(path), max_gap_s)
-    t, c = _resample(t, columns, timing.dt)
+    t, c = _resample(t, columns, timing.dt, held_rows(columns) if held == "missing" else None)
     quat = c["quaternion"]
     pwm = np.mean([c[m] for m in MOTORS], axis=0) / PWM_FULL
     position = np.stack([c[n] for n in POSITION], axis=1)
@@ -287,8 +323,12 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
             raise DataError(f"{path}: the accelerometer exceeds {max_accel_mps2} m/s^2 "
                             f"{implausible[0] * timing.dt:.2f} s into the flight; too little is left")
     u = np.hstack([thrust_vector(quat, pwm), c[VBAT][:, None]])
+    y = np.hstack([position, acc])
+    for group, block in (("position", slice(0, 3)), ("acceleration", slice(3, 6))):
+        if f"missing_{group}" in c:
+            y[c[f"missing_{group}"], block] = np.nan
     sl = slice(first, last + 1)
-    run = Run(t[sl] - t[first], u[sl], np.hstack([position, acc])[sl], None, "quadrotor")
+    run = Run(t[sl] - t[first], u[sl], y[sl], None, "quadrotor")
     onboard = np.stack([c[n] for n in ONBOARD], axis=1)
     return Flight(path.stem, run, reference[sl], onboard[sl], quat[sl], c[VBAT][sl], timing,
                   (first, last), bool(implausible.size), read_metadata(path))

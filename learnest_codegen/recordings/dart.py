@@ -19,8 +19,14 @@ What :func:`read_recording` does, in order:
 4. **Resample** onto a uniform grid ``t_k = k dt`` (``dt = 0.01 s``, the system's) on the Vicon
    clock: positions and the unwrapped yaw by linear interpolation (the Vicon jitter is
    0.26-0.29 ms rms, steps 8.0-11.8 ms, so interpolation moves a sample by at most ~0.2 mm at
-   4 m/s); the held channels (commands, encoder) by zero-order hold, i.e. the value of the last
-   row at or before the grid time.
+   4 m/s); the commands by zero-order hold, i.e. the value of the last row at or before the
+   grid time (the car holds a command until the next one: that is what was applied).
+   The encoder is a measurement: a grid sample gets its value only when a new sensor packet
+   arrived since the previous grid time, and is missing (NaN) otherwise (``held="missing"``,
+   the default); a packet is new when ``elapsed time sensors`` or any sensor channel changed
+   from the row before. The car's ~10 Hz packets then give one encoder sample in about ten,
+   instead of ten copies of it. ``held="hold"`` keeps the copies (the reader before missing
+   outputs existed).
 5. **Align the commands**: ``u(t_k)`` is the command held at ``t_k - command_delay_s``. The
    default 0.06 s is the lag at which the steering command best predicts the Vicon path
    curvature in the four recordings (0.05-0.08 s): transport delay and the servo's response
@@ -47,6 +53,9 @@ from . import data_root
 TIME, X, Y, YAW = "vicon time", "vicon x", "vicon y", "vicon yaw"
 THROTTLE, STEERING, ENCODER, SAFETY = "throttle", "steering", "vel encoder", "safety_value"
 REQUIRED = (TIME, X, Y, YAW, THROTTLE, STEERING, ENCODER)
+#: Columns that change when a new sensor packet (IMU and encoder, ~10 Hz) arrives.
+SENSOR_PACKET = ("elapsed time sensors", "acc x (IMU)", "acc y (IMU)", "W (IMU)", ENCODER)
+HELD = ("missing", "hold")
 BEACONS = ((-5.0, -5.0), (5.0, -5.0), (5.0, 5.0), (-5.0, 5.0))  # around the ~7 m x 6 m arena [m]
 
 
@@ -61,6 +70,8 @@ class DartSettings:
     trim_margin_s : stationary time kept before the first and after the last motion [s].
     moving_speed : Vicon speed above which the car counts as moving [m/s].
     max_gap_s : the longest Vicon gap accepted [s].
+    held : ``"missing"``: a grid sample without a new encoder packet is missing (NaN);
+        ``"hold"``: it repeats the last packet's value (see the module docstring, step 4).
     """
 
     dt: float = RC_CAR.dt
@@ -68,8 +79,11 @@ class DartSettings:
     trim_margin_s: float = 0.5
     moving_speed: float = 0.05
     max_gap_s: float = 0.05
+    held: str = "missing"
 
     def __post_init__(self) -> None:
+        if self.held not in HELD:
+            raise ValueError(f"DartSettings.held must be one of {HELD}, got {self.held!r}")
         if not self.dt > 0 or not self.max_gap_s > self.dt:
             raise SettingsError(f"DartSettings: need 0 < dt < max_gap_s, got dt={self.dt}, "
                                 f"max_gap_s={self.max_gap_s}")
@@ -102,7 +116,7 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     if missing:
         raise DataError(f"{path}: missing columns {missing}; a DART recording needs {list(REQUIRED)}"
                         f" (has {header})")
-    wanted = [c for c in (*REQUIRED, SAFETY) if c in header]
+    wanted = list(dict.fromkeys(c for c in (*REQUIRED, SAFETY, *SENSOR_PACKET) if c in header))
     try:
         table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2,
                            usecols=[header.index(c) for c in wanted])
@@ -149,8 +163,11 @@ def read_recording(path: str | Path, settings: DartSettings = DartSettings()) ->
     if len(t) < 2:
         raise DataError(f"{path}: the car never moves (speed under {settings.moving_speed} m/s "
                         "and zero throttle throughout)")
+    encoder = _hold(t_raw, cols[ENCODER], t)
+    if settings.held == "missing":
+        encoder = np.where(_fresh(t_raw, cols, t, settings.dt), encoder, np.nan)
     y = np.stack([np.interp(t, t_raw, cols[X]), np.interp(t, t_raw, cols[Y]),
-                  np.interp(t, t_raw, yaw), _hold(t_raw, cols[ENCODER], t)], axis=1)
+                  np.interp(t, t_raw, yaw), encoder], axis=1)
     t_cmd = t - settings.command_delay_s
     u = np.stack([_hold(t_raw, throttle, t_cmd), _hold(t_raw, cols[STEERING], t_cmd)], axis=1)
     return Run(t, u, y, None, RC_CAR.name)
@@ -159,6 +176,15 @@ def read_recording(path: str | Path, settings: DartSettings = DartSettings()) ->
 def _hold(t_raw: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Zero-order hold: the value of the last row at or before each ``t`` (the first before)."""
     return values[np.clip(np.searchsorted(t_raw, t, side="right") - 1, 0, None)]
+
+
+def _fresh(t_raw: np.ndarray, cols: dict[str, np.ndarray], t: np.ndarray, dt: float) -> np.ndarray:
+    """(len(t),) bool: a new sensor packet arrived in ``(t_k - dt, t_k]`` (the first row counts
+    as one)."""
+    packet = np.column_stack([cols[c] for c in SENSOR_PACKET if c in cols])
+    new = np.flatnonzero(np.r_[True, np.any(np.diff(packet, axis=0) != 0, axis=1)])
+    last = np.searchsorted(t_raw[new], t, side="right") - 1  # the latest packet at or before t_k
+    return (last >= 0) & (t_raw[new][np.clip(last, 0, None)] > t - dt)
 
 
 def _motion_span(t, x, y, throttle, settings: DartSettings) -> tuple[float, float]:

@@ -54,6 +54,8 @@ class CompiledEstimator:
     Attributes
     ----------
     rejected, last_status, rejections : the innovation gate's report, as the references'.
+    missing, input_rejected, input_rejections : the last step's missing outputs and replaced
+        input components, and the components replaced since the reset (the input check).
     fingerprint : the build's identity, as compiled into the library.
     """
 
@@ -106,6 +108,7 @@ class CompiledEstimator:
         self._memory = np.zeros(self._c["workspace_size"](), dtype=np.uint8)
         self._handle: int | None = None
         self.last_status = 0
+        self._missing = np.zeros(self.ny, dtype=bool)
 
     def signatures(self) -> dict[str, tuple[Any, list[Any]]]:
         """The C API every estimator shares (``learnest_api.h``)."""
@@ -122,6 +125,8 @@ class CompiledEstimator:
             "set_gate": (INT, [h, self.c_real, INT, self.c_real]),
             "get_rejected": (INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
             "rejections": (INT, [h]), "samples": (INT, [h]), "get_state": (INT, [h, R]),
+            "get_input_rejected": (INT, [h, np.ctypeslib.ndpointer(dtype=np.intc, flags="C_CONTIGUOUS")]),
+            "input_rejections": (INT, [h]),
         }
 
     def extra_signatures(self) -> dict[str, tuple[Any, list[Any]]]:
@@ -211,15 +216,17 @@ class CompiledEstimator:
         self.check_status("reset", self._c["set_gate"](self._handle, gate.c_threshold(),
                                                        gate.recover_after, gate.inflation))
         self.last_status = 0
+        self._missing = np.zeros(self.ny, dtype=bool)
 
     def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
         """One sample: ``u (nu,)`` the input applied since the previous sample, ``y (ny,)`` the
         measurement (NaN: a missing output), or ``valid (ny,)`` saying which outputs it holds
         (then a missing one may hold anything). The C call takes the validity as flags.
+        A non-finite ``u`` goes to the C's input check (replaced, status bit 2).
         Returns the estimate ``x (nx,)``."""
         handle = self._started("step")
         name = type(self).__name__
-        u = self.real_array(validation.vector(f"{name}.step: u", u, self.nu))
+        u = self.real_array(validation.input_vector(f"{name}.step: u", u, self.nu))
         y, mask = validation.measurements(f"{name}.step: y", y, valid, self.ny)
         if y.shape != (self.ny,):
             raise ShapeError(f"{name}.step: y: expected shape ({self.ny},), got {y.shape}")
@@ -227,15 +234,17 @@ class CompiledEstimator:
         with self._serial:
             code = self._c["step"](handle, u, y.ctypes.data, None if flags is None else flags.ctypes.data)
         self.last_status = self.check_status("step", code, self._sample())
+        self._missing = np.zeros(self.ny, dtype=bool) if mask is None else ~mask
         return self.x
 
     def predict(self, u: np.ndarray) -> np.ndarray:
         """A sample without measurement (every output missing); returns ``x (nx,)``."""
         handle = self._started("predict")
-        u = self.real_array(validation.vector(f"{type(self).__name__}.predict: u", u, self.nu))
+        u = self.real_array(validation.input_vector(f"{type(self).__name__}.predict: u", u, self.nu))
         with self._serial:
             code = self._c["predict"](handle, u)
         self.last_status = self.check_status("predict", code, self._sample())
+        self._missing = np.ones(self.ny, dtype=bool)
         return self.x
 
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray, P0: np.ndarray | None = None,
@@ -245,7 +254,7 @@ class CompiledEstimator:
         ``step(U[k-1], Y[k])``."""
         name = type(self).__name__
         Y, mask = validation.measurements(f"{name}.run", Y, valid, self.ny)
-        U, Y = validation.run_arrays(f"{name}.run", U, Y, self.nu, self.ny)
+        U, Y = validation.run_arrays(f"{name}.run", U, Y, self.nu, self.ny, missing=True)
         self.reset(x0, P0)
         X_hat = np.full((len(Y), self.nx), np.nan, dtype=self.dtype)
         flags = None if mask is None else np.ascontiguousarray(mask, dtype=np.uint8)
@@ -255,6 +264,7 @@ class CompiledEstimator:
             code = self._c["run"](self._handle, T, U, Y, None if flags is None else flags.ctypes.data,
                                   X_hat)
         self.last_status = self.check_status("run", code, self._sample())
+        self._missing = np.zeros(self.ny, dtype=bool) if mask is None or not len(mask) else ~mask[-1]
         return X_hat.astype(float)
 
     def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
@@ -287,6 +297,24 @@ class CompiledEstimator:
         mask = np.zeros(self.ny, dtype=np.intc)
         self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
         return mask.astype(bool)
+
+    @property
+    def missing(self) -> np.ndarray:
+        """(ny,) bool: the outputs the last step had no sample of."""
+        return self._missing.copy()
+
+    @property
+    def input_rejected(self) -> np.ndarray:
+        """(nu,) bool: the input components the last step replaced by their held value."""
+        mask = np.zeros(self.nu, dtype=np.intc)
+        self.check_status("input_rejected", self._c["get_input_rejected"](
+            self._started("input_rejected"), mask))
+        return mask.astype(bool)
+
+    @property
+    def input_rejections(self) -> int:
+        """Input components replaced since :meth:`reset`."""
+        return int(self._c["input_rejections"](self._started("input_rejections")))
 
     @property
     def rejections(self) -> int:

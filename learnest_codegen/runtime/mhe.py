@@ -52,7 +52,7 @@ class CompiledMHE(CompiledEstimator):
     def extra_signatures(self) -> dict[str, tuple[Any, list[Any]]]:
         R = self.real_pointer
         return {"get_window": (INT, [HANDLE, R]), "get_arrival": (INT, [HANDLE, R]),
-                "set_arrival": (INT, [HANDLE, R])}
+                "set_arrival": (INT, [HANDLE, R]), "get_arrival_weight": (INT, [HANDLE, R])}
 
     def _settings(self, settings: MHESettings | None) -> MHESettings:
         settings = settings or MHESettings.from_json(self.manifest["settings"])
@@ -61,6 +61,18 @@ class CompiledMHE(CompiledEstimator):
                                      f"the library was generated for {self.horizon}")
         settings.check(self.nx, self.ny, self.where)
         return settings
+
+    def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
+        """As :meth:`MHE.reset <learnest_codegen.estimators.mhe.MHE.reset>`: ``P0`` (default: the
+        settings' arrival covariance) is the first prior's covariance, carried forward in C
+        while it is larger than the running arrival covariance, which goes back to the
+        build's (or, with other settings given, to theirs)."""
+        super().reset(x0, P0)
+        P = self.settings.covariances()[2]
+        built = MHESettings.from_json(self.manifest["settings"]).covariances()[2]
+        if not np.array_equal(P, built):
+            self.check_status("reset", self._c["set_arrival"](self._handle,
+                                                              self.real_array(P, exact=True)))
 
     def _covariances(self, P0):
         Q, R, P = self.settings.covariances()
@@ -81,15 +93,19 @@ class CompiledMHE(CompiledEstimator):
 
     @property
     def arrival_covariance(self) -> np.ndarray:
-        """(nx, nx) the covariance of the arrival cost in use."""
+        """(nx, nx) the running arrival covariance (``set_noise(P_arrival=...)``'s)."""
         P = np.empty((self.nx, self.nx), dtype=self.dtype)
         self.check_status("arrival_covariance", self._c["get_arrival"](self._started("arrival"), P))
         return P.astype(float)
 
     @property
     def arrival_weight(self) -> np.ndarray:
-        """(nx, nx) the weight of the arrival cost in use (the inverse of its covariance)."""
-        return np.linalg.inv(self.arrival_covariance)
+        """(nx, nx) the weight of the arrival cost in force: the running one, or the inverse of
+        a first prior's covariance carried forward (as :attr:`MHE.arrival_weight`)."""
+        P = np.empty((self.nx, self.nx), dtype=self.dtype)
+        self.check_status("arrival_weight", self._c["get_arrival_weight"](
+            self._started("arrival_weight"), P))
+        return P.astype(float)
 
     def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
                   P_arrival: np.ndarray | None = None) -> None:

@@ -31,9 +31,9 @@ STATUSES = (
            "estimator inflates its uncertainty to re-acquire a lost track",
            "not an error; keep stepping (a long run of it means the sensor or the model is off)"),
     Status(2, "INPUT_REJECTED",
-           "reserved for the input plausibility check: the input u of this sample was outside "
-           "its plausible range and the step went on without it (the estimator's header says "
-           "how); no estimator returns it yet",
+           "the input plausibility check replaced a component of u that was not finite or "
+           "outside the system's input limits by its last accepted value (a bit: OR-ed with "
+           "MEASUREMENT_REJECTED; get_input_rejected says which)",
            "not an error; keep stepping (a long run of it means the actuator, its command log "
            "or the declared range is wrong)"),
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
@@ -43,7 +43,8 @@ STATUSES = (
            "documented range (LEARNEST_*_MIN/_MAX below)",
            "fix the call; nothing was changed"),
     Status(-3, "NONFINITE_INPUT",
-           "an input (u, a valid output of y, x0 or a covariance) is NaN or infinite",
+           "a valid output of y, x0 or a covariance is NaN or infinite (a non-finite u is "
+           "replaced, INPUT_REJECTED)",
            "mark a missing output missing (valid[j] = 0) or call predict; the estimator is "
            "unchanged"),
     Status(-4, "NO_MEMORY", "the workspace is smaller than <prefix>_workspace_size()",

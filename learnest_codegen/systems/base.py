@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -35,6 +36,26 @@ DynamicsFn = Callable[..., Sequence]  # fn(ops, x: list, u: list, p: Mapping) ->
 NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 #: System names: they start the C symbol prefix ``<system>_<kind>_<estimator>``.
 SYSTEM_NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9]*(_[A-Za-z0-9]+)*")
+
+
+def check_input_limits(limits, nu: int, where: str) -> tuple[tuple[float, float], ...] | None:
+    """``limits`` as ``((lo, hi), ...)`` with ``nu`` pairs and ``lo < hi`` (``None`` passes).
+
+    An infinite bound is one-sided (``(0.0, inf)``); NaN is refused.
+    """
+    if limits is None:
+        return None
+    try:
+        pairs = tuple((float(lo), float(hi)) for lo, hi in limits)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: input_limits must be (lo, hi) pairs, one per input, got "
+                         f"{limits!r}") from exc
+    if len(pairs) != nu:
+        raise ShapeError(f"{where}: input_limits needs {nu} (lo, hi) pairs, got {len(pairs)}")
+    for j, (lo, hi) in enumerate(pairs):
+        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+            raise ValueError(f"{where}: input_limits[{j}] must have lo < hi, got ({lo}, {hi})")
+    return pairs
 
 
 @dataclass(frozen=True)
@@ -147,6 +168,9 @@ class System:
     ``residual`` says where a learned residual enters (learning's view of the system),
     ``planar_pose`` names the pose states of a planar vehicle (the ``ukf_rts`` observer) and
     ``diagnosis`` gives ``learnest diagnose`` what it cannot infer from names.
+    ``input_limits`` (optional, one ``(lo, hi)`` per input, in the inputs' units) is the
+    plausible range of ``u``: the estimators replace an input outside it by the last plausible
+    one (``estimators/inputs.py``).
     """
 
     name: str
@@ -170,6 +194,7 @@ class System:
     residual: ResidualStructure = field(default_factory=ResidualStructure)
     diagnosis: DiagnosisHints = field(default_factory=DiagnosisHints)
     description: str = ""
+    input_limits: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not SYSTEM_NAME_PATTERN.fullmatch(self.name):
@@ -192,6 +217,9 @@ class System:
         ):
             if len(values) != n:
                 raise ShapeError(f"system {self.name!r}: {what} needs {n} values, got {len(values)}")
+        if self.input_limits is not None:
+            object.__setattr__(self, "input_limits",
+                               check_input_limits(self.input_limits, self.nu, f"system {self.name!r}"))
         if not self.dt > 0 or not self.duration > self.dt:
             raise SettingsError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, "
                                 f"{self.duration}")

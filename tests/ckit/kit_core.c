@@ -96,10 +96,13 @@ int kt_mhe_reset(void* m, const real* x0, const real* P0, const real* Q, const r
   return code;
 }
 
-/* learnest_mhe_advance, then the caller's prediction of the warm start's last stage. */
-void kt_mhe_advance(void* m, int has_previous, const real* u, const real* x_pred) {
+/* learnest_mhe_advance (H, A: the Jacobians at the leaving stage, used when a covariance is
+ * carried), then the caller's prediction of the warm start's last stage. */
+void kt_mhe_advance(void* m, int has_previous, const real* u, const real* x_pred, const real* H,
+                    const real* A) {
   struct learnest_mhe* mhe = (struct learnest_mhe*)m;
-  learnest_mhe_advance(mhe, has_previous, u);
+  int carries = learnest_mhe_carries(mhe, has_previous);
+  learnest_mhe_advance(mhe, has_previous, u, carries ? H : 0, carries ? A : 0);
   if (has_previous) memcpy(mhe->Xn + LEARNEST_N * LEARNEST_NX, x_pred, LEARNEST_NX * sizeof(real));
 }
 
@@ -118,6 +121,8 @@ void kt_mhe_commit(void* m, const real* X) {
 }
 
 void kt_mhe_fail(void* m) { ((struct learnest_mhe*)m)->restart = 1; }
+
+int kt_mhe_carried(const void* m) { return ((const struct learnest_mhe*)m)->carried; }
 
 /* The problem being solved (next) and its warm start. */
 void kt_mhe_next(const void* m, real* xbar, real* U, real* Y, real* mask, real* G, real* Xn) {
