@@ -23,10 +23,17 @@ from typing import TYPE_CHECKING, Any, Mapping, Union
 
 import numpy as np
 
-from .compilation import ESTIMATOR_NAMES, compile_estimators, estimator_dir, estimator_kind, resolve_model
+from .compilation import (
+    ESTIMATOR_NAMES,
+    compile_estimators,
+    estimator_dir,
+    estimator_kind,
+    knode_model,
+    resolve_model,
+)
 from .data import Run, check_sampling
 from .evaluation import EstimateResult, run_estimator
-from .export import DiscreteModel, hybrid_model
+from .export import DiscreteModel
 from .runtime.manifest import read_manifest
 from .systems import System, get_system
 
@@ -51,16 +58,24 @@ class ResolvedModel:
     hash: str
 
 
-def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedModel:
+def resolve(model: ModelLike, system: System | str | None = None, *,
+            clamp_inputs: bool | None = None) -> ResolvedModel:
     """``"nominal"``, ``"true"``, a trained model, its directory, a :class:`DiscreteModel` (nominal
     or true) or an already resolved model.
 
     ``system`` is needed for the names and for model directories (checked against the model's
-    own); a trained model knows its system.
+    own); a trained model knows its system. ``clamp_inputs`` keeps a trained net's inputs inside
+    their training range (default :data:`~learnest_codegen.compilation.CLAMP_INPUTS`; see
+    :func:`~learnest_codegen.compilation.knode_model`).
     """
     if isinstance(model, ResolvedModel):
+        if clamp_inputs is not None:
+            raise ValueError("resolve: a resolved model is already clamped or not; pass the trained "
+                             "model (or its directory) with clamp_inputs instead")
         return model
     if isinstance(model, DiscreteModel):  # nominal and true models are identified by their kind
+        if clamp_inputs:
+            raise ValueError("resolve: clamp_inputs needs a trained model (or its directory)")
         if model.kind not in ("nominal", "true"):
             raise ValueError("resolve: a KNODE DiscreteModel carries no identity; pass the trained "
                              "model (or its directory) instead")
@@ -68,8 +83,8 @@ def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedMod
     if isinstance(model, (str, Path)):
         if system is None:
             raise ValueError(f"resolve: model {str(model)!r} needs a system")
-        return ResolvedModel(*resolve_model(get_system(system), str(model)))
-    return ResolvedModel(hybrid_model(model.system, model.net), model.hash)
+        return ResolvedModel(*resolve_model(get_system(system), str(model), clamp_inputs))
+    return ResolvedModel(*knode_model(model, clamp_inputs))
 
 
 def train(run: Run, system: System | str, settings: TrainingSettings | None = None, *,
@@ -87,7 +102,8 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
-                   settings: Any = None, precision: str = "float64", gate: Any = None):
+                   settings: Any = None, precision: str = "float64", gate: Any = None,
+                   clamp_inputs: bool | None = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -101,8 +117,9 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     precision : the C real type, ``"float64"`` or ``"float32"`` (UKF and embedded MHE).
     gate : a :class:`~learnest_codegen.estimators.gate.GateSettings` replacing the settings'
         innovation gate (default: the settings' own, on by default).
+    clamp_inputs : keep a trained net's inputs inside their training range (see :func:`resolve`).
     """
-    resolved = resolve(model, system)
+    resolved = resolve(model, system, clamp_inputs=clamp_inputs)
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
@@ -130,10 +147,10 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
                       system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64", gate: Any = None):
+                      precision: str = "float64", gate: Any = None, clamp_inputs: bool | None = None):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
     return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision, gate=gate)
+                          precision=precision, gate=gate, clamp_inputs=clamp_inputs)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,
