@@ -11,6 +11,7 @@ import click
 import numpy as np
 
 from .common import (
+    CLAMP_INPUTS,
     ESTIMATOR_CHOICES,
     ESTIMATOR_HELP,
     FORCE,
@@ -26,7 +27,8 @@ from .common import (
 
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
-             estimators: tuple[str, ...], precision: str = "float64", gate=None) -> dict:
+             estimators: tuple[str, ...], precision: str = "float64", gate=None,
+             clamp_inputs: bool | None = None) -> dict:
     from ..compilation import compile_estimators, precision_problem, resolve_model
 
     if precision_problem(estimators, precision):
@@ -40,7 +42,7 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         meta_path = Path(model_dir) / "model.json"
         if system_name is None and meta_path.is_file():
             system_name = json.loads(meta_path.read_text()).get("system")
-        model, model_hash = resolve_model(system_named(system_name or "cartpole"), model_dir)
+        model, model_hash = resolve_model(system_named(system_name or "cartpole"), model_dir, clamp_inputs)
     results = compile_estimators(model, out, model_hash=model_hash, estimators=estimators,
                                  precision=precision, gate=gate)
     for name, res in results.items():
@@ -59,6 +61,7 @@ COMPILE_OPTIONS = [
                  default=("mhe", "ukf"), show_default=True, help=ESTIMATOR_HELP),
     click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
                  show_default=True, help=PRECISION_HELP),
+    CLAMP_INPUTS,
 ]
 
 
@@ -71,21 +74,21 @@ def _with_compile_options(fn):
 @click.command("compile")
 @_with_compile_options
 @friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, clamp_inputs, gate_threshold,
                 gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), clamp_inputs)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, gate_threshold,
-                       gate_recover_after, gate_inflation) -> None:
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, clamp_inputs,
+                       gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation))
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), clamp_inputs)
 
 
 @click.command()
@@ -99,16 +102,18 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
 @click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
               show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@CLAMP_INPUTS
 @with_gate_options
 @RESAMPLE
 @FORCE
 @friendly
-def estimate(system_name, data, estimator, model, backend, compiled, precision, out, gate_threshold,
-             gate_recover_after, gate_inflation, resample, force) -> None:
+def estimate(system_name, data, estimator, model, backend, compiled, precision, out, clamp_inputs,
+             gate_threshold, gate_recover_after, gate_inflation, resample, force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state.
 
     Samples whose outputs the innovation gate rejected are counted in the summary line; they
-    are not errors."""
+    are not errors. With a trained model, the summary also gives the share of samples whose
+    estimates and inputs lie outside the range the net was trained on."""
     from ..compilation import estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -123,7 +128,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
                  force=force)
     system = system_named(system_name)
     run = read_run(data, system, resample)
-    resolved = resolve(model, system)
+    trained = None
+    if model not in ("nominal", "true"):
+        from ..learning.model import load_model
+
+        trained = load_model(model, system)
+    resolved = resolve(trained or model, system, clamp_inputs=clamp_inputs)
     gate = gate_settings(gate_threshold, gate_recover_after, gate_inflation)
     if backend == "c" and compiled is not None:
         est = load_estimator(compiled, expect={"estimator": estimator, **expected_manifest(resolved)},
@@ -140,4 +150,10 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     if run.x is not None:
         line += f", MSE vs truth {mse(result.x_hat, run.x):.4e}"
     line += f", {result.rejections} output(s) rejected by the innovation gate"
+    if trained is not None:
+        from ..learning.ranges import extrapolation
+
+        outside = extrapolation(trained, result.x_hat, run.u)
+        line += ("; the model records no training range" if outside is None
+                 else f"; {outside.describe()}")
     click.echo(line)
