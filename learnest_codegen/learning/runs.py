@@ -29,7 +29,8 @@ __all__ = ["train_on_runs"]
 def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSettings = TrainingSettings(), *,
                   names: Sequence[str] | None = None, observer: str | None = None,
                   observer_system: System | None = None, observations: Sequence[np.ndarray] | None = None,
-                  fit_prior: Sequence[str] = (), net_must_beat_prior: bool = False, progress: bool = True):
+                  fit_prior: Sequence[str] = (), start_at_prior: bool = False,
+                  net_must_beat_prior: bool = False, net: bool = True, progress: bool = True):
     """Train one KNODE residual on several recordings (Alg. 1 phase 1 on each, one net for all).
 
     Parameters
@@ -49,6 +50,13 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
         before the net is trained (:func:`~learnest_codegen.learning.prior_fit.fit_linear_params`):
         the grey-box route. The model's system holds the fitted values and ``model.json`` stores
         them (``prior_params``); refinement rounds keep them.
+    start_at_prior : start the net with a zero output layer, so training starts from the prior
+        itself (``Delta = 0``) rather than from a random residual; early stopping after a few
+        epochs then keeps a small learned correction, not mostly the initialisation. Needs
+        ``settings.restarts == 1``.
+    net : ``False`` trains no net: the model is the fitted prior with ``Delta = 0`` (a net of
+        the usual structure and input scaling with a zero output layer, so it exports, clamps
+        and reports its training range like any other). Needs ``fit_prior``.
     net_must_beat_prior : keep the net only if its validation loss is below the prior's alone
         (``Delta = 0``); otherwise its output layer is zeroed, so the model is the prior
         (``model.json``: ``net_kept``, ``prior_validation_loss``). Early stopping picks the best
@@ -91,8 +99,21 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
     score = None
     if settings.restarts > 1:
         score = lambda m: sum(innovation_loglik(run, system, m.net.casadi) for run in runs)  # noqa: E731
+    if not net:
+        if not fitted:
+            raise ValueError("train_on_runs: a model without a net needs fit_prior (else it is the prior)")
+        model = _prior_only(system, settings, np.vstack(zetas), u, breaks, observer)
+        model.meta.update(runs=names, run_samples=[len(run) for run in runs], prior_params=fitted,
+                          net_kept=False, train_seconds=time.perf_counter() - start)
+        return model
+    init = None
+    if start_at_prior:
+        if settings.restarts != 1:
+            raise ValueError(f"train_on_runs: start_at_prior trains one net; got restarts="
+                             f"{settings.restarts}")
+        init = _prior_start(system, settings, np.vstack(zetas), u)
     model = train(system, np.vstack(zetas), u, dt, settings, observer=observer, progress=progress,
-                  score=score, breaks=breaks)
+                  score=score, breaks=breaks, init=init)
     warm = settings.warm_refinement
     for k in range(settings.refine):
         zetas = [ekf_rts(run, system, residual=model.net.casadi).zeta for run in runs]
@@ -113,6 +134,45 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
         model.meta["prior_params"] = fitted
     if net_must_beat_prior:
         _check_against_prior(model, system, np.vstack(zetas), u, breaks, settings.validation_fraction)
+    return model
+
+
+def _prior_start(system: System, settings: TrainingSettings, zeta: np.ndarray, u: np.ndarray):
+    """A net with the training data's input scaling and a zero output layer: ``Delta = 0``."""
+    from .model import TrainedModel, make_net
+
+    torch.manual_seed(settings.seed)
+    net = make_net(system, settings.network)
+    signs = system.reflection_signs()
+    if signs is None:
+        net.set_input_scaling(zeta, u)
+    else:
+        net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
+    with torch.no_grad():
+        net.mlp.output_layer.weight.zero_()
+        net.mlp.output_layer.bias.zero_()
+    return TrainedModel(system, net, {})
+
+
+def _prior_only(system: System, settings: TrainingSettings, zeta: np.ndarray, u: np.ndarray,
+                breaks: tuple[int, ...], observer: str):
+    """The fitted prior as a trained model: a zero-output net and the metadata of a training."""
+    from .model import data_hash, residual_structure
+    from .ranges import RANGES_KEY, record_ranges
+    from .training import one_step_loss
+
+    model = _prior_start(system, settings, zeta, u)
+    pairs = segment_pairs(zeta, u, breaks, 0.0)[0] if breaks else [
+        torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    with torch.no_grad():
+        loss = float(one_step_loss(system, model.net, *pairs, system.dt))
+    model.meta.update({
+        "system": system.name, "nx": system.nx, "nu": system.nu, "dt": float(system.dt),
+        "network": settings.network.to_json(), "training": settings.to_json(),
+        "residual": residual_structure(system), "observer": observer, "data_hash": data_hash(zeta, u),
+        "samples": int(zeta.shape[0]), "final_loss": loss, "prior_loss": loss, "best_epoch": 0,
+        "loss_history": [], "validation_history": [], "torch_version": torch.__version__,
+        RANGES_KEY: record_ranges(model.net, system, zeta, u)})
     return model
 
 
