@@ -16,6 +16,10 @@ class ShapeError(LearnestError, ValueError):
     """An array has the wrong shape for the system or estimator it is given to."""
 
 
+class SettingsError(LearnestError, ValueError):
+    """An option is outside its documented range (``runtime/limits.py``) or of the wrong type."""
+
+
 class DataError(LearnestError, ValueError):
     """A run (CSV) is malformed: missing columns, non-monotonic time, non-finite values."""
 

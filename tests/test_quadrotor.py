@@ -10,7 +10,7 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from learnest_codegen.errors import DataError, UnknownNameError
+from learnest_codegen.errors import DataError, SettingsError, UnknownNameError
 from learnest_codegen.experiments import quadrotor as fs
 from learnest_codegen.recordings import crazyflie as nb
 from learnest_codegen.recordings import data_root
@@ -349,6 +349,8 @@ def test_protocol_folds():
         fs.folds(cases[:2], "leave-type-out")
     with pytest.raises(UnknownNameError, match="mhe_fast"):
         fs.StudySettings(estimators=("mhe_fast",))
+    with pytest.raises(SettingsError, match="not to 'leave-one-out'"):  # before any work
+        fs.run_study(cases, "unused", protocol="leave-one-out", matrix=["B2_circle_a_rep1"])
 
 
 def test_unknown_names():

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from learnest_codegen.compilation import knode_model
-from learnest_codegen.errors import DataError, ModelMismatchError
+from learnest_codegen.errors import DataError, ModelMismatchError, SettingsError
 from learnest_codegen.learning.model import TrainedModel, make_net
 from learnest_codegen.learning.network import NetworkSettings
 from learnest_codegen.learning.pairs import segment_pairs
@@ -228,5 +228,5 @@ def test_a_prior_only_model_is_its_fitted_prior():
     assert model.meta["net_kept"] is False and model.meta["final_loss"] == model.meta["prior_loss"]
     assert training_box(model) is not None
     assert model.system.params["k_v_z"] == model.meta["prior_params"]["k_v_z"]
-    with pytest.raises(ValueError, match="needs fit_prior"):
+    with pytest.raises(SettingsError, match="needs fit_prior"):
         train_on_runs(runs, LINEAR, TrainingSettings(epochs=1), net=False, progress=False)

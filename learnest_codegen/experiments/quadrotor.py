@@ -46,7 +46,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..compilation import ESTIMATOR_NAMES
-from ..errors import LearnestError, UnknownNameError
+from ..errors import LearnestError, SettingsError, UnknownNameError
 from ..learning.network import NetworkSettings
 from ..learning.training import TrainingSettings
 from ..systems import System
@@ -320,7 +320,8 @@ def run_study(cases: Sequence[Case], out: str | Path, *, train: Sequence[str] = 
     for f in features:
         feature_system(f)
     if matrix and protocol != "single":
-        raise ValueError(f"matrix adds training flights to the single protocol, not to {protocol!r}")
+        raise SettingsError(f"run_study: matrix adds training flights to the single protocol, "
+                            f"not to {protocol!r}")
     nominal = nominal_results(cases, out, settings, progress)
     summaries = []
     for f in features:

@@ -19,7 +19,7 @@ import torch
 
 from ..config import TrainingSettings
 from ..data import Run, check_sampling
-from ..errors import DataError
+from ..errors import DataError, SettingsError
 from ..systems import System
 from .pairs import segment_pairs
 
@@ -101,7 +101,7 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
         score = lambda m: sum(innovation_loglik(run, system, m.net.casadi) for run in runs)  # noqa: E731
     if not net:
         if not fitted:
-            raise ValueError("train_on_runs: a model without a net needs fit_prior (else it is the prior)")
+            raise SettingsError("train_on_runs: a model without a net needs fit_prior (else it is the prior)")
         model = _prior_only(system, settings, np.vstack(zetas), u, breaks, observer)
         model.meta.update(runs=names, run_samples=[len(run) for run in runs], prior_params=fitted,
                           net_kept=False, train_seconds=time.perf_counter() - start)
@@ -109,7 +109,7 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
     init = None
     if start_at_prior:
         if settings.restarts != 1:
-            raise ValueError(f"train_on_runs: start_at_prior trains one net; got restarts="
+            raise SettingsError(f"train_on_runs: start_at_prior trains one net; got restarts="
                              f"{settings.restarts}")
         init = _prior_start(system, settings, np.vstack(zetas), u)
     model = train(system, np.vstack(zetas), u, dt, settings, observer=observer, progress=progress,
