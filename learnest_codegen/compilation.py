@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from .errors import ModelMismatchError, UnknownNameError
+from .errors import ModelMismatchError, SettingsError, UnknownNameError
 from .export import DiscreteModel, hybrid_model, prior_model, true_model
 from .systems import System
 
@@ -91,8 +91,8 @@ def resolve_model(system: System, model: str, clamp_inputs: bool | None = None) 
     """
     if model in ("nominal", "true"):
         if clamp_inputs:
-            raise ValueError(f"clamp_inputs keeps a trained net's inputs in range; model {model!r} "
-                             "has no net")
+            raise SettingsError(f"clamp_inputs keeps a trained net's inputs in range; model {model!r} "
+                                "has no net")
         return (prior_model(system), "nominal") if model == "nominal" else (true_model(system), "true")
     from .learning.training import load_model  # torch is needed only for trained models
 
