@@ -124,7 +124,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
               help="comma-separated: state (residual on v, a: system quadrotor_state, the paper's), "
                    "thrust (v, a, thrust, vbat: system quadrotor), linear (prior A x with "
                    "acceleration rows fitted to the training flights, residual on v, a: system "
-                   "quadrotor_linear)")
+                   "quadrotor_linear), linear_prior (that fitted prior alone, no net)")
 @click.option("--matrix", default="", show_default=True,
               help="single protocol: more training flights, tested with the UKF only (comma-separated, "
                    "or 'default' for a slow and a fast circle and figure-eight)")
