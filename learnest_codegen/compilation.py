@@ -10,13 +10,15 @@ model twice costs only the code generation.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import shutil
 from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from .errors import SettingsError, UnknownNameError
+from .errors import ModelMismatchError, SettingsError, UnknownNameError
 from .export import DiscreteModel, hybrid_model, prior_model, true_model
 from .outputs import atomic_dir
 from .systems import System
@@ -84,16 +86,48 @@ def estimator_kind(name: str) -> EstimatorKind:
     return _registry()[name]
 
 
-def resolve_model(system: System, model: str) -> tuple[DiscreteModel, str]:
-    """``"nominal"``, ``"true"`` or a trained-model directory to ``(DiscreteModel, model_hash)``."""
-    if model == "nominal":
-        return prior_model(system), "nominal"
-    if model == "true":
-        return true_model(system), "true"
+#: Whether a KNODE model's net inputs are clamped to their training range when
+#: ``clamp_inputs`` is not given (see :func:`knode_model`).
+CLAMP_INPUTS = False
+
+
+def resolve_model(system: System, model: str, clamp_inputs: bool | None = None) -> tuple[DiscreteModel, str]:
+    """``"nominal"``, ``"true"`` or a trained-model directory to ``(DiscreteModel, model_hash)``.
+
+    ``clamp_inputs`` applies to a trained model only (see :func:`knode_model`).
+    """
+    if model in ("nominal", "true"):
+        if clamp_inputs:
+            raise SettingsError(f"clamp_inputs keeps a trained net's inputs in range; model {model!r} "
+                                "has no net")
+        return (prior_model(system), "nominal") if model == "nominal" else (true_model(system), "true")
     from .learning.training import load_model  # torch is needed only for trained models
 
-    trained = load_model(model, system)
-    return hybrid_model(system, trained.net), trained.hash
+    return knode_model(load_model(model, system), clamp_inputs)
+
+
+def knode_model(trained, clamp_inputs: bool | None = None) -> tuple[DiscreteModel, str]:
+    """A trained model's ``(DiscreteModel, model_hash)``, its net's inputs clamped to their
+    training range when ``clamp_inputs`` (default :data:`CLAMP_INPUTS`).
+
+    The clamp is part of the model's CasADi graph, so every estimator and precision gets it; a
+    clamped model has its own hash. A model that records no training range (trained before
+    ranges were recorded) cannot be clamped: :class:`ModelMismatchError` when asked
+    explicitly; by default it is not clamped.
+    """
+    from .learning.ranges import training_box
+
+    clamp = CLAMP_INPUTS if clamp_inputs is None else bool(clamp_inputs)
+    box = training_box(trained) if clamp else None
+    if clamp and box is None:
+        if clamp_inputs is None:
+            return hybrid_model(trained.system, trained.net), trained.hash
+        raise ModelMismatchError(f"model of system {trained.system.name!r} records no training range "
+                                 "(model.json has no training_ranges); retrain it to clamp its inputs")
+    if box is None:
+        return hybrid_model(trained.system, trained.net), trained.hash
+    tag = hashlib.sha256((trained.hash + json.dumps(box.to_json(), sort_keys=True)).encode()).hexdigest()
+    return hybrid_model(trained.system, trained.net, box.arrays), tag
 
 
 def float32_ukf_settings(settings):

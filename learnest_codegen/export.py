@@ -92,9 +92,14 @@ def true_model(system: System) -> DiscreteModel:
     return discretise(system, "true", lambda x, u: system.f(x, u, variant="true"))
 
 
-def hybrid_model(system: System, net: "ResidualNet") -> DiscreteModel:
-    """The KNODE model: RK4 of ``f_prior + Delta_theta`` with the net as a CasADi graph."""
+def hybrid_model(system: System, net: "ResidualNet", box: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> DiscreteModel:
+    """The KNODE model: RK4 of ``f_prior + Delta_theta`` with the net as a CasADi graph.
+
+    ``box = (low, high)`` clamps the net's inputs to its training range
+    (:func:`learnest_codegen.learning.ranges.training_box`) inside the graph.
+    """
     if (net.nx, net.nu) != (system.nx, system.nu):
         raise ShapeError(f"network sizes (nx={net.nx}, nu={net.nu}) do not match system "
                          f"{system.name!r} (nx={system.nx}, nu={system.nu})")
-    return discretise(system, "knode", lambda x, u: system.f(x, u, variant="prior") + net.casadi(x, u))
+    return discretise(system, "knode", lambda x, u: system.f(x, u, variant="prior") + net.casadi(x, u, box))

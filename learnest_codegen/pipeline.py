@@ -29,12 +29,13 @@ from .compilation import (
     estimator_dir,
     estimator_kind,
     estimator_settings,
+    knode_model,
     resolve_model,
 )
 from .data import Run, check_sampling
 from .errors import ModelMismatchError, SettingsError
 from .evaluation import EstimateResult, run_estimator
-from .export import DiscreteModel, hybrid_model
+from .export import DiscreteModel
 from .runtime.manifest import read_manifest
 from .systems import System, get_system
 
@@ -59,17 +60,26 @@ class ResolvedModel:
     hash: str
 
 
-def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedModel:
+def resolve(model: ModelLike, system: System | str | None = None, *,
+            clamp_inputs: bool | None = None) -> ResolvedModel:
     """``"nominal"``, ``"true"``, a trained model, its directory, a :class:`DiscreteModel` (nominal
     or true) or an already resolved model.
 
     ``system`` is needed for ``"nominal"`` and ``"true"``; a model directory records its own
     (a built-in by name, a system file by path and content hash, see
     :mod:`~learnest_codegen.learning.source`), and a ``system`` given is checked against it.
+    ``clamp_inputs`` keeps a trained net's inputs inside their training range (default
+    :data:`~learnest_codegen.compilation.CLAMP_INPUTS`; see
+    :func:`~learnest_codegen.compilation.knode_model`).
     """
     if isinstance(model, ResolvedModel):
+        if clamp_inputs is not None:
+            raise SettingsError("resolve: a resolved model is already clamped or not; pass the trained "
+                             "model (or its directory) with clamp_inputs instead")
         return model
     if isinstance(model, DiscreteModel):  # nominal and true models are identified by their kind
+        if clamp_inputs:
+            raise SettingsError("resolve: clamp_inputs needs a trained model (or its directory)")
         if model.kind not in ("nominal", "true"):
             raise SettingsError("resolve: a KNODE DiscreteModel carries no identity; pass the trained "
                                 "model (or its directory) instead")
@@ -78,12 +88,12 @@ def resolve(model: ModelLike, system: System | str | None = None) -> ResolvedMod
         if str(model) in ("nominal", "true"):
             if system is None:
                 raise SettingsError(f"resolve: model {str(model)!r} needs a system (system=)")
-            return ResolvedModel(*resolve_model(get_system(system), str(model)))
+            return ResolvedModel(*resolve_model(get_system(system), str(model), clamp_inputs))
         from .learning.model import load_model  # torch only for trained models
 
         trained = load_model(model, None if system is None else get_system(system))
-        return ResolvedModel(hybrid_model(trained.system, trained.net), trained.hash)
-    return ResolvedModel(hybrid_model(model.system, model.net), model.hash)
+        return ResolvedModel(*knode_model(trained, clamp_inputs))
+    return ResolvedModel(*knode_model(model, clamp_inputs))
 
 
 def train(run: Run, system: System | str, settings: TrainingSettings | None = None, *,
@@ -104,7 +114,7 @@ def train(run: Run, system: System | str, settings: TrainingSettings | None = No
 def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "c",
                    out: str | Path = "generated", system: System | str | None = None,
                    settings: Any = None, precision: str = "float64", gate: Any = None,
-                   horizon: int | None = None):
+                   horizon: int | None = None, clamp_inputs: bool | None = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
     Parameters
@@ -123,8 +133,9 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     Both backends take their settings from
     :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
     same estimator.
+    clamp_inputs : keep a trained net's inputs inside their training range (see :func:`resolve`).
     """
-    resolved = resolve(model, system)
+    resolved = resolve(model, system, clamp_inputs=clamp_inputs)
     kind = estimator_kind(estimator)
     if backend == "python":
         if kind.python is None:
@@ -179,10 +190,11 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
 
 def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
                       system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64", gate: Any = None, horizon: int | None = None):
+                      precision: str = "float64", gate: Any = None, horizon: int | None = None,
+                      clamp_inputs: bool | None = None):
     """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
     return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision, gate=gate, horizon=horizon)
+                          precision=precision, gate=gate, horizon=horizon, clamp_inputs=clamp_inputs)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,

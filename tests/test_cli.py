@@ -142,3 +142,35 @@ def test_estimate_gates_garbage_and_the_gate_can_be_turned_off(workdir):
         errors[name], outputs[name] = np.max(np.abs(x_hat[300:320, 0] - truth[300:320, 0])), r.output
     assert "3 output(s) rejected" in outputs["gated"] and "0 output(s) rejected" in outputs["open"]
     assert errors["gated"] < 0.01 < 1.0 < errors["open"], errors
+
+
+def test_estimate_reports_samples_outside_the_training_range_and_clamps(workdir, tmp_path):
+    """A quadrotor model trained on one run, estimated on a run whose battery voltage is above
+    anything in training: the summary gives the share outside the range, naming vbat; the
+    clamp compiles a model of its own; a nominal model cannot be clamped (one line, exit 1)."""
+    train_csv, test_csv, model_dir = tmp_path / "train.csv", tmp_path / "test.csv", tmp_path / "model"
+    invoke(cli, ["simulate", "--system", "quadrotor", "--duration", 2, "--seed", 1, "--out", train_csv])
+    r = invoke(cli, ["train", "--system", "quadrotor", "--data", train_csv, "--out", model_dir,
+                     "--epochs", 2, "--refine", 0])
+    assert r.exit_code == 0, r.output
+    lines = train_csv.read_text().splitlines()
+    col = lines[0].split(",").index("u_vbat")
+    for k in range(1, 101):  # the first 100 samples: 1 V above the run's battery
+        cells = lines[k].split(",")
+        cells[col] = repr(float(cells[col]) + 1.0)
+        lines[k] = ",".join(cells)
+    test_csv.write_text("\n".join(lines) + "\n")
+    outputs = {}
+    for name, extra in (("free", ["--no-clamp-inputs"]), ("clamped", ["--clamp-inputs"])):
+        out = tmp_path / name / "x.csv"  # one compile folder each: a process loads a path once
+        out.parent.mkdir()
+        r = invoke(cli, ["estimate", "--system", "quadrotor", "--data", test_csv, "--estimator", "ukf",
+                         "--model", model_dir, "--out", out, *extra])
+        assert r.exit_code == 0, r.output
+        outputs[name] = np.loadtxt(out, delimiter=",", skiprows=1)
+        assert "outside the training range" in r.output and "vbat 50.0 %" in r.output, r.output
+    assert np.abs(outputs["free"][:100] - outputs["clamped"][:100]).max() > 0  # another model
+    r = CliRunner().invoke(cli, ["estimate", "--system", "quadrotor", "--data", str(test_csv), "--estimator",
+                                 "ukf", "--model", "nominal", "--clamp-inputs",
+                                 "--out", str(tmp_path / "n.csv")])
+    assert r.exit_code == 1 and "has no net" in r.output and len(r.output.strip().splitlines()) == 1

@@ -141,6 +141,12 @@ GATE_OPTIONS = [
 ]
 
 
+CLAMP_INPUTS = click.option(
+    "--clamp-inputs/--no-clamp-inputs", "clamp_inputs", default=None,
+    help="keep a trained net's inputs inside their training range (clamped in the generated "
+         "model; default: learnest_codegen.compilation.CLAMP_INPUTS)")
+
+
 def with_gate_options(fn):
     """Add :data:`GATE_OPTIONS` to a command (arguments ``gate_threshold``, ...)."""
     for option in reversed(GATE_OPTIONS):

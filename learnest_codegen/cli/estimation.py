@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from .common import (
+    CLAMP_INPUTS,
     ESTIMATOR_CHOICES,
     ESTIMATOR_HELP,
     FORCE,
@@ -30,7 +31,8 @@ from .common import (
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
              estimators: tuple[str, ...], precision: str = "float64", gate=None,
-             force: bool = False, horizon: int | None = None) -> dict:
+             force: bool = False, horizon: int | None = None,
+             clamp_inputs: bool | None = None) -> dict:
     from ..compilation import check_horizon, estimator_dir, precision_problem
     from ..outputs import claim_output
     from ..pipeline import compile_model, resolve
@@ -47,11 +49,11 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         if model_dir is None:
             raise click.UsageError("give MODEL_DIR, or --nominal for the prior-only estimators")
         model, system = model_dir, resolve_system(system_name, model_dir)
-    resolved = resolve(model, system).model
+    resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
-        claim_output(estimator_dir(Path(out), resolved, name, precision),
+        claim_output(estimator_dir(Path(out), resolved.model, name, precision),
                      inputs=(model_dir,) if model_dir else (), force=force, kind="dir")
-    results = compile_model(model, out, estimators, system=system, precision=precision, gate=gate,
+    results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
@@ -74,6 +76,7 @@ COMPILE_OPTIONS = [
     click.option("--force", is_flag=True,
                  help="replace existing estimator folders (an unchanged library is reused)"),
     HORIZON,
+    CLAMP_INPUTS,
 ]
 
 
@@ -87,26 +90,28 @@ def _with_compile_options(fn):
 @_with_compile_options
 @friendly
 def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
-                gate_threshold, gate_recover_after, gate_inflation) -> None:
+                clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
     Each estimator gets its own folder under --out, written whole or not at all; an existing
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon)
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
+             clamp_inputs)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
 def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
-                       gate_threshold, gate_recover_after, gate_inflation) -> None:
+                       clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
     Each estimator gets its own folder under --out, written whole or not at all; an existing
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon)
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
+             clamp_inputs)
 
 
 @click.command()
@@ -130,19 +135,22 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
                    "one variance per state (the diagonal) or nx*nx entries row by row (default: "
                    "the estimator's own: UKF initial_std**2, MHE the steady-state arrival)")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@CLAMP_INPUTS
 @with_gate_options
 @RESAMPLE
 @FORCE
 @friendly
 def estimate(system_name, data, estimator, model, backend, compiled, precision, horizon, x0_text,
-             P0_text, out, gate_threshold, gate_recover_after, gate_inflation, resample, force) -> None:
+             P0_text, out, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation, resample,
+             force) -> None:
     """Run an estimator over a run; write t and one xhat_<state> column per state.
 
     With a model directory (--model) or a compiled folder (--compiled) the system is the one it
     records. When the run holds the truth, the summary gives the MSE over all states and the RMS
     error of each state in its unit. Samples whose outputs the innovation gate rejected are
     counted in the summary line; they are not errors. Empty y_ cells of the run are missing
-    measurements (both backends take them)."""
+    measurements (both backends take them). With a trained model, the summary also gives the
+    share of samples whose estimates and inputs lie outside the range the net was trained on."""
     from ..compilation import check_horizon, estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -163,7 +171,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     x0 = parse_vector(x0_text, system.nx, "--x0")
     P0 = parse_covariance(P0_text, system)
     run = read_run(data, system, resample)
-    resolved = resolve(model, system)
+    trained = None
+    if model not in ("nominal", "true"):
+        from ..learning.model import load_model
+
+        trained = load_model(model, system)
+    resolved = resolve(trained or model, system, clamp_inputs=clamp_inputs)
     gate = gate_settings(gate_threshold, gate_recover_after, gate_inflation)
     if backend == "c" and compiled is not None:
         expect = {"estimator": estimator, **expected_manifest(resolved)}
@@ -189,6 +202,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     input_rejections = int(getattr(est, "input_rejections", 0))
     if input_rejections:
         line += f", {input_rejections} implausible input(s) replaced"
+    if trained is not None:
+        from ..learning.ranges import extrapolation
+
+        outside = extrapolation(trained, result.x_hat, run.u)
+        line += ("; the model records no training range" if outside is None
+                 else f"; {outside.describe()}")
     click.echo(line)
     if run.x is not None:  # one figure per state, in its own unit
         rms = np.sqrt(np.mean((result.x_hat - run.x) ** 2, axis=0))

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import ModelMismatchError
+from ..errors import LearnestError, ModelMismatchError
 from ..systems import System
 from .network import NetworkSettings, ResidualNet
 from .source import KEY as SOURCE_KEY
@@ -115,7 +115,8 @@ def load_model(directory: str | Path, system: System | None = None) -> TrainedMo
 
     ``system`` defaults to the one the model records (``model.json``'s ``system_source``: a
     built-in by name, a system file by path, refused when the file changed since; see
-    :mod:`.source`).
+    :mod:`.source`). A model trained with a fitted (grey-box) prior carries the fitted
+    parameters in ``model.json`` (``prior_params``); the loaded model's system holds them.
     """
     directory = Path(directory)
     weights_path = directory / WEIGHTS
@@ -127,6 +128,15 @@ def load_model(directory: str | Path, system: System | None = None) -> TrainedMo
         raise ModelMismatchError(f"model {directory} was trained for system {got[0]!r} "
                                  f"(nx={got[1]}, nu={got[2]}), not {system.name!r} "
                                  f"(nx={system.nx}, nu={system.nu})")
+    if meta.get("prior_params"):  # a grey-box prior fitted with the net: part of the model
+        from .prior_fit import fitted_system
+
+        try:
+            system = fitted_system(system, meta["prior_params"])
+        except (LearnestError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelMismatchError(f"model {directory} has fitted prior parameters "
+                                     f"{meta['prior_params']!r} that system {system.name!r} cannot take: "
+                                     f"{exc}") from exc
     stored, expected = meta.get("residual"), residual_structure(system)
     if stored is not None and stored != expected:
         raise ModelMismatchError(f"model {directory} has residual structure {stored}, but system "

@@ -108,10 +108,12 @@ class ResidualNet(torch.nn.Module):
         self.in_mean.copy_(torch.as_tensor(mean))
         self.in_scale.copy_(torch.as_tensor(np.where(std > 1e-12, std, 1.0)))
 
-    def forward(self, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None,
+                box: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
         """``Delta(x, u)`` for ``x (..., nx)``, ``u (..., nu)``; ``mlp`` replaces ``self.mlp``
-        (training runs several initialisations at once through a :class:`StackedMLP`)."""
-        return self._evaluate(x, u, mlp, plus_prior=False)
+        (training runs several initialisations at once through a :class:`StackedMLP`); ``box``
+        clamps the features as :meth:`casadi` does."""
+        return self._evaluate(x, u, mlp, plus_prior=False, box=box)
 
     def hybrid(self, f: Callable, x: torch.Tensor, u: torch.Tensor, mlp: Callable | None = None):
         """``f(x, u) + Delta(x, u)``, the hybrid model's derivative. When ``f`` is the net's own
@@ -121,12 +123,14 @@ class ResidualNet(torch.nn.Module):
             return f(x, u) + self._evaluate(x, u, mlp, plus_prior=False)
         return self._evaluate(x, u, mlp, plus_prior=True)
 
-    def _evaluate(self, x, u, mlp, plus_prior: bool):
+    def _evaluate(self, x, u, mlp, plus_prior: bool, box=None):
         fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
         prior_xdot = list(fp.unbind(-1)) if self.prior_features else None
         parts = [*x.unbind(-1), *u.unbind(-1)]
-        feats = self._features(parts, torch.sin, torch.cos, prior_xdot)
-        out = (mlp or self.mlp)((torch.stack(feats, dim=-1) - self.in_mean) / self.in_scale)
+        feats = torch.stack(self._features(parts, torch.sin, torch.cos, prior_xdot), dim=-1)
+        if box is not None:
+            feats = torch.clamp(feats, *(torch.as_tensor(b, dtype=feats.dtype) for b in box))
+        out = (mlp or self.mlp)((feats - self.in_mean) / self.in_scale)
         out = self._channels(list(out.unbind(-1)), prior_xdot)
         if self.via:
             if self.via == tuple(range(self.nu)):  # every input corrected: no zero channels
@@ -189,12 +193,24 @@ class ResidualNet(torch.nn.Module):
         return [out[c] + sum(out[n + c * g + k] * (prior_xdot[j] / scales[k])
                              for k, j in enumerate(self.prior_features)) for c in range(n)]
 
-    def casadi(self, x: cs.SX, u: cs.SX) -> cs.SX:
-        """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``."""
+    def casadi(self, x: cs.SX, u: cs.SX, box: tuple[np.ndarray, np.ndarray] | None = None) -> cs.SX:
+        """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``.
+
+        ``box = (low, high)``, one bound per feature (see :mod:`.ranges`), clamps the features
+        before the MLP: outside its training range the net sees the nearest point of the range
+        instead of extrapolating. Being part of the graph, the clamp reaches every generated
+        estimator and precision.
+        """
         xu = cs.vertcat(x, u)
         fp = self.prior(x, u) if self.prior is not None else None  # once, for features and via
         prior_xdot = [fp[i] for i in range(self.nx)] if self.prior_features else None
         feats = cs.vertcat(*self._features([xu[i] for i in range(xu.shape[0])], cs.sin, cs.cos, prior_xdot))
+        if box is not None:
+            low, high = (np.asarray(b, dtype=float).reshape(-1) for b in box)
+            if low.shape != (feats.shape[0],) or high.shape != low.shape:
+                raise ValueError(f"ResidualNet.casadi: box needs {feats.shape[0]} bounds each, got "
+                                 f"{low.shape}, {high.shape}")
+            feats = cs.fmin(cs.fmax(feats, low), high)
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()
         out = self.mlp(z.T).T  # the naive MLP works on row vectors
         out = self._channels([out[j] for j in range(out.shape[0])], prior_xdot)

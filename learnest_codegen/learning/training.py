@@ -69,7 +69,7 @@ import math
 import sys
 import time
 from dataclasses import replace
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -82,6 +82,8 @@ from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
 from .network import ResidualNet, StackedMLP
+from .pairs import segment_pairs
+from .ranges import RANGES_KEY, record_ranges
 from .source import KEY as SOURCE_KEY
 from .source import system_source
 
@@ -101,11 +103,18 @@ def one_step_loss(system: System, net: ResidualNet, zeta: torch.Tensor, u: torch
 def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
           settings: TrainingSettings = DEFAULT_TRAINING, *, observer: str = "",
           progress: bool = True, score: Callable[[TrainedModel], float] | None = None,
-          init: TrainedModel | None = None) -> TrainedModel:
+          init: TrainedModel | None = None, breaks: Sequence[int] = ()) -> TrainedModel:
     """Train ``Delta_theta`` on state observations ``zeta (M, nx)`` and inputs ``u (M, nu)``.
 
     ``init`` starts the training from that model's net (its weights and input scaling) instead
     of a fresh initialisation; it needs ``settings.restarts == 1``.
+
+    ``breaks`` (sample indices) mark where ``zeta`` and ``u`` join one recording to the next:
+    no pair spans a break, and each recording holds out its own final segment for validation
+    (:func:`~learnest_codegen.learning.pairs.segment_pairs`;
+    :func:`~learnest_codegen.learning.runs.train_on_runs` trains on several recordings this
+    way). ``model.json`` records the range of the net's inputs over ``zeta`` and ``u``
+    (:mod:`.ranges`).
 
     With ``settings.restarts > 1`` the net is trained from that many initialisations (seeds
     ``seed, seed + 1, ...``) and the one with the lowest validation loss is kept; ``model.json``
@@ -136,7 +145,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny operations: a second thread only spins (37x slower under load)
     try:
-        models = _train_stacked(system, zeta, u, dt, settings, observer, progress, init)
+        models = _train_stacked(system, zeta, u, dt, settings, observer, progress, init, tuple(breaks))
     finally:
         torch.set_num_threads(threads)
     valid = [min(m.meta["validation_history"]) for m in models]
@@ -145,18 +154,23 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     best.meta.update(training=settings.to_json(), restart_seed=best.meta["training"]["seed"],
                      restart_validation=valid, train_seconds=time.perf_counter() - start)
     best.meta[SOURCE_KEY] = system_source(system)  # a separate key: where the system comes from
+    best.meta[RANGES_KEY] = record_ranges(best.net, system, zeta, u)
     if scores:
         best.meta["restart_score"] = scores
     return best
 
 
-def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: TrainingSettings):
+def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: TrainingSettings,
+               breaks: tuple[int, ...] = ()):
     """All pairs, and the training and validation pairs (each with its mirror image when the
     system declares a symmetry; the validation segment is split off first: no leak)."""
-    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
-    n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
-    train_set = [a[:n_train] for a in pairs]
-    valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
+    if breaks:
+        pairs, train_set, valid_set = segment_pairs(zeta, u, breaks, settings.validation_fraction)
+    else:
+        pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+        n_train = len(zeta) - 1 - int(settings.validation_fraction * (len(zeta) - 1))
+        train_set = [a[:n_train] for a in pairs]
+        valid_set = [a[n_train:] for a in pairs] if n_train < len(zeta) - 1 else train_set
     signs = system.reflection_signs()
     if signs is not None:
         sx, su = (torch.as_tensor(s) for s in signs)
@@ -180,7 +194,7 @@ def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                    settings: TrainingSettings, observer: str, progress: bool,
-                   init: TrainedModel | None = None) -> list[TrainedModel]:
+                   init: TrainedModel | None = None, breaks: tuple[int, ...] = ()) -> list[TrainedModel]:
     """Train the ``settings.restarts`` initialisations together; one model per restart."""
     members = [replace(settings, seed=settings.seed + r, restarts=1) for r in range(settings.restarts)]
     nets = []
@@ -196,7 +210,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             net.set_input_scaling(zeta, u)
         else:
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
-    pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings)
+    pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings, breaks)
     n_train = len(train_set[0])
     train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
     mlp = StackedMLP([n.mlp for n in nets])

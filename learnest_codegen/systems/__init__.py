@@ -16,12 +16,12 @@ from .base import System as System
 from .cartpole import CARTPOLE
 from .check import check_system
 from .ground_robot import GROUND_ROBOT
-from .quadrotor import QUADROTOR, QUADROTOR_STATE
+from .quadrotor import QUADROTOR, QUADROTOR_LINEAR, QUADROTOR_STATE
 from .rc_car import RC_CAR
 
 SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND_ROBOT,
                              QUADROTOR.name: QUADROTOR, QUADROTOR_STATE.name: QUADROTOR_STATE,
-                             RC_CAR.name: RC_CAR}
+                             QUADROTOR_LINEAR.name: QUADROTOR_LINEAR, RC_CAR.name: RC_CAR}
 
 
 def register(system: System) -> System:

@@ -201,3 +201,27 @@ QUADROTOR_STATE = replace(
                 "features: no thrust, no battery voltage).",
     residual=ResidualStructure(inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES))),
 )
+
+
+def linear_dynamics(ops, x, u, p):
+    """The prior ``A x`` with fitted acceleration rows: ``adot = -k_v v - k_a a`` per axis, one
+    ``(k_v, k_a)`` shared by the two horizontal axes (the vehicle has no preferred heading) and one
+    for the vertical. With every parameter 0 it is the triple integrator of :func:`dynamics`."""
+    v, a = x[3:6], x[6:9]
+    k_v = (p["k_v_xy"], p["k_v_xy"], p["k_v_z"])
+    k_a = (p["k_a_xy"], p["k_a_xy"], p["k_a_z"])
+    return [*v, *a, *(-k_v[i] * v[i] - k_a[i] * a[i] for i in range(3))]
+
+
+#: The quadrotor whose prior ``A x`` has its acceleration rows fitted to the training flights by
+#: least squares (a grey-box prior; see :mod:`learnest_codegen.learning.prior_fit`): on a flown
+#: path the acceleration turns with the velocity (on a circle at rate ``w``, ``adot = -w^2 v``).
+#: The registered parameters are 0 (the paper's triple integrator); a trained model's directory
+#: carries the fitted ones. The residual sees velocity and acceleration, as ``quadrotor_state``.
+QUADROTOR_LINEAR = replace(
+    QUADROTOR_STATE, name="quadrotor_linear",
+    description="The quadrotor whose prior A x has acceleration rows adot = -k_v v - k_a a fitted "
+                "to the training flights (horizontal axes shared); residual on v and a.",
+    dynamics=linear_dynamics, true_dynamics=true_dynamics,
+    params={"k_v_xy": 0.0, "k_a_xy": 0.0, "k_v_z": 0.0, "k_a_z": 0.0},
+)
