@@ -453,3 +453,15 @@ def test_an_edited_precision_is_named(tmp_path):
         path.write_text(json.dumps({**manifest, "precision": "float16"}))
         with pytest.raises(ModelMismatchError, match="precision 'float16' is not one of"):
             load_estimator(tmp_path / name)
+
+
+@pytest.mark.parametrize("bad", [[None, 0.3], ["0.1", 0.3], [0.1 + 2j, 0.3]])
+def test_a_sample_that_is_not_real_numbers_is_refused(bad):
+    """None would have become NaN (a missing output) and "0.1" a number without a word."""
+    from learnest_codegen.errors import DataError
+    from learnest_codegen.estimators.validation import measurements
+
+    with pytest.raises(DataError, match="expected real numbers"):
+        measurements("UKF.step: y", bad, None, 2)
+    y, mask = measurements("UKF.step: y", [np.nan, 0.3], None, 2)
+    assert mask.tolist() == [False, True] and y.tolist() == [0.0, 0.3]

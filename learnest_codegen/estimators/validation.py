@@ -27,6 +27,18 @@ def real_array(where: str, value) -> np.ndarray:
     """``value`` as a float64 array; a complex or non-numeric value raises :class:`DataError`."""
     if np.iscomplexobj(value):
         raise DataError(f"{where}: expected real numbers, got complex values")
+    kind = getattr(value, "dtype", None)
+    if kind is None:
+        try:
+            kind = np.asarray(value).dtype
+        except ValueError:  # ragged: the conversion below says so
+            kind = np.dtype(object)
+    if kind.kind in "OUSV":  # float() would make None a NaN (a missing output) and "1" a 1
+        odd = [v for v in np.asarray(value, dtype=object).ravel()
+               if v is None or isinstance(v, (str, bytes))]
+        if odd:
+            raise DataError(f"{where}: expected real numbers, got {odd[0]!r} (NaN marks a "
+                            "missing value)")
     try:
         return np.ascontiguousarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
