@@ -66,12 +66,41 @@ LEARNEST_KIT int learnest_est_set_noise(LEARNEST_HANDLE* h, const learnest_real*
 
 LEARNEST_KIT const learnest_real* learnest_est_state(const LEARNEST_HANDLE* h) { return h->x; }
 
+/* Keep the symmetric NX x NX P (column-major) positive definite, so the next prediction can
+ * take its Cholesky factor: when that factorisation fails although learnest_covariance_ok
+ * accepted P (an exact measurement, R = 0 or tiny or rank-deficient, makes P - K S K^T
+ * singular, and rounding leaves its smallest eigenvalues at -1e-8 relative in float32, -1e-17
+ * in float64), the diagonal is loaded, P_ii += d s with s the largest variance and
+ * d = NX epsilon, 10 NX epsilon, ... up to ten times learnest_covariance_ok's tolerance,
+ * until it factorises. Returns the number of loads (0: P untouched), or -1 if none helped. */
+LEARNEST_KIT int learnest_kalman_keep_pd(learnest_real* P, learnest_real* work) {
+  const learnest_real eps = LEARNEST_IS_FLOAT ? (learnest_real)1.1920929e-7
+                                              : (learnest_real)2.220446049250313e-16;
+  const learnest_real top = LEARNEST_IS_FLOAT ? (learnest_real)1e-4 : (learnest_real)1e-9;
+  const learnest_real tiny = LEARNEST_IS_FLOAT ? (learnest_real)1e-30 : (learnest_real)1e-300;
+  learnest_real d = LEARNEST_NX * eps, scale = 0, diagonal[LEARNEST_NX];
+  int loads, i;
+  memcpy(work, P, LEARNEST_KF_NXX * sizeof(learnest_real));
+  if (learnest_cholesky(work, LEARNEST_NX)) return 0;
+  for (i = 0; i < LEARNEST_NX; ++i) {
+    diagonal[i] = P[i * LEARNEST_NX + i];
+    scale = diagonal[i] > scale ? diagonal[i] : scale;
+  }
+  for (loads = 1; d < top; ++loads, d *= 10) {  /* each rung replaces the last */
+    for (i = 0; i < LEARNEST_NX; ++i) P[i * LEARNEST_NX + i] = diagonal[i] + (d * scale + tiny);
+    memcpy(work, P, LEARNEST_KF_NXX * sizeof(learnest_real));
+    if (learnest_cholesky(work, LEARNEST_NX)) return loads;
+  }
+  return -1;
+}
+
 /* The end of a step: x_post and P_post (column-major, overwritten) must be finite, P_post
  * symmetric (it is symmetrised) and positive semidefinite to rounding (P - K S K^T can lose it
  * from extreme but valid covariances; such a P would poison every later step, so it is an
- * error, not an OK); then the gate books the step (rejected, valid: NY flags each), its
- * recovery grows the variances (the covariances stay, so stale correlations fade) and the step
- * is committed. */
+ * error, not an OK), and it is kept positive definite (learnest_kalman_keep_pd: a P that is
+ * singular to rounding gets its diagonal loaded by a few epsilons); then the gate books the
+ * step (rejected, valid: NY flags each), its recovery grows the variances (the covariances
+ * stay, so stale correlations fade) and the step is committed. */
 LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real* x_post,
                                         learnest_real* P_post, const int* rejected,
                                         const unsigned char* valid) {
@@ -82,6 +111,7 @@ LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real*
   }
   learnest_symmetrise(P_post, LEARNEST_NX);
   if (!learnest_covariance_ok(P_post, LEARNEST_NX, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  if (learnest_kalman_keep_pd(P_post, work) < 0) return LEARNEST_NOT_POSITIVE_DEFINITE;
   for (i = 0; i < LEARNEST_NY; ++i) any |= rejected[i];
   factor = learnest_gate_record(&h->c.gate, rejected, valid);
   for (i = 0; factor != 1 && i < LEARNEST_NX; ++i) P_post[i * LEARNEST_NX + i] *= factor;
