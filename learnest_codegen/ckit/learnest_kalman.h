@@ -66,30 +66,52 @@ LEARNEST_KIT int learnest_est_set_noise(LEARNEST_HANDLE* h, const learnest_real*
 
 LEARNEST_KIT const learnest_real* learnest_est_state(const LEARNEST_HANDLE* h) { return h->x; }
 
-/* Keep the symmetric NX x NX P (column-major) positive definite, so the next prediction can
- * take its Cholesky factor: when that factorisation fails although learnest_covariance_ok
- * accepted P (an exact measurement, R = 0 or tiny or rank-deficient, makes P - K S K^T
- * singular, and rounding leaves its smallest eigenvalues at -1e-8 relative in float32, -1e-17
- * in float64), the diagonal is loaded, P_ii += d s with s the largest variance and
- * d = NX epsilon, 10 NX epsilon, ... up to ten times learnest_covariance_ok's tolerance,
- * until it factorises. Returns the number of loads (0: P untouched), or -1 if none helped. */
+/* 1 when the symmetric NX x NX P (column-major; only its lower triangle is read) has a
+ * Cholesky factor whose every pivot keeps a margin, d_j > margin P_jj: a P that factorises
+ * only by a rounding error's width here may not in another factorisation of it (the next
+ * prediction's, in the model code). work: NX x NX. */
+LEARNEST_KIT int learnest_kalman_factorises(const learnest_real* P, learnest_real margin,
+                                            learnest_real* work) {
+  int i, j, k;
+  for (j = 0; j < LEARNEST_NX; ++j) {
+    learnest_real d = P[j + j * LEARNEST_NX];
+    for (k = 0; k < j; ++k) d -= work[j + k * LEARNEST_NX] * work[j + k * LEARNEST_NX];
+    if (!(d > margin * P[j + j * LEARNEST_NX])) return 0;
+    d = LEARNEST_SQRT(d);
+    work[j + j * LEARNEST_NX] = d;
+    for (i = j + 1; i < LEARNEST_NX; ++i) {
+      learnest_real v = P[i + j * LEARNEST_NX];
+      for (k = 0; k < j; ++k) v -= work[i + k * LEARNEST_NX] * work[j + k * LEARNEST_NX];
+      work[i + j * LEARNEST_NX] = v / d;
+    }
+  }
+  return 1;
+}
+
+/* Keep the symmetric NX x NX P (column-major) positive definite with a margin, so the next
+ * prediction can take its Cholesky factor: an exact measurement (R = 0, tiny, or rank-deficient)
+ * makes P - K S K^T singular, and rounding leaves its smallest eigenvalue at +-1e-8 relative
+ * in float32, +-1e-17 in float64, i.e. indefinite or too close to it. When P does not factorise
+ * with pivots above 4 NX epsilon of their variance (learnest_kalman_factorises), the diagonal
+ * is loaded, P_ii += d s with s the largest variance and d = NX epsilon, 10 NX epsilon, ...
+ * below ten times learnest_covariance_ok's tolerance (each rung replacing the last), until it
+ * does. Returns the rung used (0: P untouched), or -1 if none helped. */
 LEARNEST_KIT int learnest_kalman_keep_pd(learnest_real* P, learnest_real* work) {
   const learnest_real eps = LEARNEST_IS_FLOAT ? (learnest_real)1.1920929e-7
                                               : (learnest_real)2.220446049250313e-16;
   const learnest_real top = LEARNEST_IS_FLOAT ? (learnest_real)1e-4 : (learnest_real)1e-9;
   const learnest_real tiny = LEARNEST_IS_FLOAT ? (learnest_real)1e-30 : (learnest_real)1e-300;
+  const learnest_real margin = 4 * LEARNEST_NX * eps;
   learnest_real d = LEARNEST_NX * eps, scale = 0, diagonal[LEARNEST_NX];
-  int loads, i;
-  memcpy(work, P, LEARNEST_KF_NXX * sizeof(learnest_real));
-  if (learnest_cholesky(work, LEARNEST_NX)) return 0;
+  int rung, i;
+  if (learnest_kalman_factorises(P, margin, work)) return 0;
   for (i = 0; i < LEARNEST_NX; ++i) {
     diagonal[i] = P[i * LEARNEST_NX + i];
     scale = diagonal[i] > scale ? diagonal[i] : scale;
   }
-  for (loads = 1; d < top; ++loads, d *= 10) {  /* each rung replaces the last */
+  for (rung = 1; d < top; ++rung, d *= 10) {
     for (i = 0; i < LEARNEST_NX; ++i) P[i * LEARNEST_NX + i] = diagonal[i] + (d * scale + tiny);
-    memcpy(work, P, LEARNEST_KF_NXX * sizeof(learnest_real));
-    if (learnest_cholesky(work, LEARNEST_NX)) return loads;
+    if (learnest_kalman_factorises(P, margin, work)) return rung;
   }
   return -1;
 }
