@@ -10,6 +10,7 @@ against the ctypes binding, and reads valgrind's error and leak summaries.
 
 from __future__ import annotations
 
+import ctypes
 import importlib.util
 import json
 import re
@@ -22,6 +23,7 @@ import numpy as np
 import pytest
 
 from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.runtime.status import STATUS_NAMES
 from learnest_codegen.toolchain import casadi_dirs
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
@@ -37,6 +39,7 @@ def load_script(name: str):
 
 fuzz_c_api = load_script("fuzz_c_api")
 
+CODES = {name: code for code, name in STATUS_NAMES.items()}
 SHORT_CALLS = {"ukf": 2000, "mhe_gn": 2000, "mhe_rti": 2000, "mhe": 300}
 BAD_COUNTS = ("crashes", "hangs", "nonfinite_ok", "changed_on_error", "handle_not_null_on_error",
               "accepted_bad_memory")
@@ -314,6 +317,94 @@ def test_ukf_covariance_stays_positive_definite_with_exact_measurements(
                (("filterpy", X_ref), *X.items())}
         assert np.abs(X["float64"] - X_ref).max() < 1e-8  # the float64 build needs no load
         assert rms["float32"] <= 1.1 * rms["filterpy"], rms
+
+
+class _RawC:
+    """A target's library through raw ctypes (void pointers: the C checks, not the binding's)."""
+
+    def __init__(self, target):
+        self.lib = ctypes.CDLL(str(target.directory / target.library))
+        self.t, self.real = target, np.float32 if target.precision == "float32" else np.float64
+
+    def __call__(self, name, *args):
+        f = getattr(self.lib, f"{self.t.prefix}_{name}")
+        f.restype = ctypes.c_int
+        return f(*args)
+
+    def a(self, x):
+        return np.ascontiguousarray(x, dtype=self.real)
+
+    def init(self, memory, size, x0, P0, Q, R):
+        out = ctypes.c_void_p(1)
+        keep = [self.a(m) for m in (x0, P0, Q, R)]  # alive until the call returns
+        code = self("init", ctypes.c_void_p(memory.ctypes.data), ctypes.c_size_t(size),
+                    *(ctypes.c_void_p(m.ctypes.data) for m in keep), ctypes.byref(out))
+        return code, out.value
+
+    def step(self, h, k):
+        u, y = self.a(self.t.U[max(k - 1, 0)]), self.a(self.t.Y[k])
+        return self("step", ctypes.c_void_p(h), ctypes.c_void_p(u.ctypes.data),
+                    ctypes.c_void_p(y.ctypes.data), None)
+
+    def snapshot(self, h):
+        """Every getter's output (state, covariance or window and arrival, rejections)."""
+        out = []
+        for getter in self.t.api.getters:
+            buf = np.zeros(self.t.size(getter), dtype=self.real)
+            assert self(getter, ctypes.c_void_p(h), ctypes.c_void_p(buf.ctypes.data)) == 0
+            out.append(buf)
+        return out + [self("rejections", ctypes.c_void_p(h)), self("samples", ctypes.c_void_p(h))]
+
+
+def _failed_inits_leave_the_live_estimator(target):
+    c = _RawC(target)
+    size = getattr(c.lib, f"{target.prefix}_workspace_size")
+    size.restype = ctypes.c_size_t
+    n = size()
+    m = target.matrices
+    x0, P0, Q, R = target.x0, m["P0"], m["Q"], m["R"]
+    memory, twin_memory = np.zeros(n, np.uint8), np.zeros(n, np.uint8)
+    (code, h), (code_t, twin) = c.init(memory, n, x0, P0, Q, R), c.init(twin_memory, n, x0, P0, Q, R)
+    assert code == code_t == 0
+    for k in range(30):
+        assert c.step(h, k) >= 0 and c.step(twin, k) >= 0
+    before = c.snapshot(h)
+    nonsym, infinite = R.copy(), P0.copy()
+    nonsym[0, 1] += 1.0
+    infinite[0, 0] = np.inf
+    bad = [(np.full_like(x0, np.nan), P0, Q, R), (x0, -P0, Q, R), (x0, P0, Q, nonsym),
+           (x0, P0, -Q, R), (x0, infinite, Q, R)]
+    for args in bad:
+        code, out = c.init(memory, n, *args)
+        assert code < 0 and out is None, (target.name, code)
+    code, out = c.init(memory, n - 1, x0, P0, Q, R)  # one byte short
+    assert code == CODES["NO_MEMORY"] and out is None
+    after = c.snapshot(h)
+    for b, a in zip(before, after):
+        np.testing.assert_array_equal(a, b)
+    for k in range(30, 60):  # the estimator goes on as its twin that no init touched
+        assert c.step(h, k) == c.step(twin, k)
+        for a, b in zip(c.snapshot(h), c.snapshot(twin)):
+            np.testing.assert_array_equal(a, b)
+    code, h = c.init(memory, n, x0 + 0.1, P0, Q, R)  # the snapshot sees what an init changes
+    assert code == 0 and not np.array_equal(c.snapshot(h)[0], c.snapshot(twin)[0])
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti", "mhe"])
+def test_failed_init_leaves_the_live_estimator_as_it_was(cartpole_targets, estimator):
+    """The header's promise for every estimator: init on a workspace holding a running
+    estimator, with arguments it refuses (NaN x0, indefinite, negative, non-symmetric or
+    infinite covariances, a workspace one byte short), returns an error and a NULL handle and
+    changes nothing: every getter gives what it gave before, and the estimator then steps
+    exactly as a twin that no init touched (the kit's own test covers its UKF, GN MHE and EKF
+    on a linear model; this one the compiled folders, the Ipopt MHE included)."""
+    _failed_inits_leave_the_live_estimator(by_estimator(cartpole_targets)[estimator])
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti"])
+def test_failed_init_leaves_the_live_float32_estimator_as_it_was(float32_builds, estimator):
+    """The same in float32."""
+    _failed_inits_leave_the_live_estimator(by_estimator(float32_builds)[estimator])
 
 
 # ---- valgrind memcheck of a plain C main per estimator ---------------------------------------
