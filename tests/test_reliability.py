@@ -373,7 +373,9 @@ def _failed_inits_leave_the_live_estimator(target):
     nonsym[0, 1] += 1.0
     infinite[0, 0] = np.inf
     bad = [(np.full_like(x0, np.nan), P0, Q, R), (x0, -P0, Q, R), (x0, P0, Q, nonsym),
-           (x0, P0, -Q, R), (x0, infinite, Q, R)]
+           (x0, P0, -Q, R), (x0, infinite, Q, R),
+           # a negative denormal variance: inside the PSD check's tiny absolute allowance
+           (x0, -np.eye(len(x0)) * (1e-40 if target.precision == "float32" else 1e-310), Q, R)]
     for args in bad:
         code, out = c.init(memory, n, *args)
         assert code < 0 and out is None, (target.name, code)

@@ -28,8 +28,19 @@ struct learnest_kalman_tuning {
 };
 typedef struct learnest_kalman_tuning learnest_tuning;
 
+/* 1 when no variance (diagonal entry) of the n x n A is negative: the PSD check's rounding
+ * allowance (a tiny absolute shift) must not let -1e-40 I pass as a float32 covariance. */
+LEARNEST_KIT int learnest_kalman_variances_ok(const learnest_real* A, int n) {
+  int i;
+  for (i = 0; i < n; ++i) {
+    if (A[i * n + i] < 0) return 0;
+  }
+  return 1;
+}
+
 /* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; positive
- * semidefinite is enough); nothing is written unless every given one is valid. */
+ * semidefinite is enough, no variance below zero); nothing is written unless every given one is
+ * valid. */
 LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
                                    const learnest_real* Q, const learnest_real* R) {
   learnest_real w[LEARNEST_KF_NMAX * LEARNEST_KF_NMAX];
@@ -38,6 +49,11 @@ LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
   if (code == LEARNEST_OK && Q) code = learnest_covariance_in(Q, LEARNEST_NX, c.Q, w);
   if (code == LEARNEST_OK && R) code = learnest_covariance_in(R, LEARNEST_NY, c.R, w);
   if (code != LEARNEST_OK) return code;
+  if ((P0 && !learnest_kalman_variances_ok(c.P0, LEARNEST_NX)) ||
+      (Q && !learnest_kalman_variances_ok(c.Q, LEARNEST_NX)) ||
+      (R && !learnest_kalman_variances_ok(c.R, LEARNEST_NY))) {
+    return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
   if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
   if (Q) memcpy(t->Q, c.Q, sizeof c.Q);
   if (R) memcpy(t->R, c.R, sizeof c.R);
