@@ -38,6 +38,7 @@ def load_script(name: str):
 
 
 fuzz_c_api = load_script("fuzz_c_api")
+bench_soak = load_script("bench_soak")
 
 CODES = {name: code for code, name in STATUS_NAMES.items()}
 SHORT_CALLS = {"ukf": 2000, "mhe_gn": 2000, "mhe_rti": 2000, "mhe": 300}
@@ -409,6 +410,32 @@ def test_failed_init_leaves_the_live_float32_estimator_as_it_was(float32_builds,
     _failed_inits_leave_the_live_estimator(by_estimator(float32_builds)[estimator])
 
 
+@pytest.fixture(scope="module")
+def float32_soak(tmp_path_factory):
+    """A short float32 UKF soak (3 passes of 5000 samples, 2 wraps), beside float64 in lockstep."""
+    root = tmp_path_factory.mktemp("soak32")
+    return bench_soak.main(["--ukf-steps", "15000", "--ukf-precisions", "float32", "--mhe-steps", "0",
+                            "--ipopt-steps", "0", "--build-dir", str(root / "build"),
+                            "--out", str(root / "soak.json")])["estimators"]["ukf_float32"]
+
+
+def test_float32_ukf_soak_short_every_step_succeeds(float32_soak):
+    """Each wrap (a 45 rad jump of the measured angle) is gated without a failed step (no
+    NONFINITE_RESULT or NOT_POSITIVE_DEFINITE), and the clean pass equals float64's within
+    float32 rounding."""
+    assert float32_soak["steps"] == 15000 and float32_soak["failed_steps"] == 0
+    assert float32_soak["failed_codes"] == {}
+    assert float32_soak["per_pass"][0]["error_vs_float64"] < 0.02  # the clean pass
+
+
+@pytest.mark.xfail(strict=True, reason="float32 gate inflation cap 1e6 (estimators/gate.py "
+                   "MAX_INFLATION): too small to re-acquire the 45 rad wrap; float64's 1e12 does "
+                   "(docs/reliability.md, float32 soak)")
+def test_float32_ukf_soak_short_reacquires_each_wrap(float32_soak):
+    """After each wrap the float32 UKF is back on float64's track by mid-pass."""
+    assert float32_soak["error_vs_float64_second_half_max"] < 0.05
+
+
 # ---- valgrind memcheck of a plain C main per estimator ---------------------------------------
 
 MAIN_C = r"""
@@ -579,9 +606,6 @@ def test_long_fuzz_every_estimator_both_systems_both_precisions(tmp_path):
     for target in result["targets"]:
         bad = {k: target[k] for k in BAD_COUNTS}
         assert bad == dict.fromkeys(BAD_COUNTS, 0), (target["target"], target["events"][:3])
-
-
-bench_soak = load_script("bench_soak")
 
 
 @pytest.fixture(scope="module")
