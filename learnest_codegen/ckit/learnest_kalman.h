@@ -49,9 +49,9 @@ LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
   if (code == LEARNEST_OK && Q) code = learnest_covariance_in(Q, LEARNEST_NX, c.Q, w);
   if (code == LEARNEST_OK && R) code = learnest_covariance_in(R, LEARNEST_NY, c.R, w);
   if (code != LEARNEST_OK) return code;
-  if ((P0 && !learnest_kalman_variances_ok(c.P0, LEARNEST_NX)) ||
-      (Q && !learnest_kalman_variances_ok(c.Q, LEARNEST_NX)) ||
-      (R && !learnest_kalman_variances_ok(c.R, LEARNEST_NY))) {
+  if ((P0 && !learnest_kalman_variances_ok(P0, LEARNEST_NX)) ||  /* the diagonal: either order */
+      (Q && !learnest_kalman_variances_ok(Q, LEARNEST_NX)) ||
+      (R && !learnest_kalman_variances_ok(R, LEARNEST_NY))) {
     return LEARNEST_NOT_POSITIVE_DEFINITE;
   }
   if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
