@@ -5,7 +5,10 @@ success codes returned with NaN/Inf outputs). A short seeded fuzz of every cartp
 runs by default; the long one (both systems, both precisions) and the soak benchmark
 (``scripts/bench_soak.py``) are ``slow``. The memcheck builds a firmware-style ``main.c`` per
 estimator from the folder's own sources, steps a simulated run, checks the printed estimates
-against the ctypes binding, and reads valgrind's error and leak summaries.
+against the ctypes binding, and reads valgrind's error and leak summaries. The float32 sections
+hold float32 to float64's standard (large finite outliers gated alike, the UKF's covariance kept
+positive definite, a short float32 soak beside float64), and a failed init on a live workspace
+is checked to change nothing for every compiled estimator and precision.
 """
 
 from __future__ import annotations
