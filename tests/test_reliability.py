@@ -5,11 +5,15 @@ success codes returned with NaN/Inf outputs). A short seeded fuzz of every cartp
 runs by default; the long one (both systems, both precisions) and the soak benchmark
 (``scripts/bench_soak.py``) are ``slow``. The memcheck builds a firmware-style ``main.c`` per
 estimator from the folder's own sources, steps a simulated run, checks the printed estimates
-against the ctypes binding, and reads valgrind's error and leak summaries.
+against the ctypes binding, and reads valgrind's error and leak summaries. The float32 sections
+hold float32 to float64's standard (large finite outliers gated alike, the UKF's covariance kept
+positive definite, a short float32 soak beside float64), and a failed init on a live workspace
+is checked to change nothing for every compiled estimator and precision.
 """
 
 from __future__ import annotations
 
+import ctypes
 import importlib.util
 import json
 import re
@@ -22,6 +26,7 @@ import numpy as np
 import pytest
 
 from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.runtime.status import STATUS_NAMES
 from learnest_codegen.toolchain import casadi_dirs
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
@@ -36,7 +41,9 @@ def load_script(name: str):
 
 
 fuzz_c_api = load_script("fuzz_c_api")
+bench_soak = load_script("bench_soak")
 
+CODES = {name: code for code, name in STATUS_NAMES.items()}
 SHORT_CALLS = {"ukf": 2000, "mhe_gn": 2000, "mhe_rti": 2000, "mhe": 300}
 BAD_COUNTS = ("crashes", "hangs", "nonfinite_ok", "changed_on_error", "handle_not_null_on_error",
               "accepted_bad_memory")
@@ -186,7 +193,7 @@ def test_ipopt_mhe_handles_in_threads_give_the_sequential_results(cartpole_targe
 @pytest.fixture(scope="module")
 def float32_builds(tmp_path_factory):
     return fuzz_c_api.build_targets(tmp_path_factory.mktemp("float32"), systems=("cartpole",),
-                                    estimators=("ukf", "mhe_rti"), precisions=("float32",))
+                                    estimators=("ukf", "mhe_gn", "mhe_rti"), precisions=("float32",))
 
 
 def test_a_value_beyond_float32_is_gated_as_in_float64(cartpole_targets, float32_builds):
@@ -211,6 +218,225 @@ def test_a_value_beyond_float32_is_gated_as_in_float64(cartpole_targets, float32
         assert est.rejected.tolist() == [True, False]
         with pytest.raises(SettingsError, match="beyond the range of this float32 library"):
             est.reset(target.x0 + np.array([1e39, 0, 0, 0]))
+
+
+OUTLIERS = (1e4, 1e30, 3e38, 1e39, -1e300)  # inside float32, at its edge, beyond it
+
+
+@pytest.mark.parametrize("burst", [1, 10])
+def test_float32_gates_large_finite_outliers_as_float64(cartpole_targets, float32_builds, burst):
+    """Bursts of large but finite measurements (1e4 ... 1e300, inside float32's range, at its
+    edge and beyond it) in the compiled float32 UKF, mhe_gn and mhe_rti: the same samples and
+    outputs are rejected as in the float64 build, every step succeeds with finite estimates,
+    and the run stays within float32 rounding of the float64 run (the clean run's own float32
+    error, measured alongside, bounds it)."""
+    from learnest_codegen.pipeline import load_estimator
+
+    float64 = by_estimator(cartpole_targets)
+    for target in float32_builds:
+        est = load_estimator(target.directory)
+        ref = load_estimator(float64[target.estimator].directory)
+        clean = np.abs(est.run(target.U, target.Y, target.x0)
+                       - ref.run(target.U, target.Y, target.x0)).max()
+        for value in OUTLIERS:
+            Y = target.Y.copy()
+            Y[100:100 + burst, 0] = value
+            runs = {}
+            for name, e in (("float32", est), ("float64", ref)):
+                e.reset(target.x0)
+                X, rejected = [], []
+                for k in range(len(Y)):
+                    X.append(e.step(target.U[max(k - 1, 0)], Y[k]))
+                    rejected.append(e.rejected.copy())
+                runs[name] = (np.array(X), np.array(rejected), e.rejections)
+            (X, rej, n), (X_ref, rej_ref, n_ref) = runs["float32"], runs["float64"]
+            where = (target.estimator, value, burst)
+            assert np.isfinite(X).all(), where
+            assert n == n_ref >= burst and (rej == rej_ref).all(), where
+            assert rej[100:100 + burst, 0].all(), where
+            assert np.abs(X - X_ref).max() <= max(1e-3, 3 * clean), where
+
+
+def _ukf_with_R(directory, R, gate_off: bool):
+    """A compiled UKF whose settings have the measurement covariance R (and no gate)."""
+    import dataclasses
+
+    from learnest_codegen.estimators.gate import GateSettings
+    from learnest_codegen.estimators.ukf import UKFSettings
+    from learnest_codegen.runtime.ukf import CompiledUKF
+
+    settings = UKFSettings(**json.loads((Path(directory) / "manifest.json").read_text())["settings"])
+    changes = {"gate": GateSettings(threshold=np.inf)} if gate_off else {}
+    return CompiledUKF(directory, settings=dataclasses.replace(settings, **changes)), R
+
+
+def _run_checking_P(est, R, target):
+    """Step the run with R; every step must succeed with a symmetric positive definite P."""
+    est.reset(target.x0)
+    est.set_noise(R=R)
+    X = []
+    for k in range(len(target.Y)):
+        X.append(est.step(target.U[max(k - 1, 0)], target.Y[k]))
+        P = est.P
+        assert np.array_equal(P, P.T), k
+        np.linalg.cholesky(P)  # positive definite: the next prediction factorises it
+    return np.array(X)
+
+
+@pytest.mark.parametrize("R_scale", [0.0, 1e-10, "rank-1"])
+def test_ukf_covariance_stays_positive_definite_with_exact_measurements(
+        cartpole_targets, float32_builds, R_scale):
+    """An exact (R = 0), nearly exact (1e-10 I: below float32's resolution of the variances)
+    or rank-deficient R makes P - K S K^T singular: in float32 its smallest eigenvalues came
+    out at -1e-8 relative, the next prediction's Cholesky failed, and every later step
+    returned NONFINITE_RESULT (399 of 400; float64 too for R = 0). The guard loads the
+    diagonal by a few epsilons: every step succeeds with a positive definite P, and with the
+    gate off the float32 estimate tracks the truth as well as FilterPy (the Python reference)
+    with the same R, at its own float64 precision."""
+    from learnest_codegen.estimators.ukf import UKF
+
+    float64 = by_estimator(cartpole_targets)["ukf"]
+    float32 = by_estimator(float32_builds)["ukf"]
+    R = np.ones((2, 2)) * 1e-4 if R_scale == "rank-1" else R_scale * np.eye(2)
+    gate_off = R_scale == 1e-10
+    X = {}
+    for target in (float64, float32):
+        est, _ = _ukf_with_R(target.directory, R, gate_off)
+        X[target.precision] = _run_checking_P(est, R, target)
+        assert np.isfinite(X[target.precision]).all()
+    if gate_off:  # FilterPy with the same settings (float64), and the true states
+        from learnest_codegen import get_system
+        from learnest_codegen.export import prior_model
+        from learnest_codegen.simulation import simulate
+
+        system = get_system("cartpole")
+        truth = simulate(system, seed=1, duration=len(float32.Y) * system.dt).x
+        assert np.array_equal(simulate(system, seed=1, duration=len(float32.Y) * system.dt).y,
+                              float32.Y)  # the targets' run
+        ref = UKF(prior_model(system), est.settings)
+        ref.reset(float32.x0)
+        ref.set_noise(R=R)
+        X_ref = np.array([ref.step(float32.U[max(k - 1, 0)], y) for k, y in enumerate(float32.Y)])
+        rms = {name: np.sqrt(((x - truth) ** 2).mean()) for name, x in
+               (("filterpy", X_ref), *X.items())}
+        assert np.abs(X["float64"] - X_ref).max() < 1e-8  # the float64 build needs no load
+        assert rms["float32"] <= 1.1 * rms["filterpy"], rms
+
+
+class _RawC:
+    """A target's library through raw ctypes (void pointers: the C checks, not the binding's)."""
+
+    def __init__(self, target):
+        self.lib = ctypes.CDLL(str(target.directory / target.library))
+        self.t, self.real = target, np.float32 if target.precision == "float32" else np.float64
+
+    def __call__(self, name, *args):
+        f = getattr(self.lib, f"{self.t.prefix}_{name}")
+        f.restype = ctypes.c_int
+        return f(*args)
+
+    def a(self, x):
+        return np.ascontiguousarray(x, dtype=self.real)
+
+    def init(self, memory, size, x0, P0, Q, R):
+        out = ctypes.c_void_p(1)
+        keep = [self.a(m) for m in (x0, P0, Q, R)]  # alive until the call returns
+        code = self("init", ctypes.c_void_p(memory.ctypes.data), ctypes.c_size_t(size),
+                    *(ctypes.c_void_p(m.ctypes.data) for m in keep), ctypes.byref(out))
+        return code, out.value
+
+    def step(self, h, k):
+        u, y = self.a(self.t.U[max(k - 1, 0)]), self.a(self.t.Y[k])
+        return self("step", ctypes.c_void_p(h), ctypes.c_void_p(u.ctypes.data),
+                    ctypes.c_void_p(y.ctypes.data), None)
+
+    def snapshot(self, h):
+        """Every getter's output (state, covariance or window and arrival, rejections)."""
+        out = []
+        for getter in self.t.api.getters:
+            buf = np.zeros(self.t.size(getter), dtype=self.real)
+            assert self(getter, ctypes.c_void_p(h), ctypes.c_void_p(buf.ctypes.data)) == 0
+            out.append(buf)
+        return out + [self("rejections", ctypes.c_void_p(h)), self("samples", ctypes.c_void_p(h))]
+
+
+def _failed_inits_leave_the_live_estimator(target):
+    c = _RawC(target)
+    size = getattr(c.lib, f"{target.prefix}_workspace_size")
+    size.restype = ctypes.c_size_t
+    n = size()
+    m = target.matrices
+    x0, P0, Q, R = target.x0, m["P0"], m["Q"], m["R"]
+    memory, twin_memory = np.zeros(n, np.uint8), np.zeros(n, np.uint8)
+    (code, h), (code_t, twin) = c.init(memory, n, x0, P0, Q, R), c.init(twin_memory, n, x0, P0, Q, R)
+    assert code == code_t == 0
+    for k in range(30):
+        assert c.step(h, k) >= 0 and c.step(twin, k) >= 0
+    before = c.snapshot(h)
+    nonsym, infinite = R.copy(), P0.copy()
+    nonsym[0, 1] += 1.0
+    infinite[0, 0] = np.inf
+    bad = [(np.full_like(x0, np.nan), P0, Q, R), (x0, -P0, Q, R), (x0, P0, Q, nonsym),
+           (x0, P0, -Q, R), (x0, infinite, Q, R),
+           # a negative denormal variance: inside the PSD check's tiny absolute allowance
+           (x0, -np.eye(len(x0)) * (1e-40 if target.precision == "float32" else 1e-310), Q, R)]
+    for args in bad:
+        code, out = c.init(memory, n, *args)
+        assert code < 0 and out is None, (target.name, code)
+    code, out = c.init(memory, n - 1, x0, P0, Q, R)  # one byte short
+    assert code == CODES["NO_MEMORY"] and out is None
+    after = c.snapshot(h)
+    for b, a in zip(before, after):
+        np.testing.assert_array_equal(a, b)
+    for k in range(30, 60):  # the estimator goes on as its twin that no init touched
+        assert c.step(h, k) == c.step(twin, k)
+        for a, b in zip(c.snapshot(h), c.snapshot(twin)):
+            np.testing.assert_array_equal(a, b)
+    code, h = c.init(memory, n, x0 + 0.1, P0, Q, R)  # the snapshot sees what an init changes
+    assert code == 0 and not np.array_equal(c.snapshot(h)[0], c.snapshot(twin)[0])
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti", "mhe"])
+def test_failed_init_leaves_the_live_estimator_as_it_was(cartpole_targets, estimator):
+    """The header's promise for every estimator: init on a workspace holding a running
+    estimator, with arguments it refuses (NaN x0, indefinite, negative, non-symmetric or
+    infinite covariances, a workspace one byte short), returns an error and a NULL handle and
+    changes nothing: every getter gives what it gave before, and the estimator then steps
+    exactly as a twin that no init touched (the kit's own test covers its UKF, GN MHE and EKF
+    on a linear model; this one the compiled folders, the Ipopt MHE included)."""
+    _failed_inits_leave_the_live_estimator(by_estimator(cartpole_targets)[estimator])
+
+
+@pytest.mark.parametrize("estimator", ["ukf", "mhe_gn", "mhe_rti"])
+def test_failed_init_leaves_the_live_float32_estimator_as_it_was(float32_builds, estimator):
+    """The same in float32."""
+    _failed_inits_leave_the_live_estimator(by_estimator(float32_builds)[estimator])
+
+
+@pytest.fixture(scope="module")
+def float32_soak(tmp_path_factory):
+    """A short float32 UKF soak (3 passes of 5000 samples, 2 wraps), beside float64 in lockstep."""
+    root = tmp_path_factory.mktemp("soak32")
+    return bench_soak.main(["--ukf-steps", "15000", "--ukf-precisions", "float32", "--mhe-steps", "0",
+                            "--ipopt-steps", "0", "--build-dir", str(root / "build"),
+                            "--out", str(root / "soak.json")])["estimators"]["ukf_float32"]
+
+
+def test_float32_ukf_soak_short_every_step_succeeds(float32_soak):
+    """Each wrap (a 45 rad jump of the measured angle) is gated without a failed step (no
+    NONFINITE_RESULT or NOT_POSITIVE_DEFINITE), and the clean pass equals float64's within
+    float32 rounding."""
+    assert float32_soak["steps"] == 15000 and float32_soak["failed_steps"] == 0
+    assert float32_soak["failed_codes"] == {}
+    assert float32_soak["per_pass"][0]["error_vs_float64"] < 0.02  # the clean pass
+
+
+@pytest.mark.xfail(strict=True, reason="float32 gate inflation cap 1e6 (estimators/gate.py "
+                   "MAX_INFLATION): too small to re-acquire the 45 rad wrap; float64's 1e12 does "
+                   "(docs/reliability.md, float32 soak)")
+def test_float32_ukf_soak_short_reacquires_each_wrap(float32_soak):
+    """After each wrap the float32 UKF is back on float64's track by mid-pass."""
+    assert float32_soak["error_vs_float64_second_half_max"] < 0.05
 
 
 # ---- valgrind memcheck of a plain C main per estimator ---------------------------------------
@@ -383,9 +609,6 @@ def test_long_fuzz_every_estimator_both_systems_both_precisions(tmp_path):
     for target in result["targets"]:
         bad = {k: target[k] for k in BAD_COUNTS}
         assert bad == dict.fromkeys(BAD_COUNTS, 0), (target["target"], target["events"][:3])
-
-
-bench_soak = load_script("bench_soak")
 
 
 @pytest.fixture(scope="module")

@@ -28,8 +28,19 @@ struct learnest_kalman_tuning {
 };
 typedef struct learnest_kalman_tuning learnest_tuning;
 
+/* 1 when no variance (diagonal entry) of the n x n A is negative: the PSD check's rounding
+ * allowance (a tiny absolute shift) must not let -1e-40 I pass as a float32 covariance. */
+LEARNEST_KIT int learnest_kalman_variances_ok(const learnest_real* A, int n) {
+  int i;
+  for (i = 0; i < n; ++i) {
+    if (A[i * n + i] < 0) return 0;
+  }
+  return 1;
+}
+
 /* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; positive
- * semidefinite is enough); nothing is written unless every given one is valid. */
+ * semidefinite is enough, no variance below zero); nothing is written unless every given one is
+ * valid. */
 LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
                                    const learnest_real* Q, const learnest_real* R) {
   learnest_real w[LEARNEST_KF_NMAX * LEARNEST_KF_NMAX];
@@ -38,6 +49,11 @@ LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
   if (code == LEARNEST_OK && Q) code = learnest_covariance_in(Q, LEARNEST_NX, c.Q, w);
   if (code == LEARNEST_OK && R) code = learnest_covariance_in(R, LEARNEST_NY, c.R, w);
   if (code != LEARNEST_OK) return code;
+  if ((P0 && !learnest_kalman_variances_ok(P0, LEARNEST_NX)) ||  /* the diagonal: either order */
+      (Q && !learnest_kalman_variances_ok(Q, LEARNEST_NX)) ||
+      (R && !learnest_kalman_variances_ok(R, LEARNEST_NY))) {
+    return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
   if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
   if (Q) memcpy(t->Q, c.Q, sizeof c.Q);
   if (R) memcpy(t->R, c.R, sizeof c.R);
@@ -66,12 +82,63 @@ LEARNEST_KIT int learnest_est_set_noise(LEARNEST_HANDLE* h, const learnest_real*
 
 LEARNEST_KIT const learnest_real* learnest_est_state(const LEARNEST_HANDLE* h) { return h->x; }
 
+/* 1 when the symmetric NX x NX P (column-major; only its lower triangle is read) has a
+ * Cholesky factor whose every pivot keeps a margin, d_j > margin P_jj: a P that factorises
+ * only by a rounding error's width here may not in another factorisation of it (the next
+ * prediction's, in the model code). work: NX x NX. */
+LEARNEST_KIT int learnest_kalman_factorises(const learnest_real* P, learnest_real margin,
+                                            learnest_real* work) {
+  int i, j, k;
+  for (j = 0; j < LEARNEST_NX; ++j) {
+    learnest_real d = P[j + j * LEARNEST_NX];
+    for (k = 0; k < j; ++k) d -= work[j + k * LEARNEST_NX] * work[j + k * LEARNEST_NX];
+    if (!(d > margin * P[j + j * LEARNEST_NX])) return 0;
+    d = LEARNEST_SQRT(d);
+    work[j + j * LEARNEST_NX] = d;
+    for (i = j + 1; i < LEARNEST_NX; ++i) {
+      learnest_real v = P[i + j * LEARNEST_NX];
+      for (k = 0; k < j; ++k) v -= work[i + k * LEARNEST_NX] * work[j + k * LEARNEST_NX];
+      work[i + j * LEARNEST_NX] = v / d;
+    }
+  }
+  return 1;
+}
+
+/* Keep the symmetric NX x NX P (column-major) positive definite with a margin, so the next
+ * prediction can take its Cholesky factor: an exact measurement (R = 0, tiny, or rank-deficient)
+ * makes P - K S K^T singular, and rounding leaves its smallest eigenvalue at +-1e-8 relative
+ * in float32, +-1e-17 in float64, i.e. indefinite or too close to it. When P does not factorise
+ * with pivots above 4 NX epsilon of their variance (learnest_kalman_factorises), the diagonal
+ * is loaded, P_ii += d s with s the largest variance and d = NX epsilon, 10 NX epsilon, ...
+ * below ten times learnest_covariance_ok's tolerance (each rung replacing the last), until it
+ * does. Returns the rung used (0: P untouched), or -1 if none helped. */
+LEARNEST_KIT int learnest_kalman_keep_pd(learnest_real* P, learnest_real* work) {
+  const learnest_real eps = LEARNEST_IS_FLOAT ? (learnest_real)1.1920929e-7
+                                              : (learnest_real)2.220446049250313e-16;
+  const learnest_real top = LEARNEST_IS_FLOAT ? (learnest_real)1e-4 : (learnest_real)1e-9;
+  const learnest_real tiny = LEARNEST_IS_FLOAT ? (learnest_real)1e-30 : (learnest_real)1e-300;
+  const learnest_real margin = 4 * LEARNEST_NX * eps;
+  learnest_real d = LEARNEST_NX * eps, scale = 0, diagonal[LEARNEST_NX];
+  int rung, i;
+  if (learnest_kalman_factorises(P, margin, work)) return 0;
+  for (i = 0; i < LEARNEST_NX; ++i) {
+    diagonal[i] = P[i * LEARNEST_NX + i];
+    scale = diagonal[i] > scale ? diagonal[i] : scale;
+  }
+  for (rung = 1; d < top; ++rung, d *= 10) {
+    for (i = 0; i < LEARNEST_NX; ++i) P[i * LEARNEST_NX + i] = diagonal[i] + (d * scale + tiny);
+    if (learnest_kalman_factorises(P, margin, work)) return rung;
+  }
+  return -1;
+}
+
 /* The end of a step: x_post and P_post (column-major, overwritten) must be finite, P_post
  * symmetric (it is symmetrised) and positive semidefinite to rounding (P - K S K^T can lose it
  * from extreme but valid covariances; such a P would poison every later step, so it is an
- * error, not an OK); then the gate books the step (rejected, valid: NY flags each), its
- * recovery grows the variances (the covariances stay, so stale correlations fade) and the step
- * is committed. */
+ * error, not an OK), and it is kept positive definite (learnest_kalman_keep_pd: a P that is
+ * singular to rounding gets its diagonal loaded by a few epsilons); then the gate books the
+ * step (rejected, valid: NY flags each), its recovery grows the variances (the covariances
+ * stay, so stale correlations fade) and the step is committed. */
 LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real* x_post,
                                         learnest_real* P_post, const int* rejected,
                                         const unsigned char* valid) {
@@ -82,6 +149,7 @@ LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real*
   }
   learnest_symmetrise(P_post, LEARNEST_NX);
   if (!learnest_covariance_ok(P_post, LEARNEST_NX, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  if (learnest_kalman_keep_pd(P_post, work) < 0) return LEARNEST_NOT_POSITIVE_DEFINITE;
   for (i = 0; i < LEARNEST_NY; ++i) any |= rejected[i];
   factor = learnest_gate_record(&h->c.gate, rejected, valid);
   for (i = 0; factor != 1 && i < LEARNEST_NX; ++i) P_post[i * LEARNEST_NX + i] *= factor;
