@@ -431,9 +431,6 @@ def test_float32_ukf_soak_short_every_step_succeeds(float32_soak):
     assert float32_soak["per_pass"][0]["error_vs_float64"] < 0.02  # the clean pass
 
 
-@pytest.mark.xfail(strict=True, reason="float32 gate inflation cap 1e6 (estimators/gate.py "
-                   "MAX_INFLATION): too small to re-acquire the 45 rad wrap; float64's 1e12 does "
-                   "(docs/reliability.md, float32 soak)")
 def test_float32_ukf_soak_short_reacquires_each_wrap(float32_soak):
     """After each wrap the float32 UKF is back on float64's track by mid-pass."""
     assert float32_soak["error_vs_float64_second_half_max"] < 0.05

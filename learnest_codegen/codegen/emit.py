@@ -30,7 +30,7 @@ import casadi as cs
 import numpy as np
 
 from .. import toolchain
-from ..estimators.gate import MAX_INFLATION, GateSettings
+from ..estimators.gate import GateSettings, max_inflation
 from ..estimators.precision import PRECISIONS, check_precision
 from ..export import DiscreteModel
 from ..runtime.manifest import MANIFEST, GeneratedEstimator, read_manifest, settings_hash
@@ -232,7 +232,7 @@ def _values(model: DiscreteModel, design: Design, prefix: str, model_header: Pat
         "gate_threshold": repr(float(gate.threshold)) if gate.enabled else "0.0",
         "gate_recover_after": gate.recover_after,
         "gate_inflation": repr(float(gate.inflation)),
-        "max_inflation": repr(MAX_INFLATION[design.precision]),
+        "max_inflation": repr(max_inflation(design.estimator, design.precision)),
         "magic": f"0x{magic:08X}", "model": f"{model_lines}\n{sizes}",
         "options": glue_defines,
         "default_options": "".join(f"#define {P}_DEFAULT_{k} {v}\n" for k, v in design.options.items()),

@@ -29,7 +29,7 @@ inflation compounds, so a persistent offset of any size is accepted after about
 ``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
 prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
 1; the UKF's ``P`` shrinks by its own updates). ``rho`` is
-capped at ``MAX_INFLATION`` (1e12; float32 libraries 1e6) so a covariance cannot overflow.
+capped at :func:`max_inflation` (1e12; a float32 MHE 1e6) so a covariance cannot overflow.
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
 
@@ -61,8 +61,17 @@ from .inputs import INPUT_REJECTED, MEASUREMENT_REJECTED, InputCheck
 #: outputs and its MSE moved by 11 %; at 50.8 it rejects none (docs/reliability.md), while
 #: garbage of 10 units on a 0.01-std output scores d^2 ~ 1e6.
 DEFAULT_THRESHOLD = 50.844127911818155
-#: Largest factor one recovery episode multiplies the uncertainty by, per precision.
+#: Largest factor one recovery episode multiplies the uncertainty by, per precision (the
+#: MHEs' arrival weight in float32: 1e6; see :func:`max_inflation`).
 MAX_INFLATION = {"float64": 1e12, "float32": 1e6}
+
+
+def max_inflation(estimator: str, precision: str) -> float:
+    """The inflation cap of ``estimator`` in ``precision``: 1e12, but 1e6 for a float32 MHE,
+    whose arrival weight (the inverse covariance) enters float32 normal equations. A float32
+    UKF's variances times 1e12 stay far inside float32's range, and at 1e6 it never
+    re-acquired a 45 rad jump of the cartpole's angle (docs/reliability.md, float32 soak)."""
+    return MAX_INFLATION["float64"] if estimator == "ukf" else MAX_INFLATION[precision]
 
 
 @dataclass(frozen=True, kw_only=True)
