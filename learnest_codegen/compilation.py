@@ -165,7 +165,7 @@ MHE_NAMES = ("mhe", "mhe_gn", "mhe_rti")
 def check_horizon(estimators: tuple[str, ...], horizon: int | None) -> None:
     """Raise :class:`ValueError` when a ``horizon`` is given but no MHE is among ``estimators``."""
     if horizon is not None and not any(name in MHE_NAMES for name in estimators):
-        raise ValueError(f"a horizon applies to the MHEs {list(MHE_NAMES)}, not to {list(estimators)}")
+        raise SettingsError(f"a horizon applies to the MHEs {list(MHE_NAMES)}, not to {list(estimators)}")
 
 
 def estimator_settings(name: str, model: DiscreteModel, settings: Any = None, *,
@@ -180,7 +180,7 @@ def estimator_settings(name: str, model: DiscreteModel, settings: Any = None, *,
     """
     kind = estimator_kind(name)
     if horizon is not None and name not in MHE_NAMES:
-        raise ValueError(f"{name}: a horizon applies to the MHEs {list(MHE_NAMES)} only")
+        raise SettingsError(f"{name}: a horizon applies to the MHEs {list(MHE_NAMES)} only")
     chosen = settings or kind.default_settings(model)
     if name == "ukf" and precision == "float32" and settings is None:
         chosen = float32_ukf_settings(chosen)

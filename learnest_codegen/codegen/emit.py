@@ -30,6 +30,7 @@ import casadi as cs
 import numpy as np
 
 from .. import toolchain
+from ..errors import SettingsError
 from ..estimators.gate import GateSettings, max_inflation
 from ..estimators.precision import PRECISIONS, check_precision
 from ..export import DiscreteModel
@@ -88,7 +89,7 @@ def default_prefix(model: DiscreteModel, estimator: str, precision: str = "float
 
 def check_prefix(prefix: str, where: str) -> str:
     if not PREFIX.fullmatch(prefix or ""):
-        raise ValueError(f"{where}: prefix {prefix!r} is not a C identifier of letters and digits "
+        raise SettingsError(f"{where}: prefix {prefix!r} is not a C identifier of letters and digits "
                          "in words joined by single underscores (e.g. cartpole_knode_ukf)")
     return prefix
 
@@ -102,7 +103,7 @@ def casadi_work(model_header: Path, functions: Sequence[cs.Function]) -> dict[st
     for k in FIELDS:
         values = [re.search(rf"#define {f.name()}_SZ_{k.upper()} (\d+)", text) for f in functions]
         if not all(values):
-            raise ValueError(f"{model_header} does not define {k.upper()} sizes of every function")
+            raise SettingsError(f"{model_header} does not define {k.upper()} sizes of every function")
         sizes[k] = max(int(v.group(1)) for v in values)
     return sizes
 
@@ -126,7 +127,7 @@ def c_list(values) -> str:
     """``{v0, v1, ...}``: an initialiser with exact (round-trip) decimal literals."""
     values = np.asarray(values, dtype=float).ravel()
     if not np.all(np.isfinite(values)):
-        raise ValueError(f"a C initialiser needs finite values, got {values.tolist()}")
+        raise SettingsError(f"a C initialiser needs finite values, got {values.tolist()}")
     return "{" + ", ".join(repr(float(v)) for v in values) + "}"
 
 

@@ -120,7 +120,7 @@ class MHESettings:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         object.__setattr__(self, "horizon", check_option("horizon", self.horizon, "MHESettings.horizon"))
         if self.arrival not in ARRIVALS:
-            raise ValueError(f"MHESettings.arrival must be one of {ARRIVALS}, got {self.arrival!r}")
+            raise SettingsError(f"MHESettings.arrival must be one of {ARRIVALS}, got {self.arrival!r}")
         if self.input_limits is not None:
             limits = check_limits(self.input_limits, len(tuple(self.input_limits)), "MHESettings")
             object.__setattr__(self, "input_limits", limits)
@@ -168,7 +168,7 @@ class MHESettings:
     def weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(Q (nx, nx), R (ny, ny), P (nx, nx))``, the inverse covariances."""
         if not self.resolved:
-            raise ValueError("MHESettings: the steady-state arrival covariance is computed from "
+            raise SettingsError("MHESettings: the steady-state arrival covariance is computed from "
                              "the model; build the estimator with its model (MHE(model, "
                              "settings), or mhe_settings(model, settings)), or set "
                              "arrival='arrival_std'")

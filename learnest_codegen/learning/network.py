@@ -208,7 +208,7 @@ class ResidualNet(torch.nn.Module):
         if box is not None:
             low, high = (np.asarray(b, dtype=float).reshape(-1) for b in box)
             if low.shape != (feats.shape[0],) or high.shape != low.shape:
-                raise ValueError(f"ResidualNet.casadi: box needs {feats.shape[0]} bounds each, got "
+                raise SettingsError(f"ResidualNet.casadi: box needs {feats.shape[0]} bounds each, got "
                                  f"{low.shape}, {high.shape}")
             feats = cs.fmin(cs.fmax(feats, low), high)
         z = (feats - self.in_mean.detach().numpy()) / self.in_scale.detach().numpy()

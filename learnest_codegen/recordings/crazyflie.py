@@ -47,7 +47,7 @@ from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..data import Run
-from ..errors import DataError
+from ..errors import DataError, SettingsError
 
 GRAVITY = 9.81  # [m/s^2], the constant the README's conversion uses
 PWM_FULL = 65535.0
@@ -301,7 +301,7 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
         longer than ``max_gap_s``, a bad quaternion, no airborne part.
     """
     if held not in HELD:
-        raise ValueError(f"read_flight: held must be one of {HELD}, got {held!r}")
+        raise SettingsError(f"read_flight: held must be one of {HELD}, got {held!r}")
     path = Path(path)
     columns = read_table(path)
     t = columns.pop("t")

@@ -83,7 +83,7 @@ class DartSettings:
 
     def __post_init__(self) -> None:
         if self.held not in HELD:
-            raise ValueError(f"DartSettings.held must be one of {HELD}, got {self.held!r}")
+            raise SettingsError(f"DartSettings.held must be one of {HELD}, got {self.held!r}")
         if not self.dt > 0 or not self.max_gap_s > self.dt:
             raise SettingsError(f"DartSettings: need 0 < dt < max_gap_s, got dt={self.dt}, "
                                 f"max_gap_s={self.max_gap_s}")

@@ -274,7 +274,7 @@ class CompiledEstimator:
         covariance (an estimator without an arrival cost refuses it)."""
         name = type(self).__name__
         if P_arrival is not None:
-            raise ValueError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
+            raise SettingsError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
                              f"this estimator has no arrival cost")
         Q = None if Q is None else self.real_array(
             validation.covariance(f"{name}.set_noise: Q", Q, self.nx), exact=True)

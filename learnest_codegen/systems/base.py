@@ -48,13 +48,13 @@ def check_input_limits(limits, nu: int, where: str) -> tuple[tuple[float, float]
     try:
         pairs = tuple((float(lo), float(hi)) for lo, hi in limits)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{where}: input_limits must be (lo, hi) pairs, one per input, got "
+        raise SettingsError(f"{where}: input_limits must be (lo, hi) pairs, one per input, got "
                          f"{limits!r}") from exc
     if len(pairs) != nu:
         raise ShapeError(f"{where}: input_limits needs {nu} (lo, hi) pairs, got {len(pairs)}")
     for j, (lo, hi) in enumerate(pairs):
         if math.isnan(lo) or math.isnan(hi) or not lo < hi:
-            raise ValueError(f"{where}: input_limits[{j}] must have lo < hi, got ({lo}, {hi})")
+            raise SettingsError(f"{where}: input_limits[{j}] must have lo < hi, got ({lo}, {hi})")
     return pairs
 
 
@@ -72,12 +72,13 @@ class Signal:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not NAME_PATTERN.fullmatch(self.name):
-            raise ValueError(f"signal name {self.name!r} must be a letter followed by letters, digits "
+            raise SettingsError(f"signal name {self.name!r} must be a letter followed by letters, digits "
                              "and underscores (it names CSV columns such as y_<name>)")
         for what in ("unit", "description"):
             text = getattr(self, what)
             if not isinstance(text, str) or not text.isprintable():
-                raise ValueError(f"signal {self.name!r}: {what} {text!r} must be one line of printable text")
+                raise SettingsError(f"signal {self.name!r}: {what} {text!r} must be one line of "
+                                    "printable text")
 
 
 @dataclass(frozen=True)
@@ -198,13 +199,13 @@ class System:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not SYSTEM_NAME_PATTERN.fullmatch(self.name):
-            raise ValueError(f"system name {self.name!r} must be letters and digits in words joined by "
+            raise SettingsError(f"system name {self.name!r} must be letters and digits in words joined by "
                              "single underscores (it starts the C symbol prefix), e.g. 'my_pendulum'")
         for group in ("states", "inputs", "outputs"):
             names = [s.name for s in getattr(self, group)]
             twice = sorted({n for n in names if names.count(n) > 1})
             if twice:
-                raise ValueError(f"system {self.name!r}: {group} {twice} are named twice")
+                raise SettingsError(f"system {self.name!r}: {group} {twice} are named twice")
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
         object.__setattr__(self, "true_params", MappingProxyType(dict(self.true_params)))
         noise = self.noise
