@@ -66,7 +66,7 @@ def handoff(tmp_path_factory):
     generated = root / "generated" / PREFIX
     firmware = root / "firmware"
     shutil.copytree(generated, firmware / PREFIX,
-                    ignore=shutil.ignore_patterns("*.so", "*.stamp", "manifest.json"))
+                    ignore=shutil.ignore_patterns("*.so", "*.stamp", "*.json"))
     for name, body in doc_files().items():
         (firmware / name).write_text(body)
     (firmware / "board.c").write_text(BOARD_C)
