@@ -117,6 +117,10 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
                    horizon: int | None = None, clamp_inputs: bool | None = None):
     """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
 
+    Both backends take their settings from
+    :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
+    same estimator.
+
     Parameters
     ----------
     model : see :func:`resolve`.
@@ -129,10 +133,6 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
     gate : a :class:`~learnest_codegen.estimators.gate.GateSettings` replacing the settings'
         innovation gate (default: the settings' own, on by default).
     horizon : the MHE horizon N (MHEs only; default: the settings').
-
-    Both backends take their settings from
-    :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
-    same estimator.
     clamp_inputs : keep a trained net's inputs inside their training range (see :func:`resolve`).
     """
     resolved = resolve(model, system, clamp_inputs=clamp_inputs)

@@ -14,7 +14,8 @@ How a block runs, by its fence's language:
 
 Every block runs in a fresh folder holding the page's files so far. An HTML comment on the line
 before a fence changes that: ``<!-- test: skip REASON -->`` (not run; the reason is required
-and shown), ``<!-- test: slow -->`` (only with ``-m slow``), ``<!-- test: shell -->`` (a bash
+and shown; a block after ``<!-- file: NAME -->`` is a file of the firmware page, which
+tests/test_handoff.py writes, builds and runs as a whole), ``<!-- test: slow -->`` (only with ``-m slow``), ``<!-- test: shell -->`` (a bash
 block run by bash in that folder) and ``<!-- test: continue -->`` (run in the previous block's
 folder, with what it wrote). A block in another language, or a bash line that is not a command
 of the package, fails the test until it is given a language or a marker.
@@ -96,8 +97,7 @@ def blocks(page: str) -> list[Block]:
             else:
                 markers.update(dict.fromkeys(mm.group(1).split(), ""))
         elif j >= 0 and (mm := HANDOFF_FILE.search(lines[j])):
-            markers["skip"] = (f"{mm.group(1)} of the firmware page: written, built and run as a "
-                               "whole by tests/test_handoff.py")
+            markers["handoff"] = mm.group(1)
         out.append(Block(page, start + 1, language, "\n".join(body) + "\n", markers))
         i += 1
     return out
@@ -188,6 +188,9 @@ def test_block_runs_as_written(block: Block, short_systems, page_state, compiled
     if "skip" in block.markers:
         assert block.markers["skip"].strip(), f"{block.id}: a skip marker needs a reason"
         pytest.skip(f"{block.id}: {block.markers['skip']}")
+    if "handoff" in block.markers:  # tested, as a whole page, elsewhere
+        pytest.skip(f"{block.id}: {block.markers['handoff']} of the firmware page: written, built "
+                    "and run with the page's other files by tests/test_handoff.py")
     if block.language in LISTINGS:
         return
     folder = _folder(block, page_state)
