@@ -15,8 +15,8 @@ How a block runs, by its fence's language:
 Every block runs in a fresh folder holding the page's files so far. An HTML comment on the line
 before a fence changes that: ``<!-- test: skip REASON -->`` (not run; the reason is required
 and shown; a block after ``<!-- file: NAME -->`` is a file of the firmware page, which
-tests/test_handoff.py writes, builds and runs as a whole), ``<!-- test: slow -->`` (only with ``-m slow``), ``<!-- test: shell -->`` (a bash
-block run by bash in that folder) and ``<!-- test: continue -->`` (run in the previous block's
+tests/test_handoff.py writes, builds and runs as a whole), ``<!-- test: slow -->`` (only with
+``-m slow``), ``<!-- test: shell -->`` (a bash block run by bash in that folder) and ``<!-- test: continue -->`` (run in the previous block's
 folder, with what it wrote). A block in another language, or a bash line that is not a command
 of the package, fails the test until it is given a language or a marker.
 
