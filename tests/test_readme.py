@@ -17,8 +17,9 @@ before a fence changes that: ``<!-- test: skip REASON -->`` (not run; the reason
 and shown; a block after ``<!-- file: NAME -->`` is a file of the firmware page, which
 tests/test_handoff.py writes, builds and runs as a whole), ``<!-- test: slow -->`` (only with
 ``-m slow``), ``<!-- test: shell -->`` (a bash block run by bash in that folder) and
-``<!-- test: continue -->`` (run in the previous block's folder, with what it wrote). A block in another language, or a bash line that is not a command
-of the package, fails the test until it is given a language or a marker.
+``<!-- test: continue -->`` (run in the previous block's folder, with what it wrote). A block
+in another language, or a bash line that is not a command of the package, fails the test until
+it is given a language or a marker.
 
 To keep the default suite short, the built-in systems are registered with 1 s runs while the
 blocks run (in-process, so the commands see it): every other argument is the reader's.
