@@ -84,6 +84,13 @@ def _samples(system: System, duration) -> int:
     return T
 
 
+def integrate_interval(system: System, variant: str, x: np.ndarray, u: np.ndarray, dt: float,
+                       t0: float = 0.0) -> np.ndarray:
+    """The state ``dt`` after ``x`` under the held input ``u``, as :func:`simulate` steps it
+    (``variant``: ``"true"`` or ``"prior"`` dynamics; ``t0`` only names the time in errors)."""
+    return _integrate(system, variant, x, u, dt, t0)
+
+
 def _integrate(system: System, variant: str, x: np.ndarray, u: np.ndarray, dt: float,
                t0: float) -> np.ndarray:
     """One sample interval by RK45 (solve_ivp's stepping, with a step limit and finite values)."""

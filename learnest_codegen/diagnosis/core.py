@@ -98,7 +98,7 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
         Recordings(list(runs), [f"run {i}" for i in range(len(runs))])
     if not found.runs:
         raise DataError("diagnose: no runs given")
-    bar = tqdm(total=5, desc=f"diagnosing {system.name}", disable=not progress)
+    bar = tqdm(total=5, desc=f"diagnosing {system.name}", disable=None if progress else True)
     source, segments = observations(system, found.runs, settings, found.references, found.starts)
     pooled = len(segments) >= 2  # runs are fitted together, each held out in turn
     fit_segs, held_segs = (segments, []) if pooled else split(segments, settings.holdout)

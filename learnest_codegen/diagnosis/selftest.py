@@ -130,7 +130,7 @@ def simulate_case(case: Case, truth: System, seed: int):
     if not filters:
         return simulate(truth, seed, duration=case.duration)
     from ..data import Run
-    from ..simulation import _integrate
+    from ..simulation import integrate_interval
 
     rng = np.random.default_rng(seed)
     T = int(round((case.duration or truth.duration) / truth.dt))
@@ -140,7 +140,7 @@ def simulate_case(case: Case, truth: System, seed: int):
     x = np.empty((T, truth.nx))
     x[0] = truth.x0
     for k in range(T - 1):
-        x[k + 1] = _integrate(truth, "true", x[k], seen[k], truth.dt)
+        x[k + 1] = integrate_interval(truth, "true", x[k], seen[k], truth.dt, t[k])
     y_clean = truth.h(x, u)
     y = y_clean + rng.normal(size=y_clean.shape) * np.asarray(truth.noise.measurement_std)
     return Run(t, u, y, x, truth.name)
@@ -219,7 +219,7 @@ def run_selftest(cases: Sequence[Case] = CASES, *, settings: DiagnosisSettings |
     from tqdm.auto import tqdm
 
     settings = settings or DiagnosisSettings(estimators=())
-    bar = tqdm(cases, desc="diagnosis self-test", disable=not progress)
+    bar = tqdm(cases, desc="diagnosis self-test", disable=None if progress else True)
     return [run_case(c, settings, seed) for c in bar]
 
 

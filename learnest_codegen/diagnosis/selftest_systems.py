@@ -83,7 +83,7 @@ def _swingup(system: System):
     simulation's own accuracy, so replaying the torque open loop (what :func:`simulate` does)
     flies the same swing-up.
     """
-    from ..simulation import _integrate
+    from ..simulation import integrate_interval
 
     def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         dt = float(t[1] - t[0])
@@ -98,7 +98,7 @@ def _swingup(system: System):
             u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + dither[i],
                               -SWINGUP_TORQUE, SWINGUP_TORQUE)
             if i < len(t) - 1:
-                x = _integrate(system, "true", x, u[i], dt)
+                x = integrate_interval(system, "true", x, u[i], dt, t[i])
         return u
 
     return excitation

@@ -175,7 +175,8 @@ def nominal_results(cases: Sequence[Case], out: Path, settings: StudySettings,
     ``OUT/nominal``; an estimator added later runs alone."""
     labels = [(label, est) for label, est, kind in methods(settings.estimators) if kind == "nominal"]
     results, estimators = {}, None
-    for case in tqdm(cases, desc="nominal estimators", disable=not progress, unit="case"):
+    quiet = None if progress else True  # None: quiet off a terminal
+    for case in tqdm(cases, desc="nominal estimators", disable=quiet, unit="case"):
         path = out / "nominal" / f"{case.name}.json"
         ident = _hash({"samples": len(case.run), "y": float(np.sum(case.run.y)),
                        "ref": float(np.sum(case.reference))})
@@ -275,7 +276,8 @@ def train_and_test(train: Case | Sequence[Case], tests: Sequence[Case], features
     estimators = _estimators(trained, work / "compiled", settings)
     compile_seconds = time.perf_counter() - compile_start
     cases = {}
-    for case in tqdm(tests, desc=f"KNODE ({label}, {features})", disable=not progress, unit="case"):
+    quiet = None if progress else True  # None: quiet off a terminal
+    for case in tqdm(tests, desc=f"KNODE ({label}, {features})", disable=quiet, unit="case"):
         cases[case.name] = {name: _run_method(estimators[est], case, trained)
                             for name, est, kind in methods(settings.estimators) if kind == "knode"}
     results = {"train": label, "train_cases": [c.name for c in train], "features": features, "hash": ident,
