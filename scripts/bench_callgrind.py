@@ -1,7 +1,7 @@
 """Instructions per sample of the generated C estimators, counted by callgrind (load-independent).
 
 For each estimator (the UKF, ``mhe_rti`` and ``mhe_gn``, N = 20 unless ``--horizon``) of the
-KNODE cartpole (the default residual net at its seed-0 initialisation: the same C as a trained
+KNODE cartpole (or ``--system``; in float64 unless ``--precision``; the default residual net at its seed-0 initialisation: the same C as a trained
 one), a plain C main is built from the generated folder's sources with the documented flags
 (``-O2 -std=c99 -fno-math-errno``), stepped over T1 and T2 samples of a simulated run (seed 1)
 under ``valgrind --tool=callgrind``; instructions per sample = (I(T2) - I(T1)) / (T2 - T1), so
@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from learnest_codegen import get_system
-from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
+from learnest_codegen.compilation import MHE_NAMES, compile_estimators, estimator_dir
 from learnest_codegen.export import hybrid_model
 from learnest_codegen.learning.training import make_net
 from learnest_codegen.simulation import simulate
@@ -100,28 +100,27 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("bench_callgrind.json"))
     parser.add_argument("--estimators", nargs="+", default=["ukf", "mhe_rti", "mhe_gn"])
+    parser.add_argument("--system", default="cartpole", help="built-in system (default cartpole)")
+    parser.add_argument("--precision", choices=("float64", "float32"), default="float64")
     parser.add_argument("--horizon", type=int, default=20)
     parser.add_argument("--samples", type=int, nargs=2, default=[100, 300], metavar=("T1", "T2"))
     parser.add_argument("--build-dir", type=Path, default=None)
     args = parser.parse_args(argv)
-    system = get_system("cartpole")
+    system = get_system(args.system)
     torch.manual_seed(0)
     model = hybrid_model(system, make_net(system))
     run = simulate(system, seed=1, duration=max(args.samples) * system.dt)
     report = {"system": system.name, "model": "knode (untrained, seed 0)", "horizon": args.horizon,
+              "precision": args.precision,
               "samples": args.samples, "flags": "-O2 -std=c99 -fno-math-errno", "results": {}}
     with tempfile.TemporaryDirectory() as tmp:
         root = args.build_dir or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         for name in args.estimators:
-            settings = estimator_kind(name).default_settings(model)
-            if hasattr(settings, "horizon"):
-                from dataclasses import replace
-
-                settings = replace(settings, horizon=args.horizon)
             compile_estimators(model, root, model_hash="bench", estimators=(name,),
-                               settings={name: settings})
-            directory = estimator_dir(root, model, name)
+                               precision=args.precision,
+                               horizon=args.horizon if name in MHE_NAMES else None)
+            directory = estimator_dir(root, model, name, args.precision)
             prefix = json.loads((directory / "manifest.json").read_text())["prefix"]
             t1, t2 = args.samples
             counts = [instructions(build(directory, prefix, run, T, root)) for T in (t1, t2)]
