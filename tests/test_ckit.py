@@ -185,7 +185,7 @@ def test_block_tridiagonal_solve_equals_a_dense_solve(libraries, cc, real):
             H[i * nx:(i + 2) * nx, i * nx:(i + 2) * nx] += B.T @ B
         H += 0.1 * np.eye(len(H))
         D = np.stack([H[i * nx:(i + 1) * nx, i * nx:(i + 1) * nx].T for i in range(N + 1)])
-        E = np.stack([H[i * nx:(i + 1) * nx, (i + 1) * nx:(i + 2) * nx].T for i in range(N)])
+        E = np.stack([H[(i + 1) * nx:(i + 2) * nx, i * nx:(i + 1) * nx].T for i in range(N)])
         g = rng.normal(size=len(H))
         Dc, Ec, dx = k.a(D), k.a(E), k.a(np.zeros(len(H)))
         assert k("kt_btd_solve", Dc, Ec, k.a(g), dx) == 1

@@ -33,14 +33,26 @@ struct learnest_lin {
 
 struct learnest_gn {
   int mode, max_iter, iterations, lin_valid;
+  int dq, dr, dp;  /* Q, R, P diagonal (the usual tuning): their zero terms are skipped */
   learnest_real tol;
   learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];  /* weights / the largest */
   struct learnest_lin lin, trial;  /* at the iterate, and at the line search's point */
   learnest_real Xt[LEARNEST_NW];
   learnest_real D[(LEARNEST_N + 1) * LEARNEST_NXX];  /* diagonal blocks, then their factors */
-  learnest_real E[LEARNEST_N * LEARNEST_NXX];  /* blocks (i, i+1), then the factor's (i+1, i) */
-  learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], tmp[LEARNEST_NXX], rw[LEARNEST_NX], rv[LEARNEST_NY];
+  learnest_real E[LEARNEST_N * LEARNEST_NXX];  /* blocks (i+1, i), then the factor's */
+  learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], rw[LEARNEST_NX], rv[LEARNEST_NY];
 };
+
+/* 1 when the n x n W (column-major) has no off-diagonal entry. */
+LEARNEST_KIT int learnest_gn_diagonal(const learnest_real* W, int n) {
+  int r, c;
+  LEARNEST_UNROLL for (c = 0; c < n; ++c) {
+    LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+      if (r != c && W[r + c * n] != 0) return 0;
+    }
+  }
+  return 1;
+}
 
 /* The weights of p divided by their largest diagonal entry, as the Ipopt MHE scales its cost. */
 LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest_mhe_problem* p) {
@@ -53,6 +65,9 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
   for (i = 0; i < LEARNEST_NXX; ++i) s->Q[i] = big * p->Q[i];
   for (i = 0; i < LEARNEST_NYY; ++i) s->R[i] = big * p->R[i];
   for (i = 0; i < LEARNEST_NXX; ++i) s->P[i] = big * p->P[i];
+  s->dq = learnest_gn_diagonal(s->Q, LEARNEST_NX);
+  s->dr = learnest_gn_diagonal(s->R, LEARNEST_NY);
+  s->dp = learnest_gn_diagonal(s->P, LEARNEST_NX);
 }
 
 /* Linearise every stage and node of window w at the states X into L. */
@@ -90,6 +105,16 @@ LEARNEST_KIT void learnest_gn_advance(struct learnest_gn* s, struct learnest_mod
                       L->h + LEARNEST_N * LEARNEST_NY, L->C + LEARNEST_N * LEARNEST_NY * LEARNEST_NX);
 }
 
+/* r' W r for the n x n W; diag: W is diagonal (its zero terms skipped). */
+LEARNEST_KIT learnest_real learnest_gn_quad(const learnest_real* W, int diag, const learnest_real* r,
+                                            int n) {
+  learnest_real acc = 0;
+  int i;
+  if (!diag) return learnest_quad(W, r, n);
+  LEARNEST_UNROLL for (i = 0; i < n; ++i) acc += W[i + i * n] * r[i] * r[i];
+  return acc;
+}
+
 /* The cost of window w at X with linearisation L (scaled weights). */
 LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct learnest_window* w,
                                             const learnest_real* X, const struct learnest_lin* L) {
@@ -100,31 +125,20 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
     learnest_real a = i ? 1 - w->mask[i - 1] : 1;
     if (a != 0) {
       for (j = 0; j < LEARNEST_NX; ++j) s->rw[j] = x[j] - w->xbar[j];
-      c += a * learnest_quad(s->P, s->rw, LEARNEST_NX);
+      c += a * learnest_gn_quad(s->P, s->dp, s->rw, LEARNEST_NX);
     }
     if (w->mask[i] != 0) {
       for (j = 0; j < LEARNEST_NY; ++j) {
         s->rv[j] = w->G[i * LEARNEST_NY + j] * (w->Y[i * LEARNEST_NY + j] - L->h[i * LEARNEST_NY + j]);
       }
-      c += w->mask[i] * learnest_quad(s->R, s->rv, LEARNEST_NY);
+      c += w->mask[i] * learnest_gn_quad(s->R, s->dr, s->rv, LEARNEST_NY);
       if (i < LEARNEST_N) {
         for (j = 0; j < LEARNEST_NX; ++j) s->rw[j] = X[(i + 1) * LEARNEST_NX + j] - L->F[i * LEARNEST_NX + j];
-        c += w->mask[i] * learnest_quad(s->Q, s->rw, LEARNEST_NX);
+        c += w->mask[i] * learnest_gn_quad(s->Q, s->dq, s->rw, LEARNEST_NX);
       }
     }
   }
   return c;
-}
-
-/* 1 when the n x n W (column-major) has no off-diagonal entry. */
-LEARNEST_KIT int learnest_gn_diagonal(const learnest_real* W, int n) {
-  int r, c;
-  LEARNEST_UNROLL for (c = 0; c < n; ++c) {
-    LEARNEST_UNROLL for (r = 0; r < n; ++r) {
-      if (r != c && W[r + c * n] != 0) return 0;
-    }
-  }
-  return 1;
 }
 
 /* Wv = W v and WM = W M (M: n x cols, column-major) for the n x n W; diag: W is diagonal (the
@@ -151,12 +165,11 @@ LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, con
 
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
- * E_i = H_{i, i+1}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
+ * E_i = H_{i+1, i}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
 LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
                                     const learnest_real* X) {
   const struct learnest_lin* L = &s->lin;
-  const int dq = learnest_gn_diagonal(s->Q, LEARNEST_NX), dr = learnest_gn_diagonal(s->R, LEARNEST_NY);
-  const int dp = learnest_gn_diagonal(s->P, LEARNEST_NX);
+  const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
   memset(s->D, 0, sizeof s->D);
   memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
@@ -184,8 +197,10 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
     {  /* measurement term m |G (y_i - h(x_i))|^2_R: D += C'RC, g -= C'R v (C, v weighted) */
       const learnest_real* Gi = w->G + i * LEARNEST_NY;
       learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY * LEARNEST_NX; ++k) {
-        C[k] = Gi[k % LEARNEST_NY] * L->C[i * LEARNEST_NY * LEARNEST_NX + k];
+      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NY; ++r) {
+          C[r + c * LEARNEST_NY] = Gi[r] * L->C[i * LEARNEST_NY * LEARNEST_NX + r + c * LEARNEST_NY];
+        }
       }
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
@@ -208,15 +223,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
       learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_NX, Qw, QA);
+      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
-          E[r + c * LEARNEST_NX] = -m * QA[c + r * LEARNEST_NX];  /* -(A'Q)[r][c] = -(QA)[c][r] */
-          if (r < c) continue;
-          {
-            learnest_real v = 0;
-            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-            D[r + c * LEARNEST_NX] += m * v;
-          }
+        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+          learnest_real v = 0;
+          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
+          D[r + c * LEARNEST_NX] += m * v;
           if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
         }
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
@@ -227,11 +239,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
 }
 
 /* Solve H dx = -g for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i (lower
- * triangles read) and N blocks E_i = H_{i, i+1} (all NX x NX, column-major), by the block
- * Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = (L_i^-1 E_i)'. D and E are
- * overwritten by the factor; tmp holds NX * NX. 0 if H is not positive definite. */
+ * triangles read) and N blocks E_i = H_{i+1, i} (all NX x NX, column-major), by the block
+ * Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = E_i L_i^-T (solved column by
+ * column in place: every inner loop runs over a whole column of NX). D and E are overwritten
+ * by the factor. 0 if H is not positive definite. */
 LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const learnest_real* g,
-                                    learnest_real* dx, learnest_real* tmp) {
+                                    learnest_real* dx) {
   int i, r, c, k;
   for (i = 0; i <= LEARNEST_N; ++i) {
     learnest_real* Di = D + i * LEARNEST_NXX;
@@ -246,13 +259,18 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
       }
     }
     if (!learnest_cholesky(Di, LEARNEST_NX)) return 0;
-    if (i < LEARNEST_N) {  /* B_i = (L_i^-1 E_i)' */
-      learnest_real* Ei = E + i * LEARNEST_NXX;
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) learnest_forward_subst(Di, LEARNEST_NX, Ei + c * LEARNEST_NX);
+    if (i < LEARNEST_N) {  /* B_i L_i' = E_i: column c of B from the columns before it */
+      learnest_real* B = E + i * LEARNEST_NXX;
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) tmp[r + c * LEARNEST_NX] = Ei[c + r * LEARNEST_NX];
+        learnest_real* Bc = B + c * LEARNEST_NX;
+        const learnest_real inv = 1 / Di[c + c * LEARNEST_NX];
+        for (k = 0; k < c; ++k) {
+          const learnest_real l = Di[c + k * LEARNEST_NX];
+          const learnest_real* Bk = B + k * LEARNEST_NX;
+          LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) Bc[r] -= Bk[r] * l;
+        }
+        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) Bc[r] *= inv;
       }
-      memcpy(Ei, tmp, LEARNEST_NXX * sizeof(learnest_real));
     }
   }
   for (i = 0; i <= LEARNEST_N; ++i) {  /* forward: z_i = L_i^-1 (-g_i - B_{i-1} z_{i-1}) */
@@ -284,7 +302,7 @@ LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learn
                                        const learnest_real* X, learnest_real* big) {
   int j;
   learnest_gn_build(s, w, X);
-  if (!learnest_btd_solve(s->D, s->E, s->g, s->dx, s->tmp)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
   *big = 0;
   for (j = 0; j < LEARNEST_NW; ++j) {

@@ -52,8 +52,7 @@ int kt_covariance_ok(const real* A, int n) {
 
 /* The block-tridiagonal solve: D ((N+1) NX x NX blocks), E (N blocks), g -> dx. */
 int kt_btd_solve(real* D, real* E, const real* g, real* dx) {
-  real tmp[LEARNEST_NXX];
-  return learnest_btd_solve(D, E, g, dx, tmp);
+  return learnest_btd_solve(D, E, g, dx);
 }
 
 /* -- the gate */
