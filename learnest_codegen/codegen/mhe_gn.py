@@ -15,6 +15,7 @@ import casadi as cs
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings, mhe_settings
 from ..export import DiscreteModel
+from ..integrators import rk4_step_jacobian
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, emit, resolve_prefix
 from .mhe import header_doc, mhe_defaults, mhe_workspace
@@ -62,11 +63,19 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
 def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
     """``<name>_stage(x, u) -> (F, A)``, ``<name>_node(x, u) -> (h, C)``, ``<name>_F``.
 
-    ``A = dF/dx`` and ``C = dh/dx`` by CasADi's AD, dense (the kit indexes them column-major).
+    ``A = dF/dx`` by the chain rule through the RK4 stages (``F`` is one RK4 step of
+    ``f_continuous``: :func:`learnest_codegen.export.discretise`) and ``C = dh/dx`` by CasADi's
+    AD, dense (the kit indexes them column-major).
     """
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
+    xdot = model.f_continuous(x, u)
+    f_jac = cs.Function("f_jac", [x, u], [xdot, cs.jacobian(xdot, x)])
+    F, A = rk4_step_jacobian(lambda a, b: f_jac(a, b), x, u, model.dt, cs.SX.eye(model.nx))
+    both = cs.cse(cs.vertcat(F, cs.vec(cs.densify(A))))
+    n = model.nx
     return (
-        _with_jacobian(f"{name}_stage", model.F(x, u), x, u, ("F", "A")),
+        cs.Function(f"{name}_stage", [x, u], [both[:n], cs.reshape(both[n:], n, n)], ["x", "u"],
+                    ["F", "A"]),
         _with_jacobian(f"{name}_node", model.h(x, u), x, u, ("h", "C")),
         cs.Function(f"{name}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"]),
     )
