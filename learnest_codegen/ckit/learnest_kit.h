@@ -35,6 +35,14 @@
 #define LEARNEST_KIT static
 #endif
 
+/* A kit function that is a few lines of its one caller, kept in the caller's frame (as if
+ * written there): the stack a step needs stays what one frame says. */
+#if defined(__GNUC__) || defined(__clang__)
+#define LEARNEST_KIT_INLINE static inline __attribute__((always_inline, unused))
+#else
+#define LEARNEST_KIT_INLINE static inline
+#endif
+
 typedef LEARNEST_REAL learnest_real;
 
 /* Before a loop over a block's rows or columns: unrolled by the compiler (the blocks are

@@ -12,6 +12,7 @@
 
 #include "learnest_gn.h"
 #include "learnest_handle.h"
+#include "learnest_mhe_model.h"
 
 typedef struct learnest_mhe_tuning learnest_tuning;
 
@@ -46,16 +47,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    int* rejected) {
   struct learnest_mhe* m = &h->m;
   int has_previous = h->c.samples > 0, code, steps, any, restarted;
-  learnest_real H0[LEARNEST_NY * LEARNEST_NX], A0[LEARNEST_NXX], v0[LEARNEST_NX];
-  int carries = learnest_mhe_carries(m, has_previous);
-  if (carries) {  /* the arrival's covariance moves on with the window (learnest_mhe.h) */
-    learnest_model_node(&h->model, m->X, m->now.w.U, v0, H0);
-    learnest_model_stage(&h->model, m->X, m->now.w.U + LEARNEST_NU, v0, A0);
-  }
-  learnest_mhe_advance(m, has_previous, u, carries ? H0 : 0, carries ? A0 : 0);
-  if (has_previous) {
-    learnest_model_F(&h->model, m->X + LEARNEST_N * LEARNEST_NX, u, m->Xn + LEARNEST_N * LEARNEST_NX);
-  }
+  learnest_mhe_slide(m, &h->model, has_previous, u);
   learnest_gn_advance(&h->gn, &h->model, &m->next.w, m->Xn, has_previous);
   any = learnest_mhe_gate(m, &h->c.gate, has_previous, u, y, valid,
                           h->gn.lin.h + LEARNEST_N * LEARNEST_NY,

@@ -13,6 +13,7 @@
 
 #include "learnest_handle.h"
 #include "learnest_mhe.h"
+#include "learnest_mhe_model.h"
 
 /* The problem struct is the nlpsol's parameter vector: same size, same offsets. */
 #define LEARNEST_OFFSET_IS(member, off) (offsetof(struct learnest_mhe_problem, member) == (off) * sizeof(learnest_real))
@@ -47,16 +48,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   struct learnest_mhe* m = &h->m;
   learnest_real yhat[LEARNEST_NY], C[LEARNEST_NY * LEARNEST_NX];
   int has_previous = h->c.samples > 0, code, any, restarted;
-  learnest_real H0[LEARNEST_NY * LEARNEST_NX], A0[LEARNEST_NXX], v0[LEARNEST_NX];
-  int carries = learnest_mhe_carries(m, has_previous);
-  if (carries) {  /* the arrival's covariance moves on with the window (learnest_mhe.h) */
-    learnest_model_node(&h->model, m->X, m->now.w.U, v0, H0);
-    learnest_model_stage(&h->model, m->X, m->now.w.U + LEARNEST_NU, v0, A0);
-  }
-  learnest_mhe_advance(m, has_previous, u, carries ? H0 : 0, carries ? A0 : 0);
-  if (has_previous) {
-    learnest_model_F(&h->model, m->X + LEARNEST_N * LEARNEST_NX, u, m->Xn + LEARNEST_N * LEARNEST_NX);
-  }
+  learnest_mhe_slide(m, &h->model, has_previous, u);
   learnest_model_node(&h->model, m->Xn + LEARNEST_N * LEARNEST_NX, u, yhat, C);
   any = learnest_mhe_gate(m, &h->c.gate, has_previous, u, y, valid, yhat, C, rejected, &restarted);
   code = learnest_model_solve(&h->model, (const learnest_real*)(const void*)&m->next, m->Xn,
