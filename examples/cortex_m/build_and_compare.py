@@ -128,13 +128,15 @@ class Generated:
 
 
 def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
-             estimator: str = "ukf", precision: str = "float64") -> Generated:
+             estimator: str = "ukf", precision: str = "float64",
+             horizon: int | None = None) -> Generated:
     """Generate ``estimator``'s C in ``precision`` for ``model`` (any system) under ``out``, and
     both headers into its folder, for ``steps`` samples of run ``seed``.
 
     ``estimator`` is ``"ukf"``, ``"mhe_rti"`` or ``"mhe_gn"``, generated as ``learnest-compile``
     does (the same door: the system's default tuning, a float32 UKF with alpha raised); the
-    firmware starts it from the tuned defaults of its own header.
+    firmware starts it from the tuned defaults of its own header. ``horizon`` replaces the
+    MHEs' N (as ``learnest-compile --horizon``).
     """
     if steps < 1:
         raise ValueError(f"generate: steps must be >= 1, got {steps}")
@@ -144,7 +146,8 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
         raise ValueError(f"generate: precision must be one of {PRECISIONS}, got {precision!r}")
     system = model.system
     gen = compile_estimators(model, Path(out), model_hash=f"cortex_m-{model.kind}",
-                             estimators=(estimator,), precision=precision)[estimator]
+                             estimators=(estimator,), precision=precision,
+                             horizon=horizon if estimator != "ukf" else None)[estimator]
     run = simulate(system, seed=seed, duration=steps * system.dt)
     U, Y = run.u[:steps], run.y[:steps]
     write_run_header(gen.directory / "run_data.h", U, Y, system.dt)
@@ -370,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
                              "(converged Gauss-Newton) (default: ukf)")
     parser.add_argument("--precision", choices=PRECISIONS, default="float64",
                         help="the C real type of the generated estimator (default: float64)")
+    parser.add_argument("--horizon", type=int, default=None,
+                        help="the MHEs' horizon N (default: the system's tuning)")
     parser.add_argument("--out", type=Path, default=Path("build/cortex_m"))
     args = parser.parse_args(argv)
     missing = missing_tools()
@@ -381,9 +386,9 @@ def main(argv: list[str] | None = None) -> int:
     system = get_system(args.system)
     model = untrained_knode(system) if args.model == "untrained" else resolve_model(system, args.model)[0]
     tag = f"{args.estimator}_{args.precision}"
-    tag = f"{system.name}_{tag}"
+    tag = f"{system.name}_{tag}" + (f"_N{args.horizon}" if args.horizon else "")
     gen = generate(model, args.out / "gen", steps=args.steps, seed=args.seed,
-                   estimator=args.estimator, precision=args.precision)
+                   estimator=args.estimator, precision=args.precision, horizon=args.horizon)
     build_dir = args.out / f"build_{tag}_{args.machine}"
     paths = build(gen.directory, build_dir, machine=args.machine)
     fw = run_qemu(paths["elf"], model.nx, machine=args.machine)
@@ -391,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     rel = relative_difference(fw.X, host.X)
     report = {
         "system": system.name, "model": args.model, "machine": args.machine,
-        "estimator": args.estimator,
+        "estimator": args.estimator, "horizon": args.horizon,
         "precision": args.precision, "prefix": gen.prefix,
         "steps": args.steps,
         "workspace_bytes": gen.workspace_bytes,
