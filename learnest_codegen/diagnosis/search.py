@@ -342,9 +342,10 @@ class Search:
             moved = True
         return moved
 
-    def at_edge(self, j: int, share: float = 0.01) -> bool:
+    def at_edge(self, j: int, share: float = 0.05) -> bool:
         """Whether ``j``'s parameter sits within ``share`` of a finite, non-zero edge of its range
-        (an actuator gain of -0.996 switches the drive off: it stands for something else)."""
+        (an actuator gain of -0.988 leaves the drive 1.2 % of its authority, as good as switched
+        off: it stands for something else)."""
         lo, hi = self.data.lo[j] + self.theta[j], self.data.hi[j] + self.theta[j]
         return any(np.isfinite(b) and b != 0 and abs(self.theta[j] - b) <= share * abs(b) for b in (lo, hi))
 
