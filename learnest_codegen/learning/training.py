@@ -81,7 +81,7 @@ from ..errors import DataError, SettingsError, ShapeError
 from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
-from .network import ResidualNet, StackedMLP
+from .network import ResidualNet, StackedMLP, StartT
 from .pairs import segment_pairs
 from .ranges import RANGES_KEY, record_ranges
 from .source import KEY as SOURCE_KEY
@@ -185,10 +185,35 @@ def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch
     shared by all members or ``(n, R, B)`` one batch per member (the layout of
     :meth:`~learnest_codegen.learning.network.ResidualNet.derivative_t`)."""
     if zeta.dim() == 2:
-        members = len(mlp.weights[0])
-        zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
-        zeta_next = zeta_next[:, None]
-    pred = rk4_step(lambda x, v: net.derivative_t(x, v, mlp), zeta, u, dt)
+        zeta, u, zeta_next = _expanded(len(mlp.weights[0]), zeta, u, zeta_next)
+    return _loss_of(net, mlp, dt, zeta, u, zeta_next)
+
+
+def _expanded(members: int, zeta: torch.Tensor, u: torch.Tensor, zeta_next: torch.Tensor):
+    """Pairs ``(n, B)`` shared by ``members`` as ``(n, members, B)`` (views)."""
+    zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
+    return zeta, u, zeta_next[:, None]
+
+
+def _start(net: ResidualNet, members: int, zeta: torch.Tensor, u: torch.Tensor,
+           zeta_next: torch.Tensor) -> tuple:
+    """Pairs ``(n, B)`` with what the first RK4 stage computes at them before the weights
+    enter (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`): the arguments of
+    :func:`_loss_of` after ``dt``, computed once for every epoch of a full batch."""
+    zeta, u, zeta_next = _expanded(members, zeta, u, zeta_next)
+    with torch.no_grad():
+        return zeta, u, zeta_next, net.start_t(zeta, u)
+
+
+def _loss_of(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
+             zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+    """:func:`_stacked_loss` on pairs ``(n, R, B)``; ``start`` (:func:`_start`) is taken for the
+    first RK4 stage, which is at ``zeta`` itself."""
+
+    def f(x, v):
+        return net.derivative_t(x, v, mlp, start if x is zeta else None)
+
+    pred = rk4_step(f, zeta, u, dt)
     return ((pred - zeta_next) ** 2).sum(dim=0).mean(dim=-1)
 
 
@@ -229,6 +254,9 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     means, weights = (list(kept.parameters()), list(mlp.parameters())) if kept is not mlp else ([], [])
     generators = [torch.Generator().manual_seed(m.seed) for m in members]
     full_batch = settings.batch_size >= n_train
+    # the first RK4 stage's prior and features at the data: the same every epoch, computed once
+    train_start = _start(net, len(members), *train_set) if full_batch else None
+    valid_start = _start(net, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
@@ -245,8 +273,10 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
         for idx in batches:
             optimiser.zero_grad()
-            batch = train_set if idx is None else [a[:, idx] for a in train_set]
-            loss = _stacked_loss(system, net, mlp, *batch, dt)
+            if idx is None:
+                loss = _loss_of(net, mlp, dt, *train_start)
+            else:
+                loss = _stacked_loss(system, net, mlp, *[a[:, idx] for a in train_set], dt)
             loss.sum().backward()
             optimiser.step()
             with torch.no_grad():
@@ -255,7 +285,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                     torch._foreach_lerp_(means, weights, 1.0 - settings.weight_average)
         with torch.no_grad():  # the training loss comes free with the steps; validation costs one pass
             history.append(epoch_loss / n_train)
-            valid_history.append(_stacked_loss(system, net, kept, *valid_set, dt))
+            valid_history.append(_loss_of(net, kept, dt, *valid_start))
             better = valid_history[-1] < best_loss
             if better.any():
                 best_loss = torch.where(better, valid_history[-1], best_loss)
