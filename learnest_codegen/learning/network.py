@@ -211,7 +211,8 @@ class ResidualNet(torch.nn.Module):
         scales = self.in_scale[-g:].tolist()
         channels = []
         for c in range(n):
-            terms = [out[n + c * g + k] * (prior_xdot[j] / scales[k]) for k, j in enumerate(self.prior_features)]
+            terms = [out[n + c * g + k] * (prior_xdot[j] / scales[k])
+                     for k, j in enumerate(self.prior_features)]
             channels.append(out[c] + sum(terms[1:], terms[0]))  # as sum(terms) without its 0 + first
         return channels
 
