@@ -174,8 +174,10 @@ def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: Traini
     signs = system.reflection_signs()
     if signs is not None:
         sx, su = (torch.as_tensor(s) for s in signs)
+        held_out = valid_set is not train_set
         train_set, valid_set = ([torch.cat([z, z * sx]), torch.cat([v, v * su]), torch.cat([zn, zn * sx])]
                                 for z, v, zn in (train_set, valid_set))
+        valid_set = valid_set if held_out else train_set  # no validation segment: still one set
     return pairs, train_set, valid_set
 
 
@@ -209,12 +211,18 @@ def _loss_of(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u
              zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
     """:func:`_stacked_loss` on pairs ``(n, R, B)``; ``start`` (:func:`_start`) is taken for the
     first RK4 stage, which is at ``zeta`` itself."""
+    return _pair_errors(net, mlp, dt, zeta, u, zeta_next, start).mean(dim=-1)
+
+
+def _pair_errors(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
+                 zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+    """Every pair's squared one-step error ``(R, B)``, the terms of :func:`_loss_of`'s mean."""
 
     def f(x, v):
         return net.derivative_t(x, v, mlp, start if x is zeta else None)
 
     pred = rk4_step(f, zeta, u, dt)
-    return ((pred - zeta_next) ** 2).sum(dim=0).mean(dim=-1)
+    return ((pred - zeta_next) ** 2).sum(dim=0)
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
@@ -236,7 +244,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         else:
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings, breaks)
-    n_train = len(train_set[0])
+    n_train, held_out = len(train_set[0]), valid_set is not train_set
     train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
     mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
@@ -254,16 +262,39 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     means, weights = (list(kept.parameters()), list(mlp.parameters())) if kept is not mlp else ([], [])
     generators = [torch.Generator().manual_seed(m.seed) for m in members]
     full_batch = settings.batch_size >= n_train
+    # One full batch validated on the weights it trains: an epoch's validation pairs ride along
+    # in the next epoch's forward pass, which starts from the weights the epoch ended with (one
+    # pass over train and validation pairs instead of two; the last epoch's is a pass of its own).
+    joint = full_batch and held_out and kept is mlp
     # the first RK4 stage's prior and features at the data: the same every epoch, computed once
-    train_start = _start(net, len(members), *train_set) if full_batch else None
+    train_start = None
+    if joint:
+        train_start = _start(net, len(members), *(torch.cat(ab, dim=1) for ab in zip(train_set, valid_set)))
+    elif full_batch:
+        train_start = _start(net, len(members), *train_set)
     valid_start = _start(net, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
+
+    def validate(epoch: int, loss: torch.Tensor) -> bool:
+        """Record ``epoch``'s validation loss (``kept`` holds its weights); True when
+        ``patience`` ends the training there."""
+        nonlocal best_loss
+        valid_history.append(loss)
+        better = loss < best_loss
+        if better.any():
+            best_loss = torch.where(better, loss, best_loss)
+            best_epoch[better] = epoch
+            for saved, p in zip(best_state, kept.parameters()):
+                saved[better] = p[better]
+        return settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience
+
     # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
     bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=None if progress else True,
                unit="epoch")
+    stopped = False
     for epoch in bar:
         if full_batch:
             batches = [None]
@@ -273,7 +304,15 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
         for idx in batches:
             optimiser.zero_grad()
-            if idx is None:
+            if joint:
+                errors = _pair_errors(net, mlp, dt, *train_start)
+                loss = errors[:, :n_train].mean(dim=-1)
+                if epoch:  # the weights the last epoch ended with: its validation loss
+                    with torch.no_grad():
+                        stopped = validate(epoch - 1, errors[:, n_train:].mean(dim=-1))
+                    if stopped:
+                        break  # no restart improved for `patience` epochs: no further step
+            elif idx is None:
                 loss = _loss_of(net, mlp, dt, *train_start)
             else:
                 loss = _stacked_loss(system, net, mlp, *[a[:, idx] for a in train_set], dt)
@@ -283,20 +322,22 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                 epoch_loss += loss.detach() * (n_train if idx is None else idx.shape[1])
                 if means:
                     torch._foreach_lerp_(means, weights, 1.0 - settings.weight_average)
-        with torch.no_grad():  # the training loss comes free with the steps; validation costs one pass
+        if stopped:
+            break
+        with torch.no_grad():  # the training loss comes free with the steps
             history.append(epoch_loss / n_train)
-            valid_history.append(_loss_of(net, kept, dt, *valid_start))
-            better = valid_history[-1] < best_loss
-            if better.any():
-                best_loss = torch.where(better, valid_history[-1], best_loss)
-                best_epoch[better] = epoch
-                for saved, p in zip(best_state, kept.parameters()):
-                    saved[better] = p[better]
-        bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=f"{float(valid_history[-1].min()):.3e}")
+            if not joint:
+                stopped = validate(epoch, _loss_of(net, kept, dt, *valid_start))
+        if not bar.disable:
+            valid = f"{float(valid_history[-1].min()):.3e}" if valid_history else "-"
+            bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=valid)
         if schedule is not None:
             schedule.step()
-        if settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience:
+        if stopped:
             break  # no restart improved for `patience` epochs
+    if joint and history and not stopped:  # the last epoch's validation: no step follows it
+        with torch.no_grad():
+            validate(len(history) - 1, _loss_of(net, kept, dt, *valid_start))
     with torch.no_grad():
         for saved, p in zip(best_state, kept.parameters()):
             p.copy_(saved)
