@@ -300,6 +300,29 @@ def _stack(parts: list, dim: int = -1) -> torch.Tensor:
     return torch.stack(parts, dim=dim)
 
 
+class _Tanh(torch.autograd.Function):
+    """``tanh(x)`` as ``2 sigmoid(2 x) - 1``, with tanh's own backward ``g (1 - y^2)``.
+
+    torch's float64 tanh costs about twice its sigmoid and was the largest single operation of
+    a training epoch (see the project's ``docs/training.md``). The two differ by at most 4e-16
+    (absolute; the rounding of an O(1) value), which is all a trained net can see of it. Only
+    training's :meth:`StackedMLP.forward_t` uses it; the trained model, its export and every
+    estimator evaluate tanh itself.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        y = torch.sigmoid(x * 2.0)
+        y.mul_(2.0).sub_(1.0)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.tanh_backward(grad, y)
+
+
 class StackedMLP(torch.nn.Module):
     """``R`` MLPs of the same architecture with stacked weights, evaluated together.
 
@@ -321,6 +344,8 @@ class StackedMLP(torch.nn.Module):
             torch.nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])[:, None, :].clone())
             for i in range(len(layers[0])))
         self.act = mlps[0].act
+        # training's activation: tanh through the sigmoid, within 4e-16 of torch.tanh
+        self._act_t = _Tanh.apply if isinstance(self.act, torch.nn.Tanh) else self.act
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         last = len(self.weights) - 1
@@ -333,12 +358,13 @@ class StackedMLP(torch.nn.Module):
 
     def forward_t(self, z: torch.Tensor) -> torch.Tensor:
         """The members on features-first inputs: ``z (R, in, B)`` -> ``(R, out, B)`` (the layout
-        of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed."""
+        of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed,
+        and a tanh activation evaluated as :class:`_Tanh` (within 4e-16 of :meth:`forward`'s)."""
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             z = torch.baddbmm(b.transpose(1, 2), w, z)
             if i < last:
-                z = self.act(z)
+                z = self._act_t(z)
         return z
 
     def member_state(self, r: int) -> dict[str, torch.Tensor]:
