@@ -36,7 +36,12 @@ layer), each on its own mini-batch order, so each follows exactly the path it wo
 alone; the hybrid model shares the prior's evaluation between the derivative, the net's
 features and its input correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
 recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
-come free with the steps, and only the validation loss costs a pass per epoch.
+come free with the steps. The first RK4 stage's prior and features at the data are computed
+once per training (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`), and a full
+batch carries the validation pairs in its forward pass: the weights an epoch ends with are
+those the next step starts from, so that pass gives the previous epoch's validation loss (the
+last epoch's is a pass of its own). Both give the same numbers up to rounding; see
+``docs/training.md``.
 
 Two optional ways to quiet the last iterates of Adam at a constant rate 1e-2: on the 15
 cartpole Table I jobs the last epoch's validation loss sat 0-140 % (median 34 %) above the best
@@ -60,6 +65,10 @@ Two ways to spend fewer epochs:
   1e-2), 99.60 % (full batch, 3e-3, 100 epochs) and 99.64 % (batches of 1024, 2e-3, 100
   epochs) of the UKF gap, against 99.85 % from scratch: a restarted Adam pushes the net out of
   the previous round's optimum, and a gentle one hardly moves it. Not used.
+
+Length: the training loop and the settings it carries (restarts, mini-batches, validation,
+weight average, rate schedule, patience, warm start) are one procedure; split up, each part
+would need the loop's state passed back and forth.
 """
 
 from __future__ import annotations
