@@ -191,7 +191,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     report = {"label": args.label, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                                                 "torch": torch.__version__},
+                                                 "torch": torch.__version__,
+                                                 "torch_threads": torch.get_num_threads()},
               "before": BEFORE,
               "observer_and_default": bench_observer_and_default(args.repeat),
               "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},

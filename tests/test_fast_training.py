@@ -396,3 +396,78 @@ def test_progress_stays_quiet_off_a_terminal(cartpole, cartpole_run, capsys):
     train_on_run(run, cartpole, config.TrainingSettings(epochs=2), progress=True)
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["pre-training observer: rts (the system declares kinematic chains covering its states)"]
+
+
+def test_the_validation_loss_riding_along_in_the_next_epoch_equals_a_pass_of_its_own(cartpole, cartpole_run):
+    """A full batch validates epoch ``e`` in epoch ``e + 1``'s forward pass, the last epoch in a
+    pass of its own. Training ``k`` epochs ends on that pass at the weights after epoch ``k -
+    1``: it equals the loss the longer training recorded for the same epoch (to 1e-12), and the
+    training losses of the shared epochs are the same."""
+    from learnest_codegen.learning.training import train
+
+    run = cartpole_run
+    zeta, u = run.x[:500], run.u[:500]
+    settings = config.TrainingSettings(epochs=6, seed=3, weight_decay=0.1)
+    long = train(cartpole, zeta, u, run.dt, settings, progress=False)
+    for k in (1, 2, 5):
+        short = train(cartpole, zeta, u, run.dt, dataclasses.replace(settings, epochs=k), progress=False)
+        assert short.meta["validation_history"][-1] == pytest.approx(long.meta["validation_history"][k - 1],
+                                                                     rel=1e-12)
+        np.testing.assert_allclose(short.meta["loss_history"], long.meta["loss_history"][:k], rtol=1e-12)
+    assert len(set(long.meta["validation_history"])) == settings.epochs  # a loss per epoch, each its own
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot", "quadrotor"])
+def test_the_first_stage_taken_from_its_start_is_the_same_number(name):
+    """Training computes the first RK4 stage's prior and features at the data once
+    (``ResidualNet.start_t``): ``derivative_t`` from that start is bit for bit the derivative
+    computed from scratch, and so are the gradients through it."""
+    from learnest_codegen.learning.network import StackedMLP
+    from learnest_codegen.systems import get_system
+
+    system = get_system(name)
+    run = simulate(system, 0, duration=0.2)
+    torch.manual_seed(0)
+    net = make_net(system)
+    net.set_input_scaling(run.x, run.u)
+    mlp = StackedMLP([make_net(system).mlp for _ in range(2)])
+    x, u = (torch.as_tensor(a).T[:, None].expand(a.shape[1], 2, a.shape[0]) for a in (run.x, run.u))
+    with torch.no_grad():
+        start = net.start_t(x, u)
+    results = []
+    for s in (None, start):
+        out = net.derivative_t(x, u, mlp, s)
+        results.append((out, torch.autograd.grad((out ** 2).sum(), list(mlp.parameters()))))
+    assert torch.equal(results[0][0], results[1][0])
+    for a, b in zip(results[0][1], results[1][1]):
+        assert torch.equal(a, b)
+
+
+def test_trainings_tanh_is_torchs_to_rounding_and_trains_the_same_model(cartpole, cartpole_run, monkeypatch):
+    """Training evaluates tanh as ``2 sigmoid(2x) - 1`` (half the cost of torch's float64
+    tanh): within 4e-16 of ``torch.tanh`` from -30 to 30 and on tiny arguments, its gradient
+    within 1e-15 of ``1 - tanh^2``; and a training with it ends on the model that a training
+    with ``torch.tanh`` ends on (best epoch equal, final loss to 1e-9, weights to 1e-9)."""
+    import types
+
+    from learnest_codegen.learning import network
+    from learnest_codegen.learning.training import train
+
+    x = torch.cat([torch.linspace(-30, 30, 600001, dtype=torch.float64),
+                   torch.logspace(-300, 0, 3001, dtype=torch.float64),
+                   -torch.logspace(-300, 0, 3001, dtype=torch.float64)]).requires_grad_()
+    y = network._Tanh.apply(x)
+    (grad,) = torch.autograd.grad(y.sum(), x)
+    ref = torch.tanh(x.detach())
+    assert float((y.detach() - ref).abs().max()) <= 4e-16
+    assert float((grad - (1 - ref ** 2)).abs().max()) <= 1e-15
+    run = cartpole_run
+    zeta, u = run.x[:1500], run.u[:1500]
+    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1)
+    fast = train(cartpole, zeta, u, run.dt, settings, progress=False)
+    monkeypatch.setattr(network, "_Tanh", types.SimpleNamespace(apply=torch.tanh))
+    plain = train(cartpole, zeta, u, run.dt, settings, progress=False)
+    assert fast.meta["best_epoch"] == plain.meta["best_epoch"] > 10
+    assert fast.meta["final_loss"] == pytest.approx(plain.meta["final_loss"], rel=1e-9)
+    for name, value in plain.net.state_dict().items():
+        np.testing.assert_allclose(fast.net.state_dict()[name], value, rtol=0, atol=1e-9)

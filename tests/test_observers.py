@@ -339,3 +339,26 @@ def test_the_default_observer_reads_kinematic_chains_from_the_equations(user_sys
     assert choose_observer(sine)[0] == "ekf_rts"
     with pytest.raises(ObserverError, match="ekf_rts"):
         observe(run, sine, "rts")
+
+
+def test_chains_with_the_same_filter_run_in_one_batch_with_the_numbers_of_separate_passes(cartpole):
+    """The cartpole's two chains (cart and pole, both measured at position with the same
+    variance) are filtered in one batch; each chain's states, variances and jerk intensity are
+    bit for bit those of its own pass. A sample missing in one output only gives the chains
+    different covariance recursions: then they are filtered apart."""
+    from learnest_codegen.observers.kinematic import _fit_chains, _same_filters, chain_groups
+
+    run = simulate(cartpole, 0, duration=2.0)
+    groups = chain_groups(cartpole)
+    assert _same_filters(run, cartpole, groups) == [[0, 1]]
+    for smooth in (False, True):
+        together = _fit_chains(run, cartpole, groups, smooth)
+        for group, (means, covs, q) in zip(groups, together):
+            alone = _fit_chains(run, cartpole, [group], smooth)[0]
+            np.testing.assert_array_equal(means, alone[0])
+            np.testing.assert_array_equal(covs, alone[1])
+            assert q == alone[2]
+        assert together[0][2] != together[1][2] or not np.array_equal(together[0][0], together[1][0])
+    y = run.y.copy()
+    y[50, 1] = np.nan
+    assert _same_filters(dataclasses.replace(run, y=y), cartpole, groups) == [[0], [1]]

@@ -9,6 +9,7 @@ constants are buffers saved with the weights and appear in the exported graph.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import casadi as cs
 import numpy as np
@@ -17,8 +18,11 @@ from l4casadi.naive import MultiLayerPerceptron
 
 from ..config import ACTIVATIONS, NetworkSettings
 from ..errors import SettingsError
+from ..systems.backends import TorchOps
 
-__all__ = ["ACTIVATIONS", "NetworkSettings", "ResidualNet", "StackedMLP"]
+__all__ = ["ACTIVATIONS", "NetworkSettings", "ResidualNet", "StackedMLP", "StartT"]
+
+_TORCH_OPS = TorchOps()
 
 
 class ResidualNet(torch.nn.Module):
@@ -164,24 +168,39 @@ class ResidualNet(torch.nn.Module):
         return _stack([fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
                             for i in range(self.nx)])
 
-    def derivative_t(self, x: torch.Tensor, u: torch.Tensor, mlp: "StackedMLP") -> torch.Tensor:
+    def derivative_t(self, x: torch.Tensor, u: torch.Tensor, mlp: "StackedMLP",
+                     start: "StartT | None" = None) -> torch.Tensor:
         """:meth:`derivative` in training's layout: components first, ``x (nx, R, B)`` and
         ``u (nu, R, B)`` for the ``R`` members of ``mlp`` (a :class:`StackedMLP`) and ``B``
         pairs; returns ``(nx, R, B)``. Every component is then a contiguous ``(R, B)`` block,
         so the elementwise arithmetic of the prior runs on contiguous memory and stacking or
         splitting components copies blocks instead of interleaving them. Equal to
-        :meth:`derivative` up to the matrix products' rounding."""
+        :meth:`derivative` up to the matrix products' rounding.
+
+        ``start`` (:meth:`start_t` of these ``x`` and ``u``) holds what does not depend on the
+        weights: the prior, the sines and cosines and the standardised features at ``(x, u)``.
+        Training's first RK4 stage is at the data, the same every epoch, and takes them from it
+        (the same numbers, computed once)."""
+        if start is None:
+            start = self.start_t(x, u)
+        ops = _SharedTrig(start.memo)
+        xs, us, fp = start.xs, start.us, start.fp
+        out = self._channels(list(mlp.forward_t(start.z).unbind(-2)), fp)
+        if self.via:
+            shifted = [v + out[self.via.index(i)] if i in self.via else v for i, v in enumerate(us)]
+            return _stack(self.prior_terms(ops, xs, shifted), dim=0)
+        return _stack([fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
+                       for i in range(self.nx)], dim=0)
+
+    def start_t(self, x: torch.Tensor, u: torch.Tensor) -> "StartT":
+        """What :meth:`derivative_t` computes at ``(x, u)`` before the MLP: the prior's terms,
+        the sines and cosines taken, and the standardised features ``(R, in, B)``."""
         ops = _SharedTrig()
         xs, us = list(x.unbind(0)), list(u.unbind(0))
         fp = self.prior_terms(ops, xs, us)
         feats = self._features([*xs, *us], ops.sin, ops.cos, fp)
         z = (_stack(feats, dim=-2) - self.in_mean[:, None]) / self.in_scale[:, None]
-        out = self._channels(list(mlp.forward_t(z).unbind(-2)), fp)
-        if self.via:
-            shifted = [v + out[self.via.index(i)] if i in self.via else v for i, v in enumerate(us)]
-            return _stack(self.prior_terms(ops, xs, shifted), dim=0)
-        return _stack([fp[i] + out[self.outputs.index(i)] if i in self.outputs else fp[i]
-                            for i in range(self.nx)], dim=0)
+        return StartT(xs, us, fp, z, ops.memo)
 
     def _channels(self, out: list, prior_xdot: list | None) -> list:
         """The residual's channels from the MLP's outputs (any backend): the outputs themselves,
@@ -189,9 +208,13 @@ class ResidualNet(torch.nn.Module):
         if not self.prior_gains:
             return out
         n, g = self.channels, len(self.prior_features)
-        scales = [float(s) for s in self.in_scale[-g:]]
-        return [out[c] + sum(out[n + c * g + k] * (prior_xdot[j] / scales[k])
-                             for k, j in enumerate(self.prior_features)) for c in range(n)]
+        scales = self.in_scale[-g:].tolist()
+        channels = []
+        for c in range(n):
+            terms = [out[n + c * g + k] * (prior_xdot[j] / scales[k])
+                     for k, j in enumerate(self.prior_features)]
+            channels.append(out[c] + sum(terms[1:], terms[0]))  # as sum(terms) without its 0 + first
+        return channels
 
     def casadi(self, x: cs.SX, u: cs.SX, box: tuple[np.ndarray, np.ndarray] | None = None) -> cs.SX:
         """The same network as a CasADi expression of columns ``x (nx,1)``, ``u (nu,1)``.
@@ -227,11 +250,14 @@ class _SharedTrig:
     cosine it took: the prior at ``(x, u)``, at ``(x, u + du)`` and the net's angle features
     then take ``sin(alpha)`` once (and the backward pass its derivative once)."""
 
-    def __init__(self) -> None:
-        from ..systems.backends import ops_for
+    def __init__(self, memo: dict | None = None) -> None:
+        self._torch = _TORCH_OPS
+        self._memo: dict[tuple[str, int], tuple[torch.Tensor, torch.Tensor]] = dict(memo or {})
 
-        self._torch = ops_for(torch.zeros(1))
-        self._memo: dict[tuple[str, int], tuple[torch.Tensor, torch.Tensor]] = {}
+    @property
+    def memo(self) -> dict:
+        """The sines and cosines taken so far (a copy starts another evaluation with them)."""
+        return self._memo
 
     def __getattr__(self, name):  # every other function of the torch backend
         return getattr(self._torch, name)
@@ -252,6 +278,17 @@ class _SharedTrig:
         return self._remember("cos", value)
 
 
+class StartT(NamedTuple):
+    """:meth:`ResidualNet.start_t`'s result: the components of ``x`` and ``u``, the prior's
+    terms, the standardised features and the sines and cosines taken (see :class:`_SharedTrig`)."""
+
+    xs: list
+    us: list
+    fp: list
+    z: torch.Tensor
+    memo: dict
+
+
 def _stack(parts: list, dim: int = -1) -> torch.Tensor:
     """``parts`` stacked on a new axis ``dim``: one ``torch.stack`` when they are tensors of one
     shape (else broadcast, constants filled in)."""
@@ -261,6 +298,29 @@ def _stack(parts: list, dim: int = -1) -> torch.Tensor:
         parts = [p if isinstance(p, torch.Tensor) else torch.full_like(ref, float(p)) for p in parts]
         parts = list(torch.broadcast_tensors(*parts))
     return torch.stack(parts, dim=dim)
+
+
+class _Tanh(torch.autograd.Function):
+    """``tanh(x)`` as ``2 sigmoid(2 x) - 1``, with tanh's own backward ``g (1 - y^2)``.
+
+    torch's float64 tanh costs about twice its sigmoid and was the largest single operation of
+    a training epoch (see the project's ``docs/training.md``). The two differ by at most 4e-16
+    (absolute; the rounding of an O(1) value), which is all a trained net can see of it. Only
+    training's :meth:`StackedMLP.forward_t` uses it; the trained model, its export and every
+    estimator evaluate tanh itself.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        y = torch.sigmoid(x * 2.0)
+        y.mul_(2.0).sub_(1.0)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.tanh_backward(grad, y)
 
 
 class StackedMLP(torch.nn.Module):
@@ -284,6 +344,8 @@ class StackedMLP(torch.nn.Module):
             torch.nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])[:, None, :].clone())
             for i in range(len(layers[0])))
         self.act = mlps[0].act
+        # training's activation: tanh through the sigmoid, within 4e-16 of torch.tanh
+        self._act_t = _Tanh.apply if isinstance(self.act, torch.nn.Tanh) else self.act
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         last = len(self.weights) - 1
@@ -296,12 +358,13 @@ class StackedMLP(torch.nn.Module):
 
     def forward_t(self, z: torch.Tensor) -> torch.Tensor:
         """The members on features-first inputs: ``z (R, in, B)`` -> ``(R, out, B)`` (the layout
-        of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed."""
+        of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed,
+        and a tanh activation evaluated as :class:`_Tanh` (within 4e-16 of :meth:`forward`'s)."""
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             z = torch.baddbmm(b.transpose(1, 2), w, z)
             if i < last:
-                z = self.act(z)
+                z = self._act_t(z)
         return z
 
     def member_state(self, r: int) -> dict[str, torch.Tensor]:

@@ -36,7 +36,12 @@ layer), each on its own mini-batch order, so each follows exactly the path it wo
 alone; the hybrid model shares the prior's evaluation between the derivative, the net's
 features and its input correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
 recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
-come free with the steps, and only the validation loss costs a pass per epoch.
+come free with the steps. The first RK4 stage's prior and features at the data are computed
+once per training (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`), and a full
+batch carries the validation pairs in its forward pass: the weights an epoch ends with are
+those the next step starts from, so that pass gives the previous epoch's validation loss (the
+last epoch's is a pass of its own). Both give the same numbers up to rounding; see
+``docs/training.md``.
 
 Two optional ways to quiet the last iterates of Adam at a constant rate 1e-2: on the 15
 cartpole Table I jobs the last epoch's validation loss sat 0-140 % (median 34 %) above the best
@@ -60,6 +65,10 @@ Two ways to spend fewer epochs:
   1e-2), 99.60 % (full batch, 3e-3, 100 epochs) and 99.64 % (batches of 1024, 2e-3, 100
   epochs) of the UKF gap, against 99.85 % from scratch: a restarted Adam pushes the net out of
   the previous round's optimum, and a gentle one hardly moves it. Not used.
+
+Length: the training loop and the settings it carries (restarts, mini-batches, validation,
+weight average, rate schedule, patience, warm start) are one procedure; split up, each part
+would need the loop's state passed back and forth.
 """
 
 from __future__ import annotations
@@ -81,7 +90,7 @@ from ..errors import DataError, SettingsError, ShapeError
 from ..integrators import rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
-from .network import ResidualNet, StackedMLP
+from .network import ResidualNet, StackedMLP, StartT
 from .pairs import segment_pairs
 from .ranges import RANGES_KEY, record_ranges
 from .source import KEY as SOURCE_KEY
@@ -174,8 +183,10 @@ def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: Traini
     signs = system.reflection_signs()
     if signs is not None:
         sx, su = (torch.as_tensor(s) for s in signs)
+        held_out = valid_set is not train_set
         train_set, valid_set = ([torch.cat([z, z * sx]), torch.cat([v, v * su]), torch.cat([zn, zn * sx])]
                                 for z, v, zn in (train_set, valid_set))
+        valid_set = valid_set if held_out else train_set  # no validation segment: still one set
     return pairs, train_set, valid_set
 
 
@@ -185,11 +196,42 @@ def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch
     shared by all members or ``(n, R, B)`` one batch per member (the layout of
     :meth:`~learnest_codegen.learning.network.ResidualNet.derivative_t`)."""
     if zeta.dim() == 2:
-        members = len(mlp.weights[0])
-        zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
-        zeta_next = zeta_next[:, None]
-    pred = rk4_step(lambda x, v: net.derivative_t(x, v, mlp), zeta, u, dt)
-    return ((pred - zeta_next) ** 2).sum(dim=0).mean(dim=-1)
+        zeta, u, zeta_next = _expanded(len(mlp.weights[0]), zeta, u, zeta_next)
+    return _loss_of(net, mlp, dt, zeta, u, zeta_next)
+
+
+def _expanded(members: int, zeta: torch.Tensor, u: torch.Tensor, zeta_next: torch.Tensor):
+    """Pairs ``(n, B)`` shared by ``members`` as ``(n, members, B)`` (views)."""
+    zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
+    return zeta, u, zeta_next[:, None]
+
+
+def _start(net: ResidualNet, members: int, zeta: torch.Tensor, u: torch.Tensor,
+           zeta_next: torch.Tensor) -> tuple:
+    """Pairs ``(n, B)`` with what the first RK4 stage computes at them before the weights
+    enter (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`): the arguments of
+    :func:`_loss_of` after ``dt``, computed once for every epoch of a full batch."""
+    zeta, u, zeta_next = _expanded(members, zeta, u, zeta_next)
+    with torch.no_grad():
+        return zeta, u, zeta_next, net.start_t(zeta, u)
+
+
+def _loss_of(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
+             zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+    """:func:`_stacked_loss` on pairs ``(n, R, B)``; ``start`` (:func:`_start`) is taken for the
+    first RK4 stage, which is at ``zeta`` itself."""
+    return _pair_errors(net, mlp, dt, zeta, u, zeta_next, start).mean(dim=-1)
+
+
+def _pair_errors(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
+                 zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+    """Every pair's squared one-step error ``(R, B)``, the terms of :func:`_loss_of`'s mean."""
+
+    def f(x, v):
+        return net.derivative_t(x, v, mlp, start if x is zeta else None)
+
+    pred = rk4_step(f, zeta, u, dt)
+    return ((pred - zeta_next) ** 2).sum(dim=0)
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
@@ -211,7 +253,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         else:
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings, breaks)
-    n_train = len(train_set[0])
+    n_train, held_out = len(train_set[0]), valid_set is not train_set
     train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
     mlp = StackedMLP([n.mlp for n in nets])
     if settings.weight_decay:
@@ -229,13 +271,39 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     means, weights = (list(kept.parameters()), list(mlp.parameters())) if kept is not mlp else ([], [])
     generators = [torch.Generator().manual_seed(m.seed) for m in members]
     full_batch = settings.batch_size >= n_train
+    # One full batch validated on the weights it trains: an epoch's validation pairs ride along
+    # in the next epoch's forward pass, which starts from the weights the epoch ended with (one
+    # pass over train and validation pairs instead of two; the last epoch's is a pass of its own).
+    joint = full_batch and held_out and kept is mlp
+    # the first RK4 stage's prior and features at the data: the same every epoch, computed once
+    train_start = None
+    if joint:
+        train_start = _start(net, len(members), *(torch.cat(ab, dim=1) for ab in zip(train_set, valid_set)))
+    elif full_batch:
+        train_start = _start(net, len(members), *train_set)
+    valid_start = _start(net, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
+
+    def validate(epoch: int, loss: torch.Tensor) -> bool:
+        """Record ``epoch``'s validation loss (``kept`` holds its weights); True when
+        ``patience`` ends the training there."""
+        nonlocal best_loss
+        valid_history.append(loss)
+        better = loss < best_loss
+        if better.any():
+            best_loss = torch.where(better, loss, best_loss)
+            best_epoch[better] = epoch
+            for saved, p in zip(best_state, kept.parameters()):
+                saved[better] = p[better]
+        return settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience
+
     # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
     bar = tqdm(range(settings.epochs), desc=f"training {system.name}", disable=None if progress else True,
                unit="epoch")
+    stopped = False
     for epoch in bar:
         if full_batch:
             batches = [None]
@@ -245,28 +313,40 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
         for idx in batches:
             optimiser.zero_grad()
-            batch = train_set if idx is None else [a[:, idx] for a in train_set]
-            loss = _stacked_loss(system, net, mlp, *batch, dt)
+            if joint:
+                errors = _pair_errors(net, mlp, dt, *train_start)
+                loss = errors[:, :n_train].mean(dim=-1)
+                if epoch:  # the weights the last epoch ended with: its validation loss
+                    with torch.no_grad():
+                        stopped = validate(epoch - 1, errors[:, n_train:].mean(dim=-1))
+                    if stopped:
+                        break  # no restart improved for `patience` epochs: no further step
+            elif idx is None:
+                loss = _loss_of(net, mlp, dt, *train_start)
+            else:
+                loss = _stacked_loss(system, net, mlp, *[a[:, idx] for a in train_set], dt)
             loss.sum().backward()
             optimiser.step()
             with torch.no_grad():
                 epoch_loss += loss.detach() * (n_train if idx is None else idx.shape[1])
                 if means:
                     torch._foreach_lerp_(means, weights, 1.0 - settings.weight_average)
-        with torch.no_grad():  # the training loss comes free with the steps; validation costs one pass
+        if stopped:
+            break
+        with torch.no_grad():  # the training loss comes free with the steps
             history.append(epoch_loss / n_train)
-            valid_history.append(_stacked_loss(system, net, kept, *valid_set, dt))
-            better = valid_history[-1] < best_loss
-            if better.any():
-                best_loss = torch.where(better, valid_history[-1], best_loss)
-                best_epoch[better] = epoch
-                for saved, p in zip(best_state, kept.parameters()):
-                    saved[better] = p[better]
-        bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=f"{float(valid_history[-1].min()):.3e}")
+            if not joint:
+                stopped = validate(epoch, _loss_of(net, kept, dt, *valid_start))
+        if not bar.disable:
+            valid = f"{float(valid_history[-1].min()):.3e}" if valid_history else "-"
+            bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=valid)
         if schedule is not None:
             schedule.step()
-        if settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience:
+        if stopped:
             break  # no restart improved for `patience` epochs
+    if joint and history and not stopped:  # the last epoch's validation: no step follows it
+        with torch.no_grad():
+            validate(len(history) - 1, _loss_of(net, kept, dt, *valid_start))
     with torch.no_grad():
         for saved, p in zip(best_state, kept.parameters()):
             p.copy_(saved)

@@ -26,8 +26,12 @@ def _kinematic(run: Run, system: System, smooth: bool) -> Observations:
     zeta = np.full((T, system.nx), np.nan)
     var = np.full((T, system.nx), np.nan)
     info = {}
-    for chain, measured in chain_groups(system, chains):
-        means, covs, q = _fit_chain(run, system, chain, smooth, measured)
+    groups = chain_groups(system, chains)
+    fits = {}
+    for batch in _same_filters(run, system, groups):  # chains whose filters differ only in z
+        fits.update(zip(batch, _fit_chains(run, system, [groups[i] for i in batch], smooth)))
+    for g, (chain, measured) in enumerate(groups):
+        means, covs, q = fits[g]
         for j, state in enumerate(chain.states):
             i = system.state_names.index(state)
             zeta[:, i], var[:, i] = means[:, j], covs[:, j, j]
@@ -120,20 +124,48 @@ def chain_groups(system: System, chains: tuple[KinematicChain, ...] | None = Non
     return out
 
 
-def _fit_chain(run: Run, system: System, chain: KinematicChain, smooth: bool,
-               measured: list[tuple[int, int]] | None = None):
-    measured = measured or [(system.output_names.index(chain.output), 0)]
+def _chain_filter(run: Run, system: System, chain: KinematicChain, measured: list[tuple[int, int]]):
+    """A chain's filter: its outputs, their variances, the derivative orders they measure and
+    the filter's order."""
     outputs = [o for o, _ in measured]
-    z = run.y[:, outputs]
     r = np.square(np.asarray(system.noise.measurement_std, float)[outputs])
-    rows = tuple(k for _, k in measured)
-    order = len(chain.states) + 1  # one derivative beyond the chain, driven by white noise
-    passes, model = chain_passes(z, run.dt, order, JERK_GRID, r, rows)
-    best = int(np.argmax(passes.loglik))  # the first of equals, as max() over the grid
-    chosen = passes.member(best)
+    return outputs, r, tuple(k for _, k in measured), len(chain.states) + 1
+
+
+def _same_filters(run: Run, system: System, groups: list) -> list[list[int]]:
+    """The chain groups (indices into ``groups``) whose filters share everything but the
+    measurements' values: the order, the derivative orders measured, the variances and which
+    samples are missing. Their covariance recursions are then the same, and one batch filters
+    them all in one pass (the numbers of separate passes)."""
+    batches: list[tuple[tuple, list[int]]] = []
+    for g, (chain, measured) in enumerate(groups):
+        outputs, r, rows, order = _chain_filter(run, system, chain, measured)
+        key = (order, rows, r.tobytes(), np.isfinite(run.y[:, outputs]).tobytes())
+        hit = next((b for k, b in batches if k == key), None)
+        if hit is None:
+            batches.append((key, [g]))
+        else:
+            hit.append(g)
+    return [b for _, b in batches]
+
+
+def _fit_chains(run: Run, system: System, groups: list, smooth: bool) -> list[tuple]:
+    """Each chain group's smoothed (or filtered) means and covariances of its states and its
+    jerk intensity by maximum likelihood; the groups share their filters' structure
+    (:func:`_same_filters`), and every chain with every grid intensity is one member of one
+    batch."""
+    G = len(JERK_GRID)
+    filters = [_chain_filter(run, system, chain, measured) for chain, measured in groups]
+    _, r, rows, order = filters[0]
+    z = np.repeat(np.stack([run.y[:, outputs] for outputs, *_ in filters], axis=1), G, axis=1)
+    passes, model = chain_passes(z, run.dt, order, np.tile(JERK_GRID, len(groups)), r, rows)
+    best = np.argmax(passes.loglik.reshape(len(groups), G), axis=1)  # the first of equals, as max()
+    members = best + G * np.arange(len(groups))  # member c * G + g: chain c, intensity g
+    chosen = FilterPasses(*(a[:, members] for a in (passes.means, passes.covs, passes.means_p,
+                                                    passes.covs_p)), passes.loglik[members])
     means, covs = rts_smoother(model.F, chosen) if smooth else (chosen.means, chosen.covs)
-    n = len(chain.states)
-    return means[:, 0, :n], covs[:, 0, :n, :n], float(JERK_GRID[best])
+    n = order - 1
+    return [(means[:, c, :n], covs[:, c, :n, :n], float(JERK_GRID[b])) for c, b in enumerate(best)]
 
 
 def chain_passes(z: np.ndarray, dt: float, order: int, q, r, rows: tuple[int, ...] = (0,)):
