@@ -1,11 +1,11 @@
 """Instructions per sample of the generated C estimators, counted by callgrind (load-independent).
 
 For each estimator (the UKF, ``mhe_rti`` and ``mhe_gn``, N = 20 unless ``--horizon``) of the
-KNODE cartpole (or ``--system``; in float64 unless ``--precision``; the default residual net at its seed-0 initialisation: the same C as a trained
-one), a plain C main is built from the generated folder's sources with the documented flags
-(``-O2 -std=c99 -fno-math-errno``), stepped over T1 and T2 samples of a simulated run (seed 1)
-under ``valgrind --tool=callgrind``; instructions per sample = (I(T2) - I(T1)) / (T2 - T1), so
-start-up and init cancel. Usage::
+KNODE cartpole (or ``--system``; float64 unless ``--precision``), with the default residual net
+at its seed-0 initialisation (the same C as a trained one), a plain C main is built from the
+generated folder's sources with the documented flags (``-O2 -std=c99 -fno-math-errno``),
+stepped over T1 and T2 samples of a simulated run (seed 1) under ``valgrind --tool=callgrind``;
+instructions per sample = (I(T2) - I(T1)) / (T2 - T1), so start-up and init cancel. Usage::
 
     python scripts/bench_callgrind.py --out bench_callgrind.json [--estimators ukf mhe_rti]
 """
