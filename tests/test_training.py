@@ -328,6 +328,7 @@ def test_innovation_loglik_prefers_the_true_dynamics(cartpole):
     assert np.isfinite(prior) and true > prior + 20
 
 
+@pytest.mark.slow
 def test_refinement_study_starts_from_true_model_states(tmp_path):
     """scripts/study_refinement.py: round 0 trains on states smoothed through the true model,
     whose velocities are far better than the kinematic smoother's (RMS ~1e-3 against ~2e-2)."""
