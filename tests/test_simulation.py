@@ -160,7 +160,7 @@ def test_rk4_jacobian_by_stages_equals_casadi_ad_and_finite_differences(cartpole
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     xdot = model.f_continuous(x, u)
     f_jac = cs.Function("f_jac", [x, u], [xdot, cs.jacobian(xdot, x)])
-    step, jac = rk4_step_jacobian(lambda a, b: f_jac(a, b), x, u, model.dt, cs.SX.eye(model.nx))
+    step, jac = rk4_step_jacobian(f_jac, x, u, model.dt, cs.SX.eye(model.nx))
     chained = cs.Function("c", [x, u], [step, jac])
     whole = cs.Function("w", [x, u], [model.F(x, u), cs.jacobian(model.F(x, u), x)])
     rng = np.random.default_rng(3)

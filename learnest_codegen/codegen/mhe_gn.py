@@ -70,7 +70,7 @@ def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     xdot = model.f_continuous(x, u)
     f_jac = cs.Function("f_jac", [x, u], [xdot, cs.jacobian(xdot, x)])
-    F, A = rk4_step_jacobian(lambda a, b: f_jac(a, b), x, u, model.dt, cs.SX.eye(model.nx))
+    F, A = rk4_step_jacobian(f_jac, x, u, model.dt, cs.SX.eye(model.nx))
     both = cs.cse(cs.vertcat(F, cs.vec(cs.densify(A))))
     n = model.nx
     return (
