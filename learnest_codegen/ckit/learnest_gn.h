@@ -43,17 +43,6 @@ struct learnest_gn {
   learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], rw[LEARNEST_NX], rv[LEARNEST_NY];
 };
 
-/* 1 when the n x n W (column-major) has no off-diagonal entry. */
-LEARNEST_KIT int learnest_gn_diagonal(const learnest_real* W, int n) {
-  int r, c;
-  LEARNEST_UNROLL for (c = 0; c < n; ++c) {
-    LEARNEST_UNROLL for (r = 0; r < n; ++r) {
-      if (r != c && W[r + c * n] != 0) return 0;
-    }
-  }
-  return 1;
-}
-
 /* The weights of p divided by their largest diagonal entry, as the Ipopt MHE scales its cost. */
 LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest_mhe_problem* p) {
   learnest_real big = 0;
@@ -65,9 +54,9 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
   for (i = 0; i < LEARNEST_NXX; ++i) s->Q[i] = big * p->Q[i];
   for (i = 0; i < LEARNEST_NYY; ++i) s->R[i] = big * p->R[i];
   for (i = 0; i < LEARNEST_NXX; ++i) s->P[i] = big * p->P[i];
-  s->dq = learnest_gn_diagonal(s->Q, LEARNEST_NX);
-  s->dr = learnest_gn_diagonal(s->R, LEARNEST_NY);
-  s->dp = learnest_gn_diagonal(s->P, LEARNEST_NX);
+  s->dq = learnest_is_diagonal(s->Q, LEARNEST_NX);
+  s->dr = learnest_is_diagonal(s->R, LEARNEST_NY);
+  s->dp = learnest_is_diagonal(s->P, LEARNEST_NX);
 }
 
 /* Linearise every stage and node of window w at the states X into L. */
