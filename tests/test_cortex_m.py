@@ -131,6 +131,18 @@ def test_quadrotor_knode_on_the_m4f(estimator, precision, tmp_path):
     check_footprint(gen, paths, fw, ram_bytes=256 * 1024)
 
 
+def test_quadrotor_axis_by_axis_on_the_m4f(tmp_path):
+    """The nominal quadrotor keeps its three axes apart, so its embedded MHE solves them one by
+    one (learnest_gn.h's groups): QEMU equal to the host and to the bindings on that path too."""
+    system = get_system("quadrotor")
+    model = prior_model(system)
+    gen, paths, fw, host = build_and_run(model, tmp_path, 100, estimator="mhe_rti",
+                                         precision="float32")
+    assert "#define LEARNEST_NCOMP 3" in (gen.directory / f"{gen.prefix}.c").read_text()
+    check_parity(gen, fw, host, 100, system)
+    np.testing.assert_array_equal(host.X, bc.host_reference(gen))
+
+
 def test_command_line_with_a_system_file(user_system_file, tmp_path):
     """``--system path/to/file.py`` (the README's pendulum): the whole example runs and reports
     QEMU equal to the host."""

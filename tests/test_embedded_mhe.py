@@ -9,7 +9,9 @@ gradient <= 1e-12 of the scaled cost, so the difference is the two solvers' tole
 
 from __future__ import annotations
 
+import json
 import subprocess
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,13 +19,14 @@ import torch
 
 from learnest_codegen import get_system, simulation
 from learnest_codegen.codegen.mhe import generate_mhe
-from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe
+from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe, model_functions, state_groups
 from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.data import write_run
 from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, SolverError
 from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
+from learnest_codegen.estimators.mhe_problem import mhe_settings
 from learnest_codegen.export import hybrid_model, prior_model
-from learnest_codegen.learning.training import TrainingSettings, train
+from learnest_codegen.learning.training import TrainingSettings, make_net, train
 from learnest_codegen.runtime.mhe import CompiledMHE
 from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
 from learnest_codegen.runtime.status import STATUSES
@@ -326,3 +329,46 @@ def test_float32_embedded_mhe_and_ukf_track_float64(builds, parity_run, cartpole
     ref = mse(X["float64"], run.x)
     assert 0 < np.max(np.abs(X["float32"] - X["float64"])) and \
         abs(mse(X["float32"], run.x) - ref) <= 0.01 * ref
+
+
+def _groups(model):
+    return state_groups(*model_functions(model, "m")[:2], model.nx, model.ny)
+
+
+def test_state_groups_are_read_off_the_jacobians(cartpole):
+    """The quadrotor's prior moves each axis on its own and measures each axis's position and
+    acceleration: three groups, each with its two outputs. A net that sees every axis's
+    velocity and acceleration couples them all; the cartpole is one group."""
+    quad = get_system("quadrotor")
+    assert _groups(prior_model(quad)) == (((0, 3, 6), (0, 3)), ((1, 4, 7), (1, 4)),
+                                          ((2, 5, 8), (2, 5)))
+    torch.manual_seed(0)
+    assert _groups(hybrid_model(quad, make_net(quad))) == ((tuple(range(9)), tuple(range(6))),)
+    assert _groups(prior_model(cartpole)) == (((0, 1, 2, 3), (0, 1)),)
+
+
+def test_separate_axes_are_solved_one_by_one_and_agree_with_ipopt(tmp_path):
+    """The grey-box quadrotor (fitted acceleration rows, axes apart): mhe_gn solves the three
+    axes' normal equations one by one and equals the Ipopt MHE on every step; the same library
+    with an arrival covariance that couples two axes by 1e-9 (so the whole window is solved at
+    once) gives the same estimates to that coupling; one RTI step solves this linear model."""
+    quad = replace(get_system("quadrotor_linear"),
+                   params={"k_v_xy": 1.4, "k_a_xy": 0.3, "k_v_z": 0.8, "k_a_z": 0.5})
+    run = simulation.simulate(quad, seed=1, duration=150 * quad.dt)
+    model = prior_model(quad)
+    settings = mhe_settings(model, estimator_kind("mhe").default_settings(model))
+    directory = generate_embedded_mhe(model, settings, tmp_path / "gn").directory
+    assert json.loads((directory / "manifest.json").read_text())["state_groups"] == [
+        [0, 3, 6], [1, 4, 7], [2, 5, 8]]
+    X_ipopt = CompiledMHE(generate_mhe(model, settings, tmp_path / "mhe").directory).run(
+        run.u, run.y, quad.x0)
+    X_split = CompiledEmbeddedMHE(directory).run(run.u, run.y, quad.x0)
+    assert np.max(np.abs(X_split - X_ipopt)) <= PARITY_ATOL
+    P = np.array(settings.arrival_covariance)
+    P[0, 1] = P[1, 0] = 1e-9 * np.sqrt(P[0, 0] * P[1, 1])
+    coupled = replace(settings, arrival_covariance=tuple(map(tuple, P)))
+    X_whole = CompiledEmbeddedMHE(directory, settings=coupled).run(run.u, run.y, quad.x0)
+    assert 0 < np.max(np.abs(X_whole - X_split)) <= 1e-9
+    rti = generate_embedded_mhe(model, settings, tmp_path / "rti", solver=RTI).directory
+    X_rti = CompiledEmbeddedMHE(rti).run(run.u, run.y, quad.x0)
+    assert np.max(np.abs(X_rti - X_ipopt)) <= PARITY_ATOL

@@ -14,6 +14,14 @@
  *   static void learnest_model_node(struct learnest_model*, const learnest_real* x,
  *       const learnest_real* u, learnest_real* h, learnest_real* C);   h(x, u), C = dh/dx
  * with A (NX x NX) and C (NY x NX) column-major (learnest_casadi.h gives them for CasADi code).
+ *
+ * A model that keeps its states apart in LEARNEST_NCOMP > 1 groups (no entry of A or C couples
+ * two groups: the generator reads it off the Jacobians' structure) also defines
+ * LEARNEST_COMP_X (the states, group by group), LEARNEST_COMP_NX (each group's size),
+ * LEARNEST_COMP_Y, LEARNEST_COMP_NY (the outputs likewise), LEARNEST_COMP_OF_X and
+ * LEARNEST_COMP_OF_Y (each state's and output's group). While the weights keep the groups apart
+ * too, the normal equations are block diagonal in the groups and are solved group by group:
+ * the same step, for a fraction of the work (docs/embedded_mhe.md).
  */
 #ifndef LEARNEST_GN_H
 #define LEARNEST_GN_H
@@ -25,6 +33,25 @@
 #define LEARNEST_GN_ARMIJO ((learnest_real)1e-4)
 #define LEARNEST_GN_MAX_HALVINGS 30
 
+#ifndef LEARNEST_NCOMP
+#define LEARNEST_NCOMP 1
+#endif
+#if LEARNEST_NCOMP > 1
+static const unsigned char learnest_comp_x[LEARNEST_NX] = LEARNEST_COMP_X;
+static const unsigned char learnest_comp_nx[LEARNEST_NCOMP] = LEARNEST_COMP_NX;
+static const unsigned char learnest_comp_y[LEARNEST_NY] = LEARNEST_COMP_Y;
+static const unsigned char learnest_comp_ny[LEARNEST_NCOMP] = LEARNEST_COMP_NY;
+static const unsigned char learnest_comp_of_x[LEARNEST_NX] = LEARNEST_COMP_OF_X;
+static const unsigned char learnest_comp_of_y[LEARNEST_NY] = LEARNEST_COMP_OF_Y;
+#ifdef LEARNEST_COMP_SIZE  /* every group has this many states and LEARNEST_COMP_YSIZE outputs */
+#define LEARNEST_GROUP_NX(k) LEARNEST_COMP_SIZE
+#define LEARNEST_GROUP_NY(k) LEARNEST_COMP_YSIZE
+#else
+#define LEARNEST_GROUP_NX(k) learnest_comp_nx[k]
+#define LEARNEST_GROUP_NY(k) learnest_comp_ny[k]
+#endif
+#endif
+
 /* F, A at each stage (x_i, u_{i+1}); h, C at each node (x_i, u_i); column-major blocks. */
 struct learnest_lin {
   learnest_real F[LEARNEST_N * LEARNEST_NX], A[LEARNEST_N * LEARNEST_NXX];
@@ -34,14 +61,30 @@ struct learnest_lin {
 struct learnest_gn {
   int mode, max_iter, iterations, lin_valid;
   int dq, dr, dp;  /* Q, R, P diagonal (the usual tuning): their zero terms are skipped */
+  int split;       /* the weights keep the model's groups apart: solve group by group */
   learnest_real tol;
   learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];  /* weights / the largest */
-  struct learnest_lin lin, trial;  /* at the iterate, and at the line search's point */
+  struct learnest_lin lin[2];  /* at the iterate (lin[cur]) and at the line search's point */
+  int cur;
   learnest_real Xt[LEARNEST_NW];
   learnest_real D[(LEARNEST_N + 1) * LEARNEST_NXX];  /* diagonal blocks, then their factors */
   learnest_real E[LEARNEST_N * LEARNEST_NXX];  /* blocks (i+1, i), then the factor's */
   learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], rw[LEARNEST_NX], rv[LEARNEST_NY];
 };
+
+/* The linearisation at the iterate. */
+#define LEARNEST_GN_LIN(s) (&(s)->lin[(s)->cur])
+
+/* Whether the n x n W couples no two entries of different groups (of: each entry's group). */
+LEARNEST_KIT int learnest_gn_apart(const learnest_real* W, int n, const unsigned char* of) {
+  int r, c;
+  for (c = 0; c < n; ++c) {
+    for (r = 0; r < n; ++r) {
+      if (of[r] != of[c] && W[r + c * n] != 0) return 0;
+    }
+  }
+  return 1;
+}
 
 /* The weights of p divided by their largest diagonal entry, as the Ipopt MHE scales its cost. */
 LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest_mhe_problem* p) {
@@ -57,6 +100,13 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
   s->dq = learnest_is_diagonal(s->Q, LEARNEST_NX);
   s->dr = learnest_is_diagonal(s->R, LEARNEST_NY);
   s->dp = learnest_is_diagonal(s->P, LEARNEST_NX);
+#if LEARNEST_NCOMP > 1
+  s->split = learnest_gn_apart(s->Q, LEARNEST_NX, learnest_comp_of_x)
+             && learnest_gn_apart(s->P, LEARNEST_NX, learnest_comp_of_x)
+             && learnest_gn_apart(s->R, LEARNEST_NY, learnest_comp_of_y);
+#else
+  s->split = 0;
+#endif
 }
 
 /* Linearise every stage and node of window w at the states X into L. */
@@ -79,7 +129,7 @@ LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct 
 LEARNEST_KIT void learnest_gn_advance(struct learnest_gn* s, struct learnest_model* md,
                                       const struct learnest_window* w, const learnest_real* X,
                                       int has_previous) {
-  struct learnest_lin* L = &s->lin;
+  struct learnest_lin* L = LEARNEST_GN_LIN(s);
   if (!(s->lin_valid && has_previous)) {
     learnest_gn_linearise(md, w, X, L);
     return;
@@ -157,7 +207,7 @@ LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, con
  * E_i = H_{i+1, i}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
 LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
                                     const learnest_real* X) {
-  const struct learnest_lin* L = &s->lin;
+  const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
   memset(s->D, 0, sizeof s->D);
@@ -227,71 +277,216 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
   }
 }
 
-/* Solve H dx = -g for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i (lower
- * triangles read) and N blocks E_i = H_{i+1, i} (all NX x NX, column-major), by the block
- * Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = E_i L_i^-T (solved column by
- * column in place: every inner loop runs over a whole column of NX). D and E are overwritten
- * by the factor. 0 if H is not positive definite. */
-LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const learnest_real* g,
-                                    learnest_real* dx) {
+/* Solve H z = b in place for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i
+ * (n x n, column-major, at D + i bs; lower triangles read) and N blocks E_i = H_{i+1, i} (at
+ * E + i bs), z_i at z + i n, by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
+ * B_i = E_i L_i^-T (solved column by column in place: every inner loop runs over a whole
+ * column). D and E are overwritten by the factor. 0 if H is not positive definite. */
+LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
+                                      learnest_real* z) {
   int i, r, c, k;
   for (i = 0; i <= LEARNEST_N; ++i) {
-    learnest_real* Di = D + i * LEARNEST_NXX;
+    learnest_real* Di = D + i * bs;
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
-      const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+      const learnest_real* B = E + (i - 1) * bs;
+      LEARNEST_UNROLL for (c = 0; c < n; ++c) {
+        LEARNEST_UNROLL for (r = c; r < n; ++r) {
           learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += B[r + k * LEARNEST_NX] * B[c + k * LEARNEST_NX];
-          Di[r + c * LEARNEST_NX] -= v;
+          LEARNEST_UNROLL for (k = 0; k < n; ++k) v += B[r + k * n] * B[c + k * n];
+          Di[r + c * n] -= v;
         }
       }
     }
-    if (!learnest_cholesky(Di, LEARNEST_NX)) return 0;
+    if (!learnest_cholesky(Di, n)) return 0;
     if (i < LEARNEST_N) {  /* B_i L_i' = E_i: column c of B from the columns before it */
-      learnest_real* B = E + i * LEARNEST_NXX;
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        learnest_real* Bc = B + c * LEARNEST_NX;
-        const learnest_real inv = 1 / Di[c + c * LEARNEST_NX];
+      learnest_real* B = E + i * bs;
+      LEARNEST_UNROLL for (c = 0; c < n; ++c) {
+        learnest_real* Bc = B + c * n;
+        const learnest_real inv = 1 / Di[c + c * n];
         for (k = 0; k < c; ++k) {
-          const learnest_real l = Di[c + k * LEARNEST_NX];
-          const learnest_real* Bk = B + k * LEARNEST_NX;
-          LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) Bc[r] -= Bk[r] * l;
+          const learnest_real l = Di[c + k * n];
+          const learnest_real* Bk = B + k * n;
+          LEARNEST_UNROLL for (r = 0; r < n; ++r) Bc[r] -= Bk[r] * l;
         }
-        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) Bc[r] *= inv;
+        LEARNEST_UNROLL for (r = 0; r < n; ++r) Bc[r] *= inv;
       }
     }
   }
-  for (i = 0; i <= LEARNEST_N; ++i) {  /* forward: z_i = L_i^-1 (-g_i - B_{i-1} z_{i-1}) */
-    learnest_real* z = dx + i * LEARNEST_NX;
-    LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) z[r] = -g[i * LEARNEST_NX + r];
+  for (i = 0; i <= LEARNEST_N; ++i) {  /* forward: z_i = L_i^-1 (b_i - B_{i-1} z_{i-1}) */
+    learnest_real* zi = z + i * n;
     if (i > 0) {
-      const learnest_real* B = E + (i - 1) * LEARNEST_NXX;
-      LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[r + k * LEARNEST_NX] * z[k - LEARNEST_NX];
+      const learnest_real* B = E + (i - 1) * bs;
+      LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+        LEARNEST_UNROLL for (k = 0; k < n; ++k) zi[r] -= B[r + k * n] * zi[k - n];
       }
     }
-    learnest_forward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);
+    learnest_forward_subst(D + i * bs, n, zi);
   }
-  for (i = LEARNEST_N; i >= 0; --i) {  /* backward: dx_i = L_i^-T (z_i - B_i' dx_{i+1}) */
-    learnest_real* z = dx + i * LEARNEST_NX;
+  for (i = LEARNEST_N; i >= 0; --i) {  /* backward: z_i = L_i^-T (z_i - B_i' z_{i+1}) */
+    learnest_real* zi = z + i * n;
     if (i < LEARNEST_N) {
-      const learnest_real* B = E + i * LEARNEST_NXX;
-      LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) z[r] -= B[k + r * LEARNEST_NX] * z[LEARNEST_NX + k];
+      const learnest_real* B = E + i * bs;
+      LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+        LEARNEST_UNROLL for (k = 0; k < n; ++k) zi[r] -= B[k + r * n] * zi[n + k];
       }
     }
-    learnest_backward_subst(D + i * LEARNEST_NXX, LEARNEST_NX, z);
+    learnest_backward_subst(D + i * bs, n, zi);
   }
   return 1;
 }
+
+/* Solve H dx = -g for the whole window's H (blocks NX x NX): learnest_btd_solve_n. */
+LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const learnest_real* g,
+                                    learnest_real* dx) {
+  int j;
+  for (j = 0; j < LEARNEST_NW; ++j) dx[j] = -g[j];
+  return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx);
+}
+
+#if LEARNEST_NCOMP > 1
+/* The normal equations of learnest_gn_build for a model whose states, outputs and weights
+ * fall apart in groups: H is block diagonal in the groups. Group k's blocks (n_k x n_k) sit at
+ * offset sum_{j<k} n_j^2 of each node's D and E slot; g stays in state order. */
+LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct learnest_window* w,
+                                          const learnest_real* X) {
+  const struct learnest_lin* L = LEARNEST_GN_LIN(s);
+  int i, k, r, c, q, xo = 0, yo = 0, bo = 0;
+  memset(s->D, 0, sizeof s->D);
+  memset(s->E, 0, sizeof s->E);
+  memset(s->g, 0, sizeof s->g);
+  for (k = 0; k < LEARNEST_NCOMP; ++k) {
+    const int n = LEARNEST_GROUP_NX(k), ny = LEARNEST_GROUP_NY(k);
+    const unsigned char* S = learnest_comp_x + xo;
+    const unsigned char* O = learnest_comp_y + yo;
+    for (i = 0; i <= LEARNEST_N; ++i) {
+      learnest_real* D = s->D + i * LEARNEST_NXX + bo;
+      learnest_real* g = s->g + i * LEARNEST_NX;
+      const learnest_real* x = X + i * LEARNEST_NX;
+      learnest_real a = i ? 1 - w->mask[i - 1] : 1, m = w->mask[i];
+      if (a != 0) {  /* arrival term */
+        for (c = 0; c < n; ++c) {
+          for (r = s->dp ? c : 0; r < (s->dp ? c + 1 : n); ++r) {
+            const learnest_real P = a * s->P[S[r] + S[c] * LEARNEST_NX];
+            if (r >= c) D[r + c * n] += P;
+            g[S[r]] += P * (x[S[c]] - w->xbar[S[c]]);
+          }
+        }
+      }
+      if (m == 0) continue;
+      if (ny > 0) {  /* measurement term: the group's outputs and states */
+        const learnest_real* Gi = w->G + i * LEARNEST_NY;
+        const learnest_real* Ci = L->C + i * LEARNEST_NY * LEARNEST_NX;
+        learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
+        for (r = 0; r < ny; ++r) {
+          s->rv[r] = Gi[O[r]] * (w->Y[i * LEARNEST_NY + O[r]] - L->h[i * LEARNEST_NY + O[r]]);
+          for (c = 0; c < n; ++c) C[r + c * ny] = Gi[O[r]] * Ci[O[r] + S[c] * LEARNEST_NY];
+        }
+        for (r = 0; r < ny; ++r) {
+          if (s->dr) {
+            const learnest_real R = s->R[O[r] + O[r] * LEARNEST_NY];
+            Rv[r] = R * s->rv[r];
+            for (c = 0; c < n; ++c) RC[r + c * ny] = R * C[r + c * ny];
+            continue;
+          }
+          Rv[r] = 0;
+          for (q = 0; q < ny; ++q) Rv[r] += s->R[O[r] + O[q] * LEARNEST_NY] * s->rv[q];
+          for (c = 0; c < n; ++c) {
+            learnest_real v = 0;
+            for (q = 0; q < ny; ++q) v += s->R[O[r] + O[q] * LEARNEST_NY] * C[q + c * ny];
+            RC[r + c * ny] = v;
+          }
+        }
+        for (c = 0; c < n; ++c) {
+          for (r = c; r < n; ++r) {
+            learnest_real v = 0;
+            for (q = 0; q < ny; ++q) v += C[q + r * ny] * RC[q + c * ny];
+            D[r + c * n] += m * v;
+          }
+          for (q = 0; q < ny; ++q) g[S[c]] -= m * C[q + c * ny] * Rv[q];
+        }
+      }
+      if (i < LEARNEST_N) {  /* process term: couples x_i and x_{i+1} within the group */
+        const learnest_real* Ai = L->A + i * LEARNEST_NXX;
+        learnest_real* Dn = s->D + (i + 1) * LEARNEST_NXX + bo;
+        learnest_real* E = s->E + i * LEARNEST_NXX + bo;
+        learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
+        learnest_real A[LEARNEST_NXX], QA[LEARNEST_NXX], Qw[LEARNEST_NX];
+        for (r = 0; r < n; ++r) {
+          s->rw[r] = X[(i + 1) * LEARNEST_NX + S[r]] - L->F[i * LEARNEST_NX + S[r]];
+          for (c = 0; c < n; ++c) A[r + c * n] = Ai[S[r] + S[c] * LEARNEST_NX];
+        }
+        for (r = 0; r < n; ++r) {
+          if (s->dq) {
+            const learnest_real Q = s->Q[S[r] + S[r] * LEARNEST_NX];
+            Qw[r] = Q * s->rw[r];
+            for (c = 0; c < n; ++c) {
+              QA[r + c * n] = Q * A[r + c * n];
+              E[r + c * n] = -m * QA[r + c * n];  /* H_{i+1,i} = -m Q A */
+            }
+            continue;
+          }
+          Qw[r] = 0;
+          for (q = 0; q < n; ++q) Qw[r] += s->Q[S[r] + S[q] * LEARNEST_NX] * s->rw[q];
+          for (c = 0; c < n; ++c) {
+            learnest_real v = 0;
+            for (q = 0; q < n; ++q) v += s->Q[S[r] + S[q] * LEARNEST_NX] * A[q + c * n];
+            QA[r + c * n] = v;
+            E[r + c * n] = -m * v;  /* H_{i+1,i} = -m Q A */
+          }
+        }
+        for (c = 0; c < n; ++c) {
+          for (r = c; r < n; ++r) {
+            learnest_real v = 0;
+            for (q = 0; q < n; ++q) v += A[q + r * n] * QA[q + c * n];
+            D[r + c * n] += m * v;
+            if (!s->dq || r == c) Dn[r + c * n] += m * s->Q[S[r] + S[c] * LEARNEST_NX];
+          }
+          for (q = 0; q < n; ++q) g[S[c]] -= m * A[q + c * n] * Qw[q];
+          gn[S[c]] += m * Qw[c];
+        }
+      }
+    }
+    xo += n;
+    yo += ny;
+    bo += n * n;
+  }
+}
+
+/* Solve the split normal equations group by group (Xt as the groups' right-hand sides). */
+LEARNEST_KIT int learnest_gn_solve_split(struct learnest_gn* s) {
+  int i, k, r, xo = 0, bo = 0;
+  for (k = 0; k < LEARNEST_NCOMP; ++k) {
+    const int n = LEARNEST_GROUP_NX(k);
+    const unsigned char* S = learnest_comp_x + xo;
+    learnest_real* z = s->Xt + (LEARNEST_N + 1) * xo;
+    for (i = 0; i <= LEARNEST_N; ++i) {
+      for (r = 0; r < n; ++r) z[i * n + r] = -s->g[i * LEARNEST_NX + S[r]];
+    }
+    if (!learnest_btd_solve_n(n, LEARNEST_NXX, s->D + bo, s->E + bo, z)) return 0;
+    for (i = 0; i <= LEARNEST_N; ++i) {
+      for (r = 0; r < n; ++r) s->dx[i * LEARNEST_NX + S[r]] = z[i * n + r];
+    }
+    xo += n;
+    bo += n * n;
+  }
+  return 1;
+}
+#endif
 
 /* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. */
 LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
                                        const learnest_real* X, learnest_real* big) {
   int j;
-  learnest_gn_build(s, w, X);
-  if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+#if LEARNEST_NCOMP > 1
+  if (s->split) {
+    learnest_gn_build_split(s, w, X);
+    if (!learnest_gn_solve_split(s)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  } else
+#endif
+  {
+    learnest_gn_build(s, w, X);
+    if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
   *big = 0;
   for (j = 0; j < LEARNEST_NW; ++j) {
@@ -308,17 +503,18 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
                                          learnest_real big) {
   learnest_real cost, slope = 0, alpha = 1;
   int j, halvings;
-  cost = learnest_gn_cost(s, w, X, &s->lin);
+  struct learnest_lin* trial = &s->lin[1 - s->cur];
+  cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
   for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     learnest_real trial_cost;
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
-    learnest_gn_linearise(md, w, s->Xt, &s->trial);
-    trial_cost = learnest_gn_cost(s, w, s->Xt, &s->trial);
+    learnest_gn_linearise(md, w, s->Xt, trial);
+    trial_cost = learnest_gn_cost(s, w, s->Xt, trial);
     /* Armijo; a step below tol is taken whole (its cost change is round-off). */
     if (trial_cost <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope || alpha * big <= s->tol) {
       memcpy(X, s->Xt, sizeof s->Xt);
-      memcpy(&s->lin, &s->trial, sizeof s->lin);
+      s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
       return LEARNEST_OK;
     }
     alpha *= (learnest_real)0.5;

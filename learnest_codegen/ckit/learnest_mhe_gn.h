@@ -50,9 +50,9 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
   learnest_mhe_slide(m, &h->model, has_previous, u);
   learnest_gn_advance(&h->gn, &h->model, &m->next.w, m->Xn, has_previous);
   any = learnest_mhe_gate(m, &h->c.gate, has_previous, u, y, valid,
-                          h->gn.lin.h + LEARNEST_N * LEARNEST_NY,
-                          h->gn.lin.C + LEARNEST_N * LEARNEST_NY * LEARNEST_NX, rejected, &restarted);
-  if (restarted) learnest_gn_linearise(&h->model, &m->next.w, m->Xn, &h->gn.lin);
+                          LEARNEST_GN_LIN(&h->gn)->h + LEARNEST_N * LEARNEST_NY,
+                          LEARNEST_GN_LIN(&h->gn)->C + LEARNEST_N * LEARNEST_NY * LEARNEST_NX, rejected, &restarted);
+  if (restarted) learnest_gn_linearise(&h->model, &m->next.w, m->Xn, LEARNEST_GN_LIN(&h->gn));
   learnest_gn_scale(&h->gn, &m->next);  /* the arrival weight may have changed */
   code = learnest_gn_solve(&h->gn, &h->model, &m->next.w, m->Xn, &steps);
   if (code == LEARNEST_OK && !learnest_all_finite(m->Xn, LEARNEST_NW)) code = LEARNEST_NONFINITE_RESULT;

@@ -37,10 +37,11 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision)
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
+    groups = state_groups(functions[0], functions[1], nx, ny)
     gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
           + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
     counts = mhe_workspace(nx, model.nu, ny, n, solution=False)
-    counts = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 4,
+    counts = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
               "members": counts["members"] + 16}
     P = prefix.upper()
     design = Design(
@@ -55,8 +56,10 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
         workspace=counts,
         options={"MODE": f"{int(solver.mode == 'rti')}  /* {P}_MODE_{solver.mode.upper()} */",
                  "MAX_ITER": str(solver.max_iterations), "TOL": repr(solver.tolerance)},
-        glue_defines={f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
-        extra={"model_instructions": model_instructions(model)})
+        glue_defines={**{f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
+                      **group_defines(groups)},
+        extra={"model_instructions": model_instructions(model),
+               "state_groups": [list(states) for states, _ in groups]})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
@@ -95,3 +98,77 @@ def model_instructions(model: DiscreteModel) -> dict[str, int]:
     stage, node, F = model_functions(model, "m")
     return {name: max(0, int(fn.n_instructions() - fn.nnz_in() - fn.nnz_out()))
             for name, fn in (("dyn", stage), ("meas", node), ("F", F))}
+
+
+def state_groups(stage: cs.Function, node: cs.Function, nx: int, ny: int
+                 ) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
+    """The groups of states that no entry of the stage Jacobian ``A`` or the measurement
+    Jacobian ``C`` couples (structural nonzeros, so never too few couplings), each with the
+    outputs that read it: ``((states, outputs), ...)`` ordered by their first state. An output
+    that reads no state goes with the first group. One group: nothing to split."""
+    parent = list(range(nx))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def join(i: int, j: int) -> None:
+        parent[root(i)] = root(j)
+
+    x, u = cs.SX.sym("x", nx), cs.SX.sym("u", stage.size1_in(1))
+    F, A = _sparse_jacobians(stage, x, u)
+    h, C = _sparse_jacobians(node, x, u)
+    for r, c in zip(*A.get_triplet()):
+        join(r, c)
+    reads = [[c for r, c in zip(*C.get_triplet()) if r == k] for k in range(ny)]
+    for cols in reads:
+        for c in cols[1:]:
+            join(cols[0], c)
+    roots = sorted({root(i) for i in range(nx)}, key=lambda r: min(i for i in range(nx) if root(i) == r))
+    groups = []
+    for g, r in enumerate(roots):
+        states = tuple(i for i in range(nx) if root(i) == r)
+        outputs = tuple(k for k in range(ny) if (reads[k] and root(reads[k][0]) == r)
+                        or (not reads[k] and g == 0))
+        groups.append((states, outputs))
+    return tuple(groups)
+
+
+def _sparse_jacobians(fn: cs.Function, x: cs.SX, u: cs.SX) -> tuple[cs.Sparsity, cs.Sparsity]:
+    """The structural sparsity of the function's value and of its (dense-stored) Jacobian: the
+    Jacobian output is evaluated symbolically and its structurally zero entries dropped."""
+    value, jac = fn(x, u)
+    jac = cs.SX(jac)
+    pattern = [(r, c) for c in range(jac.size2()) for r in range(jac.size1())
+               if not jac[r, c].is_zero()]
+    rows, cols = (list(v) for v in zip(*pattern)) if pattern else ([], [])
+    return value.sparsity(), cs.Sparsity.triplet(jac.size1(), jac.size2(), rows, cols)
+
+
+def group_defines(groups) -> dict[str, str]:
+    """The kit's ``LEARNEST_NCOMP`` and group tables (learnest_gn.h) when there is more than
+    one group; nothing otherwise."""
+    if len(groups) < 2:
+        return {}
+    nx = sum(len(s) for s, _ in groups)
+    ny = sum(len(o) for _, o in groups)
+    of_x, of_y = [0] * nx, [0] * ny
+    for g, (states, outputs) in enumerate(groups):
+        for i in states:
+            of_x[i] = g
+        for k in outputs:
+            of_y[k] = g
+
+    def table(values) -> str:
+        return "{" + ", ".join(map(str, values)) + "}"
+
+    return {"LEARNEST_NCOMP": str(len(groups)),
+            "LEARNEST_COMP_X": table(i for s, _ in groups for i in s),
+            "LEARNEST_COMP_NX": table(len(s) for s, _ in groups),
+            "LEARNEST_COMP_Y": table(k for _, o in groups for k in o),
+            "LEARNEST_COMP_NY": table(len(o) for _, o in groups),
+            "LEARNEST_COMP_OF_X": table(of_x), "LEARNEST_COMP_OF_Y": table(of_y),
+            **({"LEARNEST_COMP_SIZE": str(len(groups[0][0])), "LEARNEST_COMP_YSIZE": str(len(groups[0][1]))}
+               if len({(len(s), len(o)) for s, o in groups}) == 1 else {})}
