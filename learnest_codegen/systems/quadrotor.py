@@ -20,7 +20,9 @@ where it is in the room, and a net that sees ``p`` keys on where the training fl
 only. A residual of ``(v, a)`` alone can only learn what the acceleration of *this* trajectory
 does next (on a circle of angular rate ``w``: ``adot = -w^2 v``), which does not carry over to
 other speeds or shapes; with the thrust and the battery voltage it can learn the physics below.
-:mod:`learnest_codegen.experiments.quadrotor` measures both.
+:mod:`learnest_codegen.experiments.quadrotor` measures both. :data:`QUADROTOR_LINEAR` and
+:data:`QUADROTOR_THRUST_LINEAR` are grey-box priors whose acceleration rows are fitted to
+flights, the latter of the true model's form below (``docs/recordings.md``).
 
 Pre-training observer (``default_observer``): ``linear_rts``, the exact Kalman filter and RTS
 smoother of the prior ``A x`` with white jerk on each axis (intensity by maximum likelihood)
