@@ -16,7 +16,12 @@ other flight tested), ``leave-type-out`` and ``leave-one-out``.
 Features (:data:`FEATURES`) pick the system: ``state`` (the residual sees velocity and
 acceleration: the paper's), ``thrust`` (also the thrust command and the battery voltage),
 ``linear`` (a grey-box prior ``A x`` whose acceleration rows are fitted to the training flights,
-then the net on velocity and acceleration) and ``linear_prior`` (that prior alone, no net).
+then the net on velocity and acceleration), ``linear_prior`` (that prior alone, no net),
+``thrust_prior`` (a grey-box prior of the true model's form, ``adot = c_T vbat T + c_v v + c_a
+a`` (+ ``c_0`` on z), one thrust gain for all axes, fitted alone), ``thrust_prior_axes`` (its
+vertical gain fitted apart), ``thrust_prior_z`` (the thrust on the vertical only: horizontally
+the thrust vector and the measured acceleration are turned by the same onboard attitude) and
+``thrust_linear`` (``thrust_prior`` then the net on velocity and acceleration).
 Each per-flight result records the gate's rejections and the share of samples outside the
 training range (:mod:`learnest_codegen.learning.ranges`); the report
 (:mod:`.quadrotor_report`) is paired per flight. Measured: ``docs/recordings.md``.
@@ -50,7 +55,7 @@ from ..errors import LearnestError, SettingsError, UnknownNameError
 from ..learning.network import NetworkSettings
 from ..learning.training import TrainingSettings
 from ..systems import System
-from ..systems.quadrotor import QUADROTOR, QUADROTOR_LINEAR, QUADROTOR_STATE
+from ..systems.quadrotor import QUADROTOR, QUADROTOR_LINEAR, QUADROTOR_STATE, QUADROTOR_THRUST_LINEAR
 from .quadrotor_cases import GROUPS as GROUPS
 from .quadrotor_cases import Case as Case
 from .quadrotor_cases import flight_cases as flight_cases
@@ -75,10 +80,16 @@ class Features:
     net: bool = True
 
 
+_THRUST_SHARED = tuple(n for n in QUADROTOR_THRUST_LINEAR.params if n != "dc_T_z")  # one thrust gain
+_THRUST_Z = tuple(n for n in QUADROTOR_THRUST_LINEAR.params if n != "c_T")  # thrust on z only
 FEATURES: dict[str, Features] = {
     "state": Features(QUADROTOR_STATE), "thrust": Features(QUADROTOR),
     "linear": Features(QUADROTOR_LINEAR, tuple(QUADROTOR_LINEAR.params), start_at_prior=True),
     "linear_prior": Features(QUADROTOR_LINEAR, tuple(QUADROTOR_LINEAR.params), net=False),
+    "thrust_prior": Features(QUADROTOR_THRUST_LINEAR, _THRUST_SHARED, net=False),
+    "thrust_prior_axes": Features(QUADROTOR_THRUST_LINEAR, tuple(QUADROTOR_THRUST_LINEAR.params), net=False),
+    "thrust_prior_z": Features(QUADROTOR_THRUST_LINEAR, _THRUST_Z, net=False),
+    "thrust_linear": Features(QUADROTOR_THRUST_LINEAR, _THRUST_SHARED, start_at_prior=True),
 }
 LABELS = {"mhe": "MHE", "ukf": "UKF", "mhe_gn": "MHE-GN", "mhe_rti": "MHE-RTI"}
 PAPER_IMPROVEMENT = {"KNODE-UKF": 26.6, "KNODE-MHE": 11.9}  # [%] of the median MSE

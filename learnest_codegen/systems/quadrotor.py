@@ -20,7 +20,9 @@ where it is in the room, and a net that sees ``p`` keys on where the training fl
 only. A residual of ``(v, a)`` alone can only learn what the acceleration of *this* trajectory
 does next (on a circle of angular rate ``w``: ``adot = -w^2 v``), which does not carry over to
 other speeds or shapes; with the thrust and the battery voltage it can learn the physics below.
-:mod:`learnest_codegen.experiments.quadrotor` measures both.
+:mod:`learnest_codegen.experiments.quadrotor` measures both. :data:`QUADROTOR_LINEAR` and
+:data:`QUADROTOR_THRUST_LINEAR` are grey-box priors whose acceleration rows are fitted to
+flights, the latter of the true model's form below (``docs/recordings.md``).
 
 Pre-training observer (``default_observer``): ``linear_rts``, the exact Kalman filter and RTS
 smoother of the prior ``A x`` with white jerk on each axis (intensity by maximum likelihood)
@@ -224,4 +226,74 @@ QUADROTOR_LINEAR = replace(
                 "to the training flights (horizontal axes shared); residual on v and a.",
     dynamics=linear_dynamics, true_dynamics=true_dynamics,
     params={"k_v_xy": 0.0, "k_a_xy": 0.0, "k_v_z": 0.0, "k_a_z": 0.0},
+)
+
+
+def thrust_linear_dynamics(ops, x, u, p):
+    """The prior ``A x`` with acceleration rows of the true model's form, linear in their
+    coefficients: ``adot = c_T vbat T + c_v v + c_a a`` per axis, plus ``c_0_z`` on ``az``
+    (gravity). One ``(c_v, c_a)`` shared by the two horizontal axes and one for the vertical; the
+    thrust gain ``c_T`` is one for all axes (one motor gain) and ``c_T + dc_T_z`` on the vertical
+    (``dc_T_z = 0`` unless fitted). With every parameter 0 it is the triple integrator of
+    :func:`dynamics`; :func:`thrust_physics` reads the coefficients as ``k_T, tau, k_D``."""
+    v, a = x[3:6], x[6:9]
+    thrust, vbat = u[0:3], u[3]
+    c_T = (p["c_T"], p["c_T"], p["c_T"] + p["dc_T_z"])
+    c_v = (p["c_v_xy"], p["c_v_xy"], p["c_v_z"])
+    c_a = (p["c_a_xy"], p["c_a_xy"], p["c_a_z"])
+    c_0 = (0.0, 0.0, p["c_0_z"])
+    return [*v, *a, *(c_T[i] * vbat * thrust[i] + c_v[i] * v[i] + c_a[i] * a[i] + c_0[i]
+                      for i in range(3))]
+
+
+def thrust_coefficients(k_T: float, tau: float, k_D: float, g: float = GRAVITY,
+                        v_nom: float = V_NOM) -> dict[str, float]:
+    """The coefficients of :func:`thrust_linear_dynamics` that equal :func:`true_dynamics` with
+    physical parameters ``k_T, tau, k_D`` (the same on every axis): expanding the truth,
+    ``c_T = k_T / (v_nom tau)``, ``c_v = -k_D / tau``, ``c_a = -(1 / tau + k_D)``,
+    ``c_0_z = -g / tau``."""
+    c_v, c_a = -k_D / tau, -(1.0 / tau + k_D)
+    return {"c_T": k_T / (v_nom * tau), "dc_T_z": 0.0, "c_v_xy": c_v, "c_a_xy": c_a, "c_v_z": c_v,
+            "c_a_z": c_a, "c_0_z": -g / tau}
+
+
+def thrust_physics(params: dict[str, float], v_nom: float = V_NOM) -> dict[str, dict[str, float]]:
+    """The motor lag ``tau`` [s], rotor drag ``k_D`` [1/s] and thrust gain ``k_T`` [m/s^2 per unit
+    throttle at ``v_nom``] that :func:`thrust_linear_dynamics`' coefficients imply, per axis group
+    (``"xy"``, ``"z"``); the inverse of :func:`thrust_coefficients`.
+
+    ``tau`` and ``k_D`` solve ``c_v = -k_D / tau``, ``c_a = -(1 / tau + k_D)``, i.e.
+    ``c_v tau^2 - c_a tau - 1 = 0`` (the root that tends to ``-1 / c_a`` as ``c_v -> 0``; NaN if
+    there is no real one); then ``k_T = c_T v_nom tau``. On ``z`` also ``g_over_tau = -c_0_z``.
+    """
+    out = {}
+    for group in ("xy", "z"):
+        c_v, c_a = params[f"c_v_{group}"], params[f"c_a_{group}"]
+        c_T = params["c_T"] + (params.get("dc_T_z", 0.0) if group == "z" else 0.0)
+        disc = c_a * c_a + 4.0 * c_v
+        if disc < 0.0:
+            tau = float("nan")
+        elif abs(c_v) < 1e-12 * max(1.0, c_a * c_a):
+            tau = -1.0 / c_a if c_a != 0.0 else float("nan")
+        else:
+            tau = 2.0 / (-c_a + np.sqrt(disc))  # = (c_a + sqrt(disc)) / (2 c_v), stable form
+        out[group] = {"tau": tau, "k_D": -c_v * tau, "k_T": c_T * v_nom * tau}
+    out["z"]["g_over_tau"] = -params["c_0_z"]
+    return out
+
+
+#: The quadrotor whose prior has the true model's form (motor lag, thrust gain times battery
+#: voltage, rotor drag) with its coefficients fitted to the training flights by least squares
+#: (:mod:`learnest_codegen.learning.prior_fit`): unlike ``quadrotor_linear`` it uses the thrust
+#: command, which leads the acceleration by the motor lag. Registered parameters are 0 (the
+#: paper's triple integrator); a trained model's directory carries the fitted ones. The residual
+#: sees velocity and acceleration, as ``quadrotor_state``.
+QUADROTOR_THRUST_LINEAR = replace(
+    QUADROTOR_STATE, name="quadrotor_thrust_linear",
+    description="The quadrotor whose prior has acceleration rows adot = c_T vbat T + c_v v + c_a a "
+                "(+ c_0 on z) fitted to the training flights: the true model's form; residual on v "
+                "and a.",
+    dynamics=thrust_linear_dynamics, true_dynamics=true_dynamics,
+    params={"c_T": 0.0, "dc_T_z": 0.0, "c_v_xy": 0.0, "c_a_xy": 0.0, "c_v_z": 0.0, "c_a_z": 0.0,
+            "c_0_z": 0.0},
 )
