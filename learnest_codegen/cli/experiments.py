@@ -136,7 +136,10 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
               help="comma-separated: state (residual on v, a: system quadrotor_state, the paper's), "
                    "thrust (v, a, thrust, vbat: system quadrotor), linear (prior A x with "
                    "acceleration rows fitted to the training flights, residual on v, a: system "
-                   "quadrotor_linear), linear_prior (that fitted prior alone, no net)")
+                   "quadrotor_linear), linear_prior (that fitted prior alone, no net), "
+                   "thrust_prior, thrust_prior_axes, thrust_prior_z (fitted priors with the thrust "
+                   "command: system quadrotor_thrust_linear), thrust_linear (thrust_prior and a "
+                   "residual on v, a); see docs/recordings.md")
 @click.option("--matrix", default="", show_default=True,
               help="single protocol: more training flights, tested with the UKF only (comma-separated, "
                    "or 'default' for a slow and a fast circle and figure-eight)")
