@@ -164,6 +164,25 @@ def test_the_generated_sources_are_warning_free_without_per_file_flags(handoff, 
     compile_clean(handoff[0], compiler)
 
 
+@pytest.fixture(scope="module")
+def grouped_folder(tmp_path_factory):
+    """The nominal quadrotor's mhe_rti: its three axes are solved one by one
+    (learnest_gn_groups.h), C the cartpole's folders never compile."""
+    root = tmp_path_factory.mktemp("grouped")
+    result = CliRunner().invoke(compile_standalone, ["--nominal", "--system", "quadrotor", "--estimator",
+                                                     "mhe_rti", "--precision", "float32", "--out",
+                                                     str(root)])
+    assert result.exit_code == 0, result.output
+    (folder,) = root.iterdir()
+    assert "#define LEARNEST_NCOMP 3" in (folder / f"{folder.name}.c").read_text()
+    return folder
+
+
+@pytest.mark.parametrize("compiler", ["gcc", "clang", "g++"])
+def test_the_group_by_group_path_is_warning_free(grouped_folder, compiler):
+    compile_clean(grouped_folder, compiler)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("compiler", ["gcc", "clang", "g++"])
 def test_every_generated_source_is_warning_free_without_per_file_flags(every_folder, compiler):

@@ -148,7 +148,7 @@ def _sparse_jacobians(fn: cs.Function, x: cs.SX, u: cs.SX) -> tuple[cs.Sparsity,
 
 
 def group_defines(groups) -> dict[str, str]:
-    """The kit's ``LEARNEST_NCOMP`` and group tables (learnest_gn.h) when there is more than
+    """The kit's ``LEARNEST_NCOMP`` and group tables (learnest_gn_groups.h) when there is more than
     one group; nothing otherwise."""
     if len(groups) < 2:
         return {}
