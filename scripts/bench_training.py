@@ -117,26 +117,32 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250) -> dict:
-    """``epochs`` epochs of each case on the demo's training run through its observer; the
-    times are also given scaled to 250 epochs (``*_per_250_epochs``)."""
+def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250,
+                 precisions: tuple[str, ...] = PRECISIONS) -> dict:
+    """``epochs`` epochs of each case in each of ``precisions`` (one after the other) on the
+    demo's training run through its observer, ``out[case][precision]``; the times are also
+    given scaled to 250 epochs (``*_per_250_epochs``)."""
     system = get_system("cartpole")
     run = simulate(system, seed=0)
     zeta = observe(run, system).zeta
-    train(system, zeta[:200], run.u[:200], run.dt, replace(DEFAULT_TRAINING, epochs=1), progress=False)
-    out = {}
-    for name, settings in cases.items():
-        settings = replace(settings, epochs=epochs)
-        load = os.getloadavg()[0]
-        wall, cpu = time.perf_counter(), time.process_time()
-        model = train(system, zeta, run.u, run.dt, settings, progress=False)
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        out[name] = {"settings": settings.to_json(), "epochs": epochs, "wall_seconds": wall,
-                     "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
-                     "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
-                     "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
-                     "best_epoch": model.meta["best_epoch"]}
-        print(name, json.dumps(out[name]), flush=True)
+    for precision in precisions:
+        warm_up = replace(DEFAULT_TRAINING, epochs=1, precision=precision)
+        train(system, zeta[:200], run.u[:200], run.dt, warm_up, progress=False)
+    out: dict = {}
+    for name, case in cases.items():
+        for precision in precisions:
+            settings = replace(case, epochs=epochs, precision=precision)
+            load = os.getloadavg()[0]
+            wall, cpu = time.perf_counter(), time.process_time()
+            model = train(system, zeta, run.u, run.dt, settings, progress=False)
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            out.setdefault(name, {})[precision] = {
+                "precision": precision, "settings": settings.to_json(), "epochs": epochs,
+                "wall_seconds": wall, "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
+                "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
+                "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
+                "best_epoch": model.meta["best_epoch"]}
+            print(name, precision, json.dumps(out[name][precision]), flush=True)
     return out
 
 
@@ -213,7 +219,7 @@ def main(argv: list[str] | None = None) -> dict:
               "before": BEFORE,
               "observer_and_default": bench_observer_and_default(args.repeat, precisions),
               "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},
-                                     args.epochs)}
+                                     args.epochs, precisions)}
     with tempfile.TemporaryDirectory() as tmp:
         if args.job:
             report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")

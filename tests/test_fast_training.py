@@ -57,8 +57,10 @@ def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
     system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:300], run.u[:300]
+    # float64: the reference is the float64 loop, to 1e-12 (float32 training is held to float64
+    # in test_a_float32_training_takes_float64s_steps_and_returns_a_float64_model)
     settings = config.TrainingSettings(epochs=3, batch_size=64, seed=3, restarts=3, weight_decay=0.1,
-                                       weight_average=0.9, validation_fraction=0.0)
+                                       weight_average=0.9, validation_fraction=0.0, precision="float64")
     from learnest_codegen.learning.training import _train_stacked
 
     models = _train_stacked(system, zeta, u, run.dt, settings, "", progress=False)
@@ -192,7 +194,8 @@ def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_ru
     system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:400], run.u[:400]
-    settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0)
+    # float64: a hand-made float64 step to 1e-13 (float32: the test of the precision setting)
+    settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0, precision="float64")
     assert settings.batch_size == config.FULL_BATCH
     model = train(system, zeta, u, run.dt, settings, progress=False)
     torch.manual_seed(11)
@@ -298,7 +301,8 @@ def test_a_warm_start_begins_at_the_given_net_and_keeps_its_input_scaling(cartpo
     run = cartpole_run
     first = train(system, run.x[:300], run.u[:300], run.dt, config.TrainingSettings(epochs=5, seed=2),
                   progress=False)
-    still = config.TrainingSettings(epochs=1, seed=2, learning_rate=1e-12)
+    # float64: a float32 training starts from the given weights rounded to float32 (1e-7 of them)
+    still = config.TrainingSettings(epochs=1, seed=2, learning_rate=1e-12, precision="float64")
     warm = train(system, run.x[600:900], run.u[600:900], run.dt, still, init=first, progress=False)
     fresh = train(system, run.x[600:900], run.u[600:900], run.dt, still, progress=False)
     for name, value in first.net.state_dict().items():
@@ -407,7 +411,8 @@ def test_the_validation_loss_riding_along_in_the_next_epoch_equals_a_pass_of_its
 
     run = cartpole_run
     zeta, u = run.x[:500], run.u[:500]
-    settings = config.TrainingSettings(epochs=6, seed=3, weight_decay=0.1)
+    # float64: a joint pass and a pass of its own round differently; 1e-12 is float64's rounding
+    settings = config.TrainingSettings(epochs=6, seed=3, weight_decay=0.1, precision="float64")
     long = train(cartpole, zeta, u, run.dt, settings, progress=False)
     for k in (1, 2, 5):
         short = train(cartpole, zeta, u, run.dt, dataclasses.replace(settings, epochs=k), progress=False)
@@ -463,7 +468,8 @@ def test_trainings_tanh_is_torchs_to_rounding_and_trains_the_same_model(cartpole
     assert float((grad - (1 - ref ** 2)).abs().max()) <= 1e-15
     run = cartpole_run
     zeta, u = run.x[:1500], run.u[:1500]
-    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1)
+    # float64: the 4e-16 of the two tanh forms is float64's; float32 rounds both to 6e-8
+    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1, precision="float64")
     fast = train(cartpole, zeta, u, run.dt, settings, progress=False)
     monkeypatch.setattr(network, "_Tanh", types.SimpleNamespace(apply=torch.tanh))
     plain = train(cartpole, zeta, u, run.dt, settings, progress=False)

@@ -2,7 +2,10 @@
 
 The loss is the paper's eq. (11): the mean over consecutive pairs of
 ``||zeta_{i+1} - RK4_step(f_prior + Delta_theta)(zeta_i, u_i)||^2``, minimised with Adam in
-float64. The trained model and its directory are :mod:`.model`'s.
+the settings' ``precision`` (float32 or float64), written as the RK4 step's increment against
+the observed increment ``zeta_{i+1} - zeta_i`` (taken in float64), so that float32 rounds
+increments rather than states. The trained model and its directory are :mod:`.model`'s: its
+weights are float64 whatever the training's precision.
 
 Two additions to the paper's procedure, both measured on the cartpole with a free residual and
 the printed eq. (13) (relative error of the learned residual against ``f_true - f_prior`` on an
@@ -33,8 +36,9 @@ decay picks the smallest, which is also the smoothest and extrapolates least.
 How it runs (speed, not results): the ``restarts`` initialisations of a round train together as
 one stacked model (:class:`~learnest_codegen.learning.network.StackedMLP`, one batched matrix product per
 layer), each on its own mini-batch order, so each follows exactly the path it would follow
-alone; the hybrid model shares the prior's evaluation between the derivative, the net's
-features and its input correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
+alone (in float32 to its rounding: the batched products round differently); the hybrid model
+shares the prior's evaluation between the derivative, the net's features and its input
+correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
 recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
 come free with the steps. The first RK4 stage's prior and features at the data are computed
 once per training (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`), and a full
@@ -131,7 +135,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
     six times the others'. The initialisations train together, as one stacked model
     (:class:`~learnest_codegen.learning.network.StackedMLP`); each follows exactly the path it would
-    follow alone (its own initialisation and mini-batch order).
+    follow alone (its own initialisation and mini-batch order; in float32 to its rounding).
 
     A system that declares a mirror symmetry (:meth:`~learnest_codegen.systems.System.reflection_signs`)
     is trained on every pair and its mirror image, the validation segment split off first.
