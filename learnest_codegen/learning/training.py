@@ -273,7 +273,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     mlp = StackedMLP([n.mlp for n in nets]).to(dtype)
     net_t = net  # what the loss evaluates: the net's scaling and structure in `dtype`
     if dtype != torch.float64:
-        net_t = make_net(system, settings.network)
+        with torch.random.fork_rng(devices=[]):  # its initial weights are discarded: no draw counts
+            net_t = make_net(system, settings.network)
         net_t.load_state_dict(net.state_dict())
         net_t.to(dtype)
     if settings.weight_decay:
