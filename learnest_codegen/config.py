@@ -33,6 +33,8 @@ ACTIVATIONS = ("Tanh", "Sigmoid", "ReLU", "LeakyReLU")
 #: The default ``batch_size``: every training set of up to a million pairs is one batch (full
 #: batch: one optimiser step per epoch).
 FULL_BATCH = 1_000_000
+#: The floating-point types training can run in (``TrainingSettings.precision``).
+PRECISIONS = ("float32", "float64")
 
 
 @dataclass(frozen=True)
@@ -124,6 +126,10 @@ class TrainingSettings:
     warm_refinement : the refinement rounds after the first start from the previous round's
         net with these settings (:class:`WarmRefinement`); ``None``: every round trains
         ``restarts`` nets from scratch with the settings above.
+    precision : the floating-point type the net is trained in, one of :data:`PRECISIONS`;
+        float32 for every recipe (the same Table I cells and demo gap closure as float64 at
+        less cost, measured in ``docs/training.md``). The data, the observers and the trained
+        model stay float64 (the weights are cast back); only the optimisation runs in this type.
     """
 
     epochs: int = 250
@@ -140,9 +146,13 @@ class TrainingSettings:
     patience: int | None = None
     warm_refinement: WarmRefinement | None = None
     refine_restarts: int | None = None
+    precision: str = "float32"
 
     def __post_init__(self) -> None:
         _check_optimiser(self, "TrainingSettings")
+        if self.precision not in PRECISIONS:
+            raise UnknownNameError(f"TrainingSettings.precision: unknown precision {self.precision!r}; "
+                                   f"choose from {PRECISIONS}")
         _need(self.patience is None or self.patience >= 1, "TrainingSettings.patience", ">= 1 (or None)",
               self.patience)
         _need(0 <= self.validation_fraction < 0.9, "TrainingSettings.validation_fraction", "in [0, 0.9)",
@@ -160,13 +170,15 @@ class TrainingSettings:
     def to_json(self) -> dict:
         """The settings as a dict. ``weight_decay``, ``final_learning_rate``,
         ``weight_average``, ``patience``, ``warm_refinement`` and ``refine_restarts`` are left
-        out when off, so the
-        identities of models and sweep jobs trained before they existed are unchanged."""
+        out when off and ``precision`` when float64, so the identities of models and sweep jobs
+        trained before they existed are unchanged."""
         out = asdict(self)
         for key in ("weight_decay", "final_learning_rate", "weight_average", "patience",
                     "warm_refinement", "refine_restarts"):
             if not out[key]:
                 del out[key]
+        if out["precision"] == "float64":
+            del out["precision"]
         return out
 
 

@@ -7,11 +7,18 @@ from typing import Callable
 
 def rk4_step(f: Callable, x, u, dt: float):
     """One classical RK4 step of ``xdot = f(x, u)`` with ``u`` held over the step."""
+    return x + rk4_increment(f, x, u, dt)
+
+
+def rk4_increment(f: Callable, x, u, dt: float):
+    """:func:`rk4_step` less ``x``: the step's increment ``dt/6 (k1 + 2 k2 + 2 k3 + k4)``,
+    without the rounding of adding it to ``x`` (training in float32 compares it with the
+    observed increment)."""
     k1 = f(x, u)
     k2 = f(x + (0.5 * dt) * k1, u)
     k3 = f(x + (0.5 * dt) * k2, u)
     k4 = f(x + dt * k3, u)
-    return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 def rk4_step_jacobian(f_jac: Callable, x, u, dt: float, eye):

@@ -12,8 +12,10 @@ Every figure is recorded with the wall time, the process's CPU time (its childre
 job and the sweep, which run in subprocesses) and the load average when it ran: the machine is
 shared, and the CPU time is the figure that load disturbs least. The observer and the 250
 epochs are timed ``--repeat`` times and the shortest kept (``observer_plus_250_epochs``, next
-to the target, ``TARGET_CPU_SECONDS``). Beside the times stand the final losses (epochs) and
-the gap closures (job, sweep).
+to the target, ``TARGET_CPU_SECONDS``); the 250 epochs in each training precision of
+``--precisions`` (``TrainingSettings.precision``; the repeats alternate between them, so each
+precision sees the same minutes), ``observer_plus_250_epochs`` with the default's. Beside the
+times stand the final losses (epochs) and the gap closures (job, sweep).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from pathlib import Path
 import torch
 
 from learnest_codegen import get_system
-from learnest_codegen.config import DEFAULT_TRAINING, TABLE1_CARTPOLE_TRAINING, TrainingSettings
+from learnest_codegen.config import DEFAULT_TRAINING, PRECISIONS, TABLE1_CARTPOLE_TRAINING, TrainingSettings
 from learnest_codegen.learning.training import train, train_on_run
 from learnest_codegen.observers import observe
 from learnest_codegen.simulation import simulate
@@ -71,27 +73,39 @@ def _best_cpu(fn, repeat: int):
     return best
 
 
-def bench_observer_and_default(repeat: int = 3) -> dict:
+def bench_observer_and_default(repeat: int = 3, precisions: tuple[str, ...] = PRECISIONS) -> dict:
     """The demo's training run: the default pre-training observer, 250 epochs (one round) of the
-    default training on its states, and the whole default training (every round, observers
-    included), CPU seconds; the first two against :data:`TARGET_CPU_SECONDS`."""
+    default training on its states in each of ``precisions``, and the whole default training
+    (every round, observers included), CPU seconds; the observer plus the default precision's
+    epochs against :data:`TARGET_CPU_SECONDS`."""
     system = get_system("cartpole")
     run = simulate(system, seed=0)
     load = os.getloadavg()[0]
     cpu_obs, wall_obs, obs = _best_cpu(lambda: observe(run, system), repeat)
-    settings = EPOCH_CASES["default"]
-    train(system, obs.zeta[:200], run.u[:200], run.dt, replace(settings, epochs=1), progress=False)  # warm-up
-    cpu_train, wall_train, model = _best_cpu(
-        lambda: train(system, obs.zeta, run.u, run.dt, settings, progress=False), repeat)
+    epochs = {}
+    for precision in precisions:  # warm-up
+        settings = replace(EPOCH_CASES["default"], precision=precision)
+        train(system, obs.zeta[:200], run.u[:200], run.dt, replace(settings, epochs=1), progress=False)
+    for _ in range(repeat):  # alternating: every precision sees the same minutes
+        for precision in precisions:
+            settings = replace(EPOCH_CASES["default"], precision=precision)
+            cpu, wall, model = _best_cpu(
+                lambda s=settings: train(system, obs.zeta, run.u, run.dt, s, progress=False), 1)
+            if precision not in epochs or cpu < epochs[precision]["cpu_seconds"]:
+                epochs[precision] = {"precision": precision, "settings": settings.to_json(),
+                                     "cpu_seconds": cpu, "wall_seconds": wall,
+                                     "final_loss": model.meta["final_loss"],
+                                     "best_epoch": model.meta["best_epoch"]}
+    default = epochs.get(DEFAULT_TRAINING.precision) or next(iter(epochs.values()))
     cpu_all, wall_all, whole = _best_cpu(
         lambda: train_on_run(run, system, DEFAULT_TRAINING, progress=False), 1)
+    cpu_train = default["cpu_seconds"]
     out = {"observer": {"method": obs.method, "cpu_seconds": cpu_obs, "wall_seconds": wall_obs},
-           "default_250_epochs": {"settings": settings.to_json(), "cpu_seconds": cpu_train,
-                                  "wall_seconds": wall_train, "final_loss": model.meta["final_loss"],
-                                  "best_epoch": model.meta["best_epoch"]},
+           "default_250_epochs": default, "default_250_epochs_by_precision": epochs,
            "observer_plus_250_epochs_cpu_seconds": cpu_obs + cpu_train,
            "target_cpu_seconds": TARGET_CPU_SECONDS, "met": cpu_obs + cpu_train <= TARGET_CPU_SECONDS,
-           "default_whole_training": {"settings": DEFAULT_TRAINING.to_json(), "cpu_seconds": cpu_all,
+           "default_whole_training": {"settings": DEFAULT_TRAINING.to_json(),
+                                      "precision": DEFAULT_TRAINING.precision, "cpu_seconds": cpu_all,
                                       "wall_seconds": wall_all, "observer": whole.meta["observer"]},
            "repeat": repeat, "load_average": [load, os.getloadavg()[0]]}
     print(json.dumps(out), flush=True)
@@ -103,26 +117,32 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250) -> dict:
-    """``epochs`` epochs of each case on the demo's training run through its observer; the
-    times are also given scaled to 250 epochs (``*_per_250_epochs``)."""
+def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250,
+                 precisions: tuple[str, ...] = PRECISIONS) -> dict:
+    """``epochs`` epochs of each case in each of ``precisions`` (one after the other) on the
+    demo's training run through its observer, ``out[case][precision]``; the times are also
+    given scaled to 250 epochs (``*_per_250_epochs``)."""
     system = get_system("cartpole")
     run = simulate(system, seed=0)
     zeta = observe(run, system).zeta
-    train(system, zeta[:200], run.u[:200], run.dt, replace(DEFAULT_TRAINING, epochs=1), progress=False)
-    out = {}
-    for name, settings in cases.items():
-        settings = replace(settings, epochs=epochs)
-        load = os.getloadavg()[0]
-        wall, cpu = time.perf_counter(), time.process_time()
-        model = train(system, zeta, run.u, run.dt, settings, progress=False)
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        out[name] = {"settings": settings.to_json(), "epochs": epochs, "wall_seconds": wall,
-                     "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
-                     "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
-                     "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
-                     "best_epoch": model.meta["best_epoch"]}
-        print(name, json.dumps(out[name]), flush=True)
+    for precision in precisions:
+        warm_up = replace(DEFAULT_TRAINING, epochs=1, precision=precision)
+        train(system, zeta[:200], run.u[:200], run.dt, warm_up, progress=False)
+    out: dict = {}
+    for name, case in cases.items():
+        for precision in precisions:
+            settings = replace(case, epochs=epochs, precision=precision)
+            load = os.getloadavg()[0]
+            wall, cpu = time.perf_counter(), time.process_time()
+            model = train(system, zeta, run.u, run.dt, settings, progress=False)
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            out.setdefault(name, {})[precision] = {
+                "precision": precision, "settings": settings.to_json(), "epochs": epochs,
+                "wall_seconds": wall, "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
+                "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
+                "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
+                "best_epoch": model.meta["best_epoch"]}
+            print(name, precision, json.dumps(out[name][precision]), flush=True)
     return out
 
 
@@ -188,15 +208,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--cases", default=",".join(EPOCH_CASES),
                         help=f"epoch cases to time, of {','.join(EPOCH_CASES)} ('' for none)")
     parser.add_argument("--repeat", type=int, default=3, help="repeats of the observer and the epochs")
+    parser.add_argument("--precisions", default=",".join(PRECISIONS),
+                        help="training precisions of the default's 250 epochs (comma separated)")
     args = parser.parse_args(argv)
+    precisions = tuple(p for p in args.precisions.split(",") if p)
     torch.set_num_threads(1)
     report = {"label": args.label, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                                                  "torch": torch.__version__,
                                                  "torch_threads": torch.get_num_threads()},
               "before": BEFORE,
-              "observer_and_default": bench_observer_and_default(args.repeat),
+              "observer_and_default": bench_observer_and_default(args.repeat, precisions),
               "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},
-                                     args.epochs)}
+                                     args.epochs, precisions)}
     with tempfile.TemporaryDirectory() as tmp:
         if args.job:
             report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")

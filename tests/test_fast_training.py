@@ -57,8 +57,10 @@ def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
     system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:300], run.u[:300]
+    # float64: the reference is the float64 loop, to 1e-12 (float32 training is held to float64
+    # in test_a_float32_training_takes_float64s_steps_and_returns_a_float64_model)
     settings = config.TrainingSettings(epochs=3, batch_size=64, seed=3, restarts=3, weight_decay=0.1,
-                                       weight_average=0.9, validation_fraction=0.0)
+                                       weight_average=0.9, validation_fraction=0.0, precision="float64")
     from learnest_codegen.learning.training import _train_stacked
 
     models = _train_stacked(system, zeta, u, run.dt, settings, "", progress=False)
@@ -192,7 +194,8 @@ def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_ru
     system = cartpole.with_residual(reflection=None)
     run = cartpole_run
     zeta, u = run.x[:400], run.u[:400]
-    settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0)
+    # float64: a hand-made float64 step to 1e-13 (float32: the test of the precision setting)
+    settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0, precision="float64")
     assert settings.batch_size == config.FULL_BATCH
     model = train(system, zeta, u, run.dt, settings, progress=False)
     torch.manual_seed(11)
@@ -298,7 +301,8 @@ def test_a_warm_start_begins_at_the_given_net_and_keeps_its_input_scaling(cartpo
     run = cartpole_run
     first = train(system, run.x[:300], run.u[:300], run.dt, config.TrainingSettings(epochs=5, seed=2),
                   progress=False)
-    still = config.TrainingSettings(epochs=1, seed=2, learning_rate=1e-12)
+    # float64: a float32 training starts from the given weights rounded to float32 (1e-7 of them)
+    still = config.TrainingSettings(epochs=1, seed=2, learning_rate=1e-12, precision="float64")
     warm = train(system, run.x[600:900], run.u[600:900], run.dt, still, init=first, progress=False)
     fresh = train(system, run.x[600:900], run.u[600:900], run.dt, still, progress=False)
     for name, value in first.net.state_dict().items():
@@ -407,7 +411,8 @@ def test_the_validation_loss_riding_along_in_the_next_epoch_equals_a_pass_of_its
 
     run = cartpole_run
     zeta, u = run.x[:500], run.u[:500]
-    settings = config.TrainingSettings(epochs=6, seed=3, weight_decay=0.1)
+    # float64: a joint pass and a pass of its own round differently; 1e-12 is float64's rounding
+    settings = config.TrainingSettings(epochs=6, seed=3, weight_decay=0.1, precision="float64")
     long = train(cartpole, zeta, u, run.dt, settings, progress=False)
     for k in (1, 2, 5):
         short = train(cartpole, zeta, u, run.dt, dataclasses.replace(settings, epochs=k), progress=False)
@@ -463,7 +468,8 @@ def test_trainings_tanh_is_torchs_to_rounding_and_trains_the_same_model(cartpole
     assert float((grad - (1 - ref ** 2)).abs().max()) <= 1e-15
     run = cartpole_run
     zeta, u = run.x[:1500], run.u[:1500]
-    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1)
+    # float64: the 4e-16 of the two tanh forms is float64's; float32 rounds both to 6e-8
+    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1, precision="float64")
     fast = train(cartpole, zeta, u, run.dt, settings, progress=False)
     monkeypatch.setattr(network, "_Tanh", types.SimpleNamespace(apply=torch.tanh))
     plain = train(cartpole, zeta, u, run.dt, settings, progress=False)
@@ -471,3 +477,75 @@ def test_trainings_tanh_is_torchs_to_rounding_and_trains_the_same_model(cartpole
     assert fast.meta["final_loss"] == pytest.approx(plain.meta["final_loss"], rel=1e-9)
     for name, value in plain.net.state_dict().items():
         np.testing.assert_allclose(fast.net.state_dict()[name], value, rtol=0, atol=1e-9)
+
+
+def test_the_precision_setting_is_checked_and_left_out_of_the_identity_when_float64():
+    """``precision`` names a torch floating type; float64 (what every model was trained in
+    before the setting existed) is left out of the settings' JSON, so those models and Table I
+    jobs keep their identities, and float32 is recorded."""
+    assert "precision" not in config.TrainingSettings(precision="float64").to_json()
+    assert config.TrainingSettings(precision="float32").to_json()["precision"] == "float32"
+    with pytest.raises(UnknownNameError, match="precision.*float16"):
+        config.TrainingSettings(precision="float16")
+
+
+def test_the_loss_compares_the_rk4_increment_with_the_observed_increment(cartpole, cartpole_run):
+    """Training's loss (increments, the observed one taken in float64 before any cast) is the
+    paper's eq. (11) as :func:`one_step_loss` computes it on whole states: the same number to
+    1e-12 in float64, and to 1e-6 in float32 (the float32 residual then holds no rounding of
+    the states themselves, which would be 6e-8 of the cart's position per component)."""
+    from learnest_codegen.learning.network import StackedMLP
+    from learnest_codegen.learning.training import _loss_of, _start, _training_pairs
+
+    system = cartpole.with_residual(reflection=None)
+    run = cartpole_run
+    torch.manual_seed(2)
+    net = make_net(system)
+    net.set_input_scaling(run.x, run.u)
+    pairs = [torch.as_tensor(a) for a in (run.x[:-1], run.u[:-1], run.x[1:])]
+    with torch.no_grad():
+        ref = float(one_step_loss(system, net, *pairs, run.dt))
+        for dtype, rel in ((torch.float64, 1e-12), (torch.float32, 1e-6)):
+            net_t = make_net(system)
+            net_t.load_state_dict(net.state_dict())
+            net_t.to(dtype)
+            mlp = StackedMLP([net_t.mlp])
+            got = _loss_of(net_t, mlp, run.dt, *_start(net_t, 1, *_training_pairs(pairs, dtype)))
+            assert got.dtype == dtype
+            assert float(got[0]) == pytest.approx(ref, rel=rel)
+
+
+def test_a_float32_training_takes_float64s_steps_and_returns_a_float64_model(cartpole, cartpole_run):
+    """Trained in float32, the net follows the float64 training: one full-batch epoch is one
+    hand-made float64 Adam step on :func:`one_step_loss` to 1e-6 (float32 rounding of weights
+    near 1); 120 epochs end on the same best epoch with the final loss to 1e-6 and the
+    validation losses to 1e-4 (relative). The model comes back in float64, its weights the float32
+    ones cast."""
+    from learnest_codegen.learning.training import train
+
+    system = cartpole.with_residual(reflection=None)
+    run = cartpole_run
+    zeta, u = run.x[:400], run.u[:400]
+    one = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0, precision="float32")
+    model = train(system, zeta, u, run.dt, one, progress=False)
+    torch.manual_seed(11)
+    ref = make_net(system, one.network)
+    ref.set_input_scaling(zeta, u)
+    optimiser = torch.optim.Adam(ref.parameters(), lr=one.learning_rate)
+    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    one_step_loss(system, ref, *pairs, run.dt).backward()
+    optimiser.step()
+    for name, value in ref.state_dict().items():
+        assert model.net.state_dict()[name].dtype == torch.float64, name
+        np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-6)
+
+    zeta, u = run.x[:1500], run.u[:1500]
+    settings = config.TrainingSettings(epochs=120, seed=4, weight_decay=0.1)
+    single, double = (train(cartpole, zeta, u, run.dt, dataclasses.replace(settings, precision=p),
+                            progress=False) for p in ("float32", "float64"))
+    assert single.meta["training"]["precision"] == "float32"
+    assert single.meta["best_epoch"] == double.meta["best_epoch"] > 10
+    assert single.meta["final_loss"] == pytest.approx(double.meta["final_loss"], rel=1e-6)
+    np.testing.assert_allclose(single.meta["validation_history"], double.meta["validation_history"],
+                               rtol=1e-4)
+    assert all(v.dtype == torch.float64 for v in single.net.state_dict().values())

@@ -26,7 +26,8 @@ _TORCH_OPS = TorchOps()
 
 
 class ResidualNet(torch.nn.Module):
-    """``Delta(x, u) = MLP((features(x, u) - mean) / scale)``, float64.
+    """``Delta(x, u) = MLP((features(x, u) - mean) / scale)``, float64 (training may run on a
+    float32 copy; see ``TrainingSettings.precision``).
 
     ``features`` is ``concat(x, u)`` with every periodic state (an angle, index in ``periodic``)
     replaced by its sine and cosine, so the net sees the same input for ``alpha`` and
@@ -331,7 +332,8 @@ class StackedMLP(torch.nn.Module):
     matrix product per layer. Training ``R`` initialisations this way costs about what one
     costs (the step is dominated by per-operation overhead). Every optimiser in use (Adam,
     AdamW, the weight average) acts element by element, so the members train independently,
-    exactly as they would one after another.
+    exactly as they would one after another (in float32 to its rounding: the batched
+    products of ``R`` members and of one may round differently).
     """
 
     def __init__(self, mlps: list):

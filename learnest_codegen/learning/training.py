@@ -2,7 +2,10 @@
 
 The loss is the paper's eq. (11): the mean over consecutive pairs of
 ``||zeta_{i+1} - RK4_step(f_prior + Delta_theta)(zeta_i, u_i)||^2``, minimised with Adam in
-float64. The trained model and its directory are :mod:`.model`'s.
+the settings' ``precision`` (float32 or float64), written as the RK4 step's increment against
+the observed increment ``zeta_{i+1} - zeta_i`` (taken in float64), so that float32 rounds
+increments rather than states. The trained model and its directory are :mod:`.model`'s: its
+weights are float64 whatever the training's precision.
 
 Two additions to the paper's procedure, both measured on the cartpole with a free residual and
 the printed eq. (13) (relative error of the learned residual against ``f_true - f_prior`` on an
@@ -33,8 +36,9 @@ decay picks the smallest, which is also the smoothest and extrapolates least.
 How it runs (speed, not results): the ``restarts`` initialisations of a round train together as
 one stacked model (:class:`~learnest_codegen.learning.network.StackedMLP`, one batched matrix product per
 layer), each on its own mini-batch order, so each follows exactly the path it would follow
-alone; the hybrid model shares the prior's evaluation between the derivative, the net's
-features and its input correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
+alone (in float32 to its rounding: the batched products round differently); the hybrid model
+shares the prior's evaluation between the derivative, the net's features and its input
+correction (:meth:`~learnest_codegen.learning.network.ResidualNet.hybrid`); the
 recorded training loss of an epoch (``loss_history``) is the mean of its steps' losses, which
 come free with the steps. The first RK4 stage's prior and features at the data are computed
 once per training (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`), and a full
@@ -87,7 +91,7 @@ from tqdm.auto import tqdm
 from ..config import DEFAULT_TRAINING, TrainingSettings
 from ..data import Run, check_sampling
 from ..errors import DataError, SettingsError, ShapeError
-from ..integrators import rk4_step
+from ..integrators import rk4_increment, rk4_step
 from ..systems import System
 from .model import META, WEIGHTS, TrainedModel, data_hash, load_model, make_net, residual_structure
 from .network import ResidualNet, StackedMLP, StartT
@@ -131,7 +135,7 @@ def train(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     of five initialisations closed 80 % of the gap instead of 95-98 %, at a validation loss
     six times the others'. The initialisations train together, as one stacked model
     (:class:`~learnest_codegen.learning.network.StackedMLP`); each follows exactly the path it would
-    follow alone (its own initialisation and mini-batch order).
+    follow alone (its own initialisation and mini-batch order; in float32 to its rounding).
 
     A system that declares a mirror symmetry (:meth:`~learnest_codegen.systems.System.reflection_signs`)
     is trained on every pair and its mirror image, the validation segment split off first.
@@ -191,47 +195,57 @@ def _pair_sets(system: System, zeta: np.ndarray, u: np.ndarray, settings: Traini
 
 
 def _stacked_loss(system: System, net: ResidualNet, mlp: StackedMLP, zeta: torch.Tensor,
-                  u: torch.Tensor, zeta_next: torch.Tensor, dt: float) -> torch.Tensor:
-    """Eq. (11) of every stacked member ``(R,)``; the pairs are components first, ``(n, B)``
-    shared by all members or ``(n, R, B)`` one batch per member (the layout of
+                  u: torch.Tensor, step: torch.Tensor, dt: float) -> torch.Tensor:
+    """Eq. (11) of every stacked member ``(R,)``; the pairs ``(zeta, u, step)`` (``step`` the
+    observed increment ``zeta_next - zeta``, see :func:`_training_pairs`) are components first,
+    ``(n, B)`` shared by all members or ``(n, R, B)`` one batch per member (the layout of
     :meth:`~learnest_codegen.learning.network.ResidualNet.derivative_t`)."""
     if zeta.dim() == 2:
-        zeta, u, zeta_next = _expanded(len(mlp.weights[0]), zeta, u, zeta_next)
-    return _loss_of(net, mlp, dt, zeta, u, zeta_next)
+        zeta, u, step = _expanded(len(mlp.weights[0]), zeta, u, step)
+    return _loss_of(net, mlp, dt, zeta, u, step)
 
 
-def _expanded(members: int, zeta: torch.Tensor, u: torch.Tensor, zeta_next: torch.Tensor):
+def _training_pairs(pairs: list, dtype: torch.dtype) -> list:
+    """Pairs ``(zeta, u, zeta_next)`` ``(B, n)`` as training uses them: components first and
+    ``zeta_next`` replaced by the observed increment ``zeta_next - zeta``, taken in float64 and
+    only then cast to ``dtype``. The loss compares increments with increments: in float32 the
+    rounding of a state (1e-7 of its size) would otherwise sit in every residual."""
+    zeta, u, zeta_next = pairs
+    return [a.T.to(dtype).contiguous() for a in (zeta, u, zeta_next - zeta)]
+
+
+def _expanded(members: int, zeta: torch.Tensor, u: torch.Tensor, step: torch.Tensor):
     """Pairs ``(n, B)`` shared by ``members`` as ``(n, members, B)`` (views)."""
     zeta, u = (a[:, None].expand(a.shape[0], members, a.shape[1]) for a in (zeta, u))
-    return zeta, u, zeta_next[:, None]
+    return zeta, u, step[:, None]
 
 
 def _start(net: ResidualNet, members: int, zeta: torch.Tensor, u: torch.Tensor,
-           zeta_next: torch.Tensor) -> tuple:
+           step: torch.Tensor) -> tuple:
     """Pairs ``(n, B)`` with what the first RK4 stage computes at them before the weights
     enter (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t`): the arguments of
     :func:`_loss_of` after ``dt``, computed once for every epoch of a full batch."""
-    zeta, u, zeta_next = _expanded(members, zeta, u, zeta_next)
+    zeta, u, step = _expanded(members, zeta, u, step)
     with torch.no_grad():
-        return zeta, u, zeta_next, net.start_t(zeta, u)
+        return zeta, u, step, net.start_t(zeta, u)
 
 
 def _loss_of(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
-             zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+             step: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
     """:func:`_stacked_loss` on pairs ``(n, R, B)``; ``start`` (:func:`_start`) is taken for the
     first RK4 stage, which is at ``zeta`` itself."""
-    return _pair_errors(net, mlp, dt, zeta, u, zeta_next, start).mean(dim=-1)
+    return _pair_errors(net, mlp, dt, zeta, u, step, start).mean(dim=-1)
 
 
 def _pair_errors(net: ResidualNet, mlp: StackedMLP, dt: float, zeta: torch.Tensor, u: torch.Tensor,
-                 zeta_next: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
-    """Every pair's squared one-step error ``(R, B)``, the terms of :func:`_loss_of`'s mean."""
+                 step: torch.Tensor, start: StartT | None = None) -> torch.Tensor:
+    """Every pair's squared one-step error ``(R, B)``, the terms of :func:`_loss_of`'s mean: the
+    RK4 step's increment against the observed one (eq. (11) with ``zeta`` taken from both)."""
 
     def f(x, v):
         return net.derivative_t(x, v, mlp, start if x is zeta else None)
 
-    pred = rk4_step(f, zeta, u, dt)
-    return ((pred - zeta_next) ** 2).sum(dim=0)
+    return ((rk4_increment(f, zeta, u, dt) - step) ** 2).sum(dim=0)
 
 
 def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
@@ -252,10 +266,17 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             net.set_input_scaling(zeta, u)
         else:
             net.set_input_scaling(np.vstack([zeta, zeta * signs[0]]), np.vstack([u, u * signs[1]]))
+    dtype = getattr(torch, settings.precision)
     pairs, train_set, valid_set = _pair_sets(system, zeta, u, settings, breaks)
     n_train, held_out = len(train_set[0]), valid_set is not train_set
-    train_set, valid_set = ([a.T.contiguous() for a in pairs_] for pairs_ in (train_set, valid_set))
-    mlp = StackedMLP([n.mlp for n in nets])
+    train_set, valid_set = (_training_pairs(pairs_, dtype) for pairs_ in (train_set, valid_set))
+    mlp = StackedMLP([n.mlp for n in nets]).to(dtype)
+    net_t = net  # what the loss evaluates: the net's scaling and structure in `dtype`
+    if dtype != torch.float64:
+        with torch.random.fork_rng(devices=[]):  # its initial weights are discarded: no draw counts
+            net_t = make_net(system, settings.network)
+        net_t.load_state_dict(net.state_dict())
+        net_t.to(dtype)
     if settings.weight_decay:
         optimiser = torch.optim.AdamW(mlp.parameters(), lr=settings.learning_rate,
                                       weight_decay=settings.weight_decay, fused=True)
@@ -278,10 +299,10 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     # the first RK4 stage's prior and features at the data: the same every epoch, computed once
     train_start = None
     if joint:
-        train_start = _start(net, len(members), *(torch.cat(ab, dim=1) for ab in zip(train_set, valid_set)))
+        train_start = _start(net_t, len(members), *(torch.cat(ab, dim=1) for ab in zip(train_set, valid_set)))
     elif full_batch:
-        train_start = _start(net, len(members), *train_set)
-    valid_start = _start(net, len(members), *valid_set)
+        train_start = _start(net_t, len(members), *train_set)
+    valid_start = _start(net_t, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
     best_state = [p.detach().clone() for p in kept.parameters()]
@@ -314,7 +335,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         for idx in batches:
             optimiser.zero_grad()
             if joint:
-                errors = _pair_errors(net, mlp, dt, *train_start)
+                errors = _pair_errors(net_t, mlp, dt, *train_start)
                 loss = errors[:, :n_train].mean(dim=-1)
                 if epoch:  # the weights the last epoch ended with: its validation loss
                     with torch.no_grad():
@@ -322,9 +343,9 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                     if stopped:
                         break  # no restart improved for `patience` epochs: no further step
             elif idx is None:
-                loss = _loss_of(net, mlp, dt, *train_start)
+                loss = _loss_of(net_t, mlp, dt, *train_start)
             else:
-                loss = _stacked_loss(system, net, mlp, *[a[:, idx] for a in train_set], dt)
+                loss = _stacked_loss(system, net_t, mlp, *[a[:, idx] for a in train_set], dt)
             loss.sum().backward()
             optimiser.step()
             with torch.no_grad():
@@ -336,7 +357,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         with torch.no_grad():  # the training loss comes free with the steps
             history.append(epoch_loss / n_train)
             if not joint:
-                stopped = validate(epoch, _loss_of(net, kept, dt, *valid_start))
+                stopped = validate(epoch, _loss_of(net_t, kept, dt, *valid_start))
         if not bar.disable:
             valid = f"{float(valid_history[-1].min()):.3e}" if valid_history else "-"
             bar.set_postfix(loss=f"{float(history[-1].min()):.3e}", valid=valid)
@@ -346,7 +367,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
             break  # no restart improved for `patience` epochs
     if joint and history and not stopped:  # the last epoch's validation: no step follows it
         with torch.no_grad():
-            validate(len(history) - 1, _loss_of(net, kept, dt, *valid_start))
+            validate(len(history) - 1, _loss_of(net_t, kept, dt, *valid_start))
     with torch.no_grad():
         for saved, p in zip(best_state, kept.parameters()):
             p.copy_(saved)
@@ -355,6 +376,7 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     models = []
     for r, member in enumerate(members):
         trained = make_net(system, settings.network)
+        # the weights in float64 whatever the training's precision (load_state_dict casts them)
         trained.load_state_dict({**net.state_dict(), **kept.member_state(r)})
         with torch.no_grad():
             final_loss = float(one_step_loss(system, trained, *pairs, dt))
