@@ -354,7 +354,7 @@ def test_separate_axes_are_solved_one_by_one_and_agree_with_ipopt(tmp_path):
     once) gives the same estimates to that coupling; one RTI step solves this linear model."""
     quad = replace(get_system("quadrotor_linear"),
                    params={"k_v_xy": 1.4, "k_a_xy": 0.3, "k_v_z": 0.8, "k_a_z": 0.5})
-    run = simulation.simulate(quad, seed=1, duration=150 * quad.dt)
+    run = simulation.simulate(quad, seed=1, duration=100 * quad.dt)
     model = prior_model(quad)
     settings = mhe_settings(model, estimator_kind("mhe").default_settings(model))
     directory = generate_embedded_mhe(model, settings, tmp_path / "gn").directory

@@ -286,8 +286,11 @@ def test_missing_executor_is_one_clear_line(tmp_path):
     assert r.exit_code != 0 and "unknown task" in r.output
 
 
+@pytest.mark.slow
 def test_quick_ground_robot_job(tmp_path):
-    """The second task of Table I through the same sweep: one short ground-robot job (5 s runs)."""
+    """The second task of Table I through the same sweep: one short ground-robot job (5 s runs).
+    Slow (30-45 s): the default run has the sweep through the cartpole (above) and the ground
+    robot's observer, training and estimators in test_ground_robot.py."""
     report = rep.run_sweep(rep.task_configs(["ground_robot"], epochs=3, duration=5.0), seeds=1,
                            out=tmp_path, jobs=1, progress=False)
     assert not report.failed
