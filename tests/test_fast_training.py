@@ -186,6 +186,20 @@ def test_help_imports_no_torch():
     assert out.stdout.strip() == "False"
 
 
+
+def _hand_made_adam_step(system, settings, zeta, u, dt):
+    """The net of ``settings.seed`` after one float64 Adam step on :func:`one_step_loss` of all
+    pairs: what one full-batch epoch of ``train`` must give."""
+    torch.manual_seed(settings.seed)
+    ref = make_net(system, settings.network)
+    ref.set_input_scaling(zeta, u)
+    optimiser = torch.optim.Adam(ref.parameters(), lr=settings.learning_rate)
+    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
+    one_step_loss(system, ref, *pairs, dt).backward()
+    optimiser.step()
+    return ref
+
+
 def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_run):
     """With the default batch size an epoch is one Adam step on the loss of all training pairs:
     one epoch of ``train`` equals one hand-made Adam step on ``one_step_loss`` (to 1e-13)."""
@@ -198,13 +212,7 @@ def test_the_default_is_full_batch_one_adam_step_per_epoch(cartpole, cartpole_ru
     settings = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0, precision="float64")
     assert settings.batch_size == config.FULL_BATCH
     model = train(system, zeta, u, run.dt, settings, progress=False)
-    torch.manual_seed(11)
-    ref = make_net(system, settings.network)
-    ref.set_input_scaling(zeta, u)
-    optimiser = torch.optim.Adam(ref.parameters(), lr=settings.learning_rate)
-    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
-    one_step_loss(system, ref, *pairs, run.dt).backward()
-    optimiser.step()
+    ref = _hand_made_adam_step(system, settings, zeta, u, run.dt)
     for name, value in ref.state_dict().items():
         np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-13)
 
@@ -528,13 +536,7 @@ def test_a_float32_training_takes_float64s_steps_and_returns_a_float64_model(car
     zeta, u = run.x[:400], run.u[:400]
     one = config.TrainingSettings(epochs=1, seed=11, validation_fraction=0.0, precision="float32")
     model = train(system, zeta, u, run.dt, one, progress=False)
-    torch.manual_seed(11)
-    ref = make_net(system, one.network)
-    ref.set_input_scaling(zeta, u)
-    optimiser = torch.optim.Adam(ref.parameters(), lr=one.learning_rate)
-    pairs = [torch.as_tensor(a) for a in (zeta[:-1], u[:-1], zeta[1:])]
-    one_step_loss(system, ref, *pairs, run.dt).backward()
-    optimiser.step()
+    ref = _hand_made_adam_step(system, one, zeta, u, run.dt)
     for name, value in ref.state_dict().items():
         assert model.net.state_dict()[name].dtype == torch.float64, name
         np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-6)
