@@ -118,11 +118,9 @@ def state_groups(stage: cs.Function, node: cs.Function, nx: int, ny: int
         parent[root(i)] = root(j)
 
     x, u = cs.SX.sym("x", nx), cs.SX.sym("u", stage.size1_in(1))
-    F, A = _sparse_jacobians(stage, x, u)
-    h, C = _sparse_jacobians(node, x, u)
-    for r, c in zip(*A.get_triplet()):
+    for r, c in _jacobian_pattern(stage, x, u):
         join(r, c)
-    reads = [[c for r, c in zip(*C.get_triplet()) if r == k] for k in range(ny)]
+    reads = [[c for r, c in _jacobian_pattern(node, x, u) if r == k] for k in range(ny)]
     for cols in reads:
         for c in cols[1:]:
             join(cols[0], c)
@@ -136,15 +134,11 @@ def state_groups(stage: cs.Function, node: cs.Function, nx: int, ny: int
     return tuple(groups)
 
 
-def _sparse_jacobians(fn: cs.Function, x: cs.SX, u: cs.SX) -> tuple[cs.Sparsity, cs.Sparsity]:
-    """The structural sparsity of the function's value and of its (dense-stored) Jacobian: the
-    Jacobian output is evaluated symbolically and its structurally zero entries dropped."""
-    value, jac = fn(x, u)
-    jac = cs.SX(jac)
-    pattern = [(r, c) for c in range(jac.size2()) for r in range(jac.size1())
-               if not jac[r, c].is_zero()]
-    rows, cols = (list(v) for v in zip(*pattern)) if pattern else ([], [])
-    return value.sparsity(), cs.Sparsity.triplet(jac.size1(), jac.size2(), rows, cols)
+def _jacobian_pattern(fn: cs.Function, x: cs.SX, u: cs.SX) -> list[tuple[int, int]]:
+    """The structurally nonzero entries ``(row, column)`` of the function's second output, a
+    Jacobian stored dense: evaluated symbolically, its structural zeros dropped."""
+    jac = cs.SX(fn(x, u)[1])
+    return [(r, c) for c in range(jac.size2()) for r in range(jac.size1()) if not jac[r, c].is_zero()]
 
 
 def group_defines(groups) -> dict[str, str]:
