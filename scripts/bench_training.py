@@ -16,6 +16,12 @@ to the target, ``TARGET_CPU_SECONDS``); the 250 epochs in each training precisio
 ``--precisions`` (``TrainingSettings.precision``; the repeats alternate between them, so each
 precision sees the same minutes), ``observer_plus_250_epochs`` with the default's. Beside the
 times stand the final losses (epochs) and the gap closures (job, sweep).
+
+This machine's speed changes by a factor of up to three from day to day, so ``--against
+COMMIT`` (by default the code the issue measured, :data:`ISSUE_COMMIT`) also times that code's
+observer and 250 default epochs and today's, in fresh processes, alternating, on the same
+minutes; the ratio turns the issue's figures into today's (``against``), and the target is
+judged on both the raw CPU time and on the issue's day's scale.
 """
 
 from __future__ import annotations
@@ -43,6 +49,8 @@ from learnest_codegen.simulation import simulate
 #: observer plus 250 epochs of the default training on the demo data, CPU seconds (the issue's
 #: target; before: 5.6 s + 2.7 s)
 TARGET_CPU_SECONDS = 3.0
+#: ``learnest reproduce table1`` on 2 cores, wall seconds (the issue's target; before: 67 min)
+TABLE1_TARGET_SECONDS = 20 * 60
 #: the settings timed: one round of the default, one round of the cartpole Table I recipe (3
 #: restarts), and the earlier default and round with 256-pair mini-batches (the "before")
 EPOCH_CASES = {
@@ -59,6 +67,69 @@ BEFORE = {"default_250_epochs_seconds": 39.0, "cartpole_job_seconds": 635.0,
           "source": "issue figures and docs/results.md (code of commit a9b6c0a / b12bfa1, idle machine)",
           "observer_cpu_seconds_issue_26": 5.6, "default_250_epochs_cpu_seconds_issue_26": 2.7,
           "table1_sweep_seconds_issue_26": 4030.0}
+
+
+#: The code the issue measured its 5.6 s + 2.7 s on (before the fourth round of
+#: ``docs/training.md``).
+ISSUE_COMMIT = "5686e62"
+ROOT = Path(__file__).resolve().parents[1]
+#: The same measurement in any version of the package: the default observer on the demo's
+#: training run, then 250 epochs of that version's default training (one round; the issue's
+#: code had no ``DEFAULT_TRAINING``, its default was ``TrainingSettings()``), shortest CPU of three.
+_SAME_MEASUREMENT = """
+import json, time
+from dataclasses import replace
+import torch
+torch.set_num_threads(1)
+from learnest_codegen import get_system
+from learnest_codegen import config
+from learnest_codegen.learning.training import train
+from learnest_codegen.observers import observe
+from learnest_codegen.simulation import simulate
+system = get_system("cartpole")
+run = simulate(system, seed=0)
+settings = replace(getattr(config, "DEFAULT_TRAINING", config.TrainingSettings()), refine=0)
+train(system, observe(run, system).zeta[:200], run.u[:200], run.dt, replace(settings, epochs=1), progress=False)
+observer = epochs = float("inf")
+for _ in range(3):
+    cpu = time.process_time(); obs = observe(run, system); observer = min(observer, time.process_time() - cpu)
+    cpu = time.process_time(); model = train(system, obs.zeta, run.u, run.dt, settings, progress=False)
+    epochs = min(epochs, time.process_time() - cpu)
+print(json.dumps({"observer": observer, "epochs": epochs, "final_loss": model.meta["final_loss"]}))
+"""
+
+
+def bench_against(commit: str, rounds: int = 2) -> dict:
+    """The issue's code (``commit``, unpacked with ``git archive``) and today's, each timed by
+    :data:`_SAME_MEASUREMENT` in a fresh process, alternating ``rounds`` times; the shortest of
+    each, their ratio and the issue's figures scaled by it."""
+    best: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        for _ in range(rounds):
+            for name, tree in ((commit, tmp), ("today", str(ROOT))):
+                env = {**os.environ, "PYTHONPATH": tree}
+                done = subprocess.run([sys.executable, "-c", _SAME_MEASUREMENT], cwd=tree, env=env,
+                                      capture_output=True, text=True)
+                if done.returncode:
+                    raise RuntimeError(f"timing {name} failed: {done.stderr.strip().splitlines()[-1:]}")
+                value = json.loads(done.stdout.strip().splitlines()[-1])
+                value["total"] = value["observer"] + value["epochs"]
+                value["load_average"] = os.getloadavg()[0]
+                if name not in best or value["total"] < best[name]["total"]:
+                    best[name] = value
+                print(name, json.dumps(value), flush=True)
+    issue = BEFORE["observer_cpu_seconds_issue_26"] + BEFORE["default_250_epochs_cpu_seconds_issue_26"]
+    slower = best[commit]["total"] / issue
+    equivalent = best["today"]["total"] / slower
+    out = {"commit": commit, "issue_code": best[commit], "today": best["today"],
+           "speed_up": best[commit]["total"] / best["today"]["total"],
+           "machine_slower_than_issue_day": slower,
+           "today_on_issue_day_scale_cpu_seconds": equivalent,
+           "met_on_issue_day_scale": equivalent <= TARGET_CPU_SECONDS}
+    print(json.dumps(out), flush=True)
+    return out
 
 
 def _best_cpu(fn, repeat: int):
@@ -210,6 +281,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeat", type=int, default=3, help="repeats of the observer and the epochs")
     parser.add_argument("--precisions", default=",".join(PRECISIONS),
                         help="training precisions of the default's 250 epochs (comma separated)")
+    parser.add_argument("--against", default=ISSUE_COMMIT,
+                        help="also time this commit's observer and epochs beside today's ('' for none)")
+    parser.add_argument("--sweep-out", type=Path, default=None,
+                        help="keep the sweep's results in this directory (default: a temporary one)")
     args = parser.parse_args(argv)
     precisions = tuple(p for p in args.precisions.split(",") if p)
     torch.set_num_threads(1)
@@ -220,15 +295,26 @@ def main(argv: list[str] | None = None) -> dict:
               "observer_and_default": bench_observer_and_default(args.repeat, precisions),
               "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},
                                      args.epochs, precisions)}
+    if args.against:
+        report["against"] = bench_against(args.against)
     with tempfile.TemporaryDirectory() as tmp:
         if args.job:
             report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")
         if args.robot_job:
             report["ground_robot_job"] = bench_sweep("ground_robot", 1, 1, Path(tmp) / "robot_job")
         if args.sweep:
-            report["table1_sweep"] = bench_sweep("cartpole,ground_robot", 15, args.jobs, Path(tmp) / "sweep")
+            report["table1_sweep"] = bench_sweep("cartpole,ground_robot", 15, args.jobs,
+                                                 args.sweep_out or Path(tmp) / "sweep")
     if args.read_sweep is not None:
         report["table1_sweep"] = read_sweep(args.read_sweep)
+    if args.sweep and args.against:  # the machine's speed on both sides of the sweep
+        report["against_after_sweep"] = after = bench_against(args.against)
+        slower = (report["against"]["machine_slower_than_issue_day"]
+                  + after["machine_slower_than_issue_day"]) / 2
+        sweep = report["table1_sweep"]
+        sweep["machine_slower_than_issue_day"] = slower
+        sweep["wall_seconds_on_issue_day_scale"] = sweep["wall_seconds"] / slower
+        sweep["met_on_issue_day_scale"] = sweep["wall_seconds"] / slower <= TABLE1_TARGET_SECONDS
     args.out.write_text(json.dumps(report, indent=2))
     print(f"wrote {args.out}")
     return report
