@@ -156,13 +156,17 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
 @click.option("--always-keep-net", is_flag=True,
               help="keep the trained net even when the prior alone has the lower validation loss "
                    "(default: such a net is zeroed and the model is its prior)")
+@click.option("--tune-noise", is_flag=True,
+              help="choose each KNODE estimator's noise scales on the training flights against their "
+                   "reference, and the nominal estimators' the same way as a control (docs/recordings.md)")
 @click.option("--savgol-window", default=151, show_default=True, type=click.IntRange(min=3),
               help="Savitzky-Golay window of the reference [samples]")
 @click.option("--out", default="results/quadrotor", show_default=True, type=click.Path(file_okay=False))
 @click.option("--force", is_flag=True, help="redo studies whose results already exist")
 @friendly
 def quadrotor(data, simulated, protocol, train_names, all_train, features, matrix, estimators, epochs,
-              weight_decay, observer, clamp_inputs, always_keep_net, savgol_window, out, force) -> None:
+              weight_decay, observer, clamp_inputs, always_keep_net, tune_noise, savgol_window, out,
+               force) -> None:
     """The paper's quadrotor experiment (Fig. 3) on NanoBench Crazyflie flights, and protocols
     that test flights of a kind the model was not trained on.
 
@@ -197,7 +201,8 @@ def quadrotor(data, simulated, protocol, train_names, all_train, features, matri
     base = fs.StudySettings()
     settings = fs.StudySettings(training=replace(base.training, epochs=epochs, weight_decay=weight_decay),
                                 observer=observer, estimators=tuple(split(estimators)),
-                                clamp_inputs=clamp_inputs, net_must_beat_prior=not always_keep_net)
+                                clamp_inputs=clamp_inputs, net_must_beat_prior=not always_keep_net,
+                                tune_noise=tune_noise)
     matrix = list(fs.DEFAULT_MATRIX) if matrix.strip() == "default" else split(matrix)
     summaries = fs.run_study(cases, out, train=train if protocol == "single" else (),
                              features=split(features), settings=settings, protocol=protocol,

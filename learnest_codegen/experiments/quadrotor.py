@@ -104,9 +104,16 @@ def methods(estimators: Sequence[str]) -> list[tuple[str, str, str]]:
             for prefix, kind in (("", "nominal"), ("KNODE-", "knode"))]
 
 
-def pairs(estimators: Sequence[str]) -> list[tuple[str, str]]:
-    """``(KNODE label, nominal label)`` of each estimator."""
-    return [(f"KNODE-{LABELS[e]}", LABELS[e]) for e in estimators]
+def pairs(estimators: Sequence[str], tuned: bool = False) -> list[tuple[str, str]]:
+    """``(KNODE label, nominal label)`` of each estimator; with ``tuned``, also each KNODE
+    estimator against its nominal estimator tuned on the same training flights."""
+    out = [(f"KNODE-{LABELS[e]}", LABELS[e]) for e in estimators]
+    return out + [(f"KNODE-{LABELS[e]}", tuned_label(e)) for e in estimators if tuned]
+
+
+def tuned_label(estimator: str) -> str:
+    """The label of the nominal ``estimator`` with its noise tuned on the training flights."""
+    return f"{LABELS[estimator]} (tuned)"
 
 
 @dataclass(frozen=True)
@@ -117,6 +124,9 @@ class StudySettings:
     estimators (``None``: :data:`~learnest_codegen.compilation.CLAMP_INPUTS`).
     ``net_must_beat_prior`` keeps the trained net only when its validation loss beats the prior
     alone (see :func:`~learnest_codegen.learning.runs.train_on_runs`).
+    ``tune_noise`` chooses each KNODE estimator's noise scales on the training flights
+    (:mod:`.quadrotor_tuning`), and beside them, as a control, each nominal estimator's the same
+    way (labels ``"<estimator> (tuned)"``).
     """
 
     training: TrainingSettings = field(default_factory=lambda: TrainingSettings(
@@ -125,6 +135,7 @@ class StudySettings:
     estimators: tuple[str, ...] = ("mhe", "ukf")
     clamp_inputs: bool | None = None
     net_must_beat_prior: bool = True
+    tune_noise: bool = False
 
     def __post_init__(self) -> None:
         unknown = [e for e in self.estimators if e not in ESTIMATOR_NAMES]
@@ -139,6 +150,8 @@ class StudySettings:
             out["clamp_inputs"] = self.clamp_inputs
         if not self.net_must_beat_prior:
             out["net_must_beat_prior"] = False
+        if self.tune_noise:
+            out["tune_noise"] = True
         return out
 
 
@@ -159,6 +172,21 @@ def _estimators(model, out: Path, settings: StudySettings, estimators: Sequence[
     clamp = settings.clamp_inputs if model != "nominal" else None
     return {name: make_estimator(model, name, system=QUADROTOR, out=out, clamp_inputs=clamp)
             for name in (estimators or settings.estimators)}
+
+
+def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings) -> tuple[dict, dict]:
+    """Each of the study's estimators of ``model`` (or ``"nominal"``) with its noise tuned on
+    the training flights (:func:`.quadrotor_tuning.tune`), and each one's tuning record."""
+    from .quadrotor_tuning import tune
+
+    clamp = settings.clamp_inputs if model != "nominal" else None
+    estimators, record = {}, {}
+    for name in settings.estimators:
+        where = out / ("nominal" if model == "nominal" else "knode") / name
+        tuning, estimators[name], grid = tune(model, name, train, where, system=QUADROTOR, clamp_inputs=clamp)
+        record[name] = {"process_scale": tuning.process_scale,
+                        "measurement_scale": tuning.measurement_scale, "train_mse": grid}
+    return estimators, record
 
 
 def _run_method(estimator, case: Case, model=None) -> dict:
@@ -284,17 +312,26 @@ def train_and_test(train: Case | Sequence[Case], tests: Sequence[Case], features
         (work / "model" / "model.json").unlink()  # retrain
     trained = trained_model(train, features, out, settings, work / "model", progress=progress)
     compile_start = time.perf_counter()
-    estimators = _estimators(trained, work / "compiled", settings)
+    tuning: dict = {}
+    if settings.tune_noise:
+        estimators, tuning = _tuned(trained, train, work / "tuning", settings)
+        nominal_estimators, tuning["nominal"] = _tuned("nominal", train, work / "tuning", settings)
+    else:
+        estimators = _estimators(trained, work / "compiled", settings)
     compile_seconds = time.perf_counter() - compile_start
     cases = {}
     quiet = None if progress else True  # None: quiet off a terminal
     for case in tqdm(tests, desc=f"KNODE ({label}, {features})", disable=quiet, unit="case"):
         cases[case.name] = {name: _run_method(estimators[est], case, trained)
                             for name, est, kind in methods(settings.estimators) if kind == "knode"}
+        if settings.tune_noise:
+            cases[case.name].update({tuned_label(est): _run_method(nominal_estimators[est], case)
+                                     for est in settings.estimators})
     results = {"train": label, "train_cases": [c.name for c in train], "features": features, "hash": ident,
                "training": {k: trained.meta.get(k) for k in ("train_seconds", "best_epoch", "final_loss",
                                                               "prior_loss", "observer", "prior_params",
                                                               "net_kept")},
+               **({"tuning": tuning} if tuning else {}),
                "compile_seconds": compile_seconds, "wall_seconds": time.perf_counter() - start,
                "cases": cases}
     _write_json(path, results)
@@ -340,7 +377,8 @@ def run_study(cases: Sequence[Case], out: str | Path, *, train: Sequence[str] = 
     for f in features:
         results = run_protocol(cases, out, protocol, f, settings, train=train, force=force, progress=progress)
         studies = results if protocol == "single" else [pooled(results, protocol)]
-        summaries += [summarise(nominal, r, pairs(settings.estimators)) for r in studies]
+        summaries += [summarise(nominal, r, pairs(settings.estimators, settings.tune_noise))
+                      for r in studies]
     extra = []
     if "ukf" in settings.estimators:
         ukf_only = replace(settings, estimators=("ukf",))

@@ -92,7 +92,8 @@ class Summary:
         model's training range).
     medians : method -> median overall MSE over the test flights.
     velocity_medians : method -> median velocity MSE (the onboard EKF included).
-    paired : KNODE label -> group (``"all"`` and each trajectory type) -> :class:`Paired`.
+    paired : pair key (:func:`pair_key`: the KNODE label, or "KNODE vs nominal" for another
+        nominal estimator than its own) -> group (``"all"`` and each trajectory type) -> :class:`Paired`.
     trained_on : test flight -> the flights its model was trained on.
     """
 
@@ -113,6 +114,18 @@ class Summary:
         return asdict(self)
 
 
+def pair_key(knode: str, nominal: str) -> str:
+    """The key of a pair in :attr:`Summary.paired`: the KNODE label against its own nominal
+    estimator (``"KNODE-UKF"`` against ``"UKF"``), else ``"KNODE-UKF vs UKF (tuned)"``."""
+    return knode if knode == f"KNODE-{nominal}" else f"{knode} vs {nominal}"
+
+
+def pair_labels(key: str) -> tuple[str, str]:
+    """``(KNODE label, nominal label)`` of a :func:`pair_key`."""
+    knode, _, nominal = key.partition(" vs ")
+    return knode, nominal or knode.removeprefix("KNODE-")
+
+
 def summarise(nominal: dict[str, dict], knode: dict, pairs: Sequence[tuple[str, str]]) -> Summary:
     """Combine the nominal results and one KNODE study (``train_and_test``'s or a protocol's
     pooled dict) into a :class:`Summary`."""
@@ -131,7 +144,7 @@ def summarise(nominal: dict[str, dict], knode: dict, pairs: Sequence[tuple[str, 
     paired = {}
     for k, n in pairs:
         if k in medians and n in medians:
-            paired[k] = {g: Paired.of({c: per_case[c][n]["mse"] for c in names},
+            paired[pair_key(k, n)] = {g: Paired.of({c: per_case[c][n]["mse"] for c in names},
                                       {c: per_case[c][k]["mse"] for c in names})
                          for g, names in groups.items()}
     trained_on = knode.get("trained_on") or {c: list(knode.get("train_cases", [knode["train"]]))
@@ -218,10 +231,10 @@ def plot_paired(summaries: Sequence[Summary], path: Path) -> Path:
     for ax, s in zip(axes[0], summaries):
         ticks, names = [], []
         for j, (k, groups) in enumerate(s.paired.items()):
-            n_label = next(n for n in s.medians if k == f"KNODE-{n}")
+            k_label, n_label = pair_labels(k)
             x0, x1 = 3 * j, 3 * j + 1
             nom = np.array([s.per_case[c][n_label]["mse"] for c in groups[ALL].changes])
-            kno = np.array([s.per_case[c][k]["mse"] for c in groups[ALL].changes])
+            kno = np.array([s.per_case[c][k_label]["mse"] for c in groups[ALL].changes])
             ax.boxplot([nom, kno], positions=[x0, x1], widths=0.5, medianprops={"color": "tab:orange"},
                        showfliers=False)
             for a, b in zip(nom, kno):
@@ -231,7 +244,7 @@ def plot_paired(summaries: Sequence[Summary], path: Path) -> Path:
             ax.text(x0 + 0.5, 1.02, f"mean {p.mean:+.1f} %\n{p.improved}/{p.n} better",
                     transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=8)
             ticks += [x0, x1]
-            names += [n_label, k]
+            names += [n_label, k_label]
         ax.set_xticks(ticks, names, rotation=20)
         ax.set_yscale("log")
         ax.set_ylabel("MSE over the 9 translational states")
