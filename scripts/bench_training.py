@@ -89,7 +89,8 @@ from learnest_codegen.simulation import simulate
 system = get_system("cartpole")
 run = simulate(system, seed=0)
 settings = replace(getattr(config, "DEFAULT_TRAINING", config.TrainingSettings()), refine=0)
-train(system, observe(run, system).zeta[:200], run.u[:200], run.dt, replace(settings, epochs=1), progress=False)
+warm_up = replace(settings, epochs=1)
+train(system, observe(run, system).zeta[:200], run.u[:200], run.dt, warm_up, progress=False)
 observer = epochs = float("inf")
 for _ in range(3):
     cpu = time.process_time(); obs = observe(run, system); observer = min(observer, time.process_time() - cpu)
@@ -105,7 +106,8 @@ def bench_against(commit: str, rounds: int = 2) -> dict:
     each, their ratio and the issue's figures scaled by it."""
     best: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True, check=True).stdout
+        archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True,
+                                 check=True).stdout
         subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
         for _ in range(rounds):
             for name, tree in ((commit, tmp), ("today", str(ROOT))):
