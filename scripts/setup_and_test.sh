@@ -19,4 +19,4 @@ if ! command -v valgrind >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; 
         || echo "valgrind could not be installed: the memcheck tests will be skipped" >&2
 fi
 . .venv/bin/activate
-python -m pytest -q "$@"
+python -m pytest -q -n auto "$@"  # one worker per core (pytest-xdist)
