@@ -166,7 +166,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
 @friendly
 def quadrotor(data, simulated, protocol, train_names, all_train, features, matrix, estimators, epochs,
               weight_decay, observer, clamp_inputs, always_keep_net, tune_noise, savgol_window, out,
-               force) -> None:
+              force) -> None:
     """The paper's quadrotor experiment (Fig. 3) on NanoBench Crazyflie flights, and protocols
     that test flights of a kind the model was not trained on.
 

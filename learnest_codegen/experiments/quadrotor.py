@@ -182,7 +182,7 @@ def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings) -> 
     clamp = settings.clamp_inputs if model != "nominal" else None
     estimators, record = {}, {}
     for name in settings.estimators:
-        where = out / ("nominal" if model == "nominal" else "knode") / name
+        where = out / name if model == "nominal" else out / "knode" / name
         tuning, estimators[name], grid = tune(model, name, train, where, system=QUADROTOR, clamp_inputs=clamp)
         record[name] = {"process_scale": tuning.process_scale,
                         "measurement_scale": tuning.measurement_scale, "train_mse": grid}
@@ -315,7 +315,9 @@ def train_and_test(train: Case | Sequence[Case], tests: Sequence[Case], features
     tuning: dict = {}
     if settings.tune_noise:
         estimators, tuning = _tuned(trained, train, work / "tuning", settings)
-        nominal_estimators, tuning["nominal"] = _tuned("nominal", train, work / "tuning", settings)
+        # the nominal's builds depend on the fold, not the features: every features' study reuses them
+        nominal_estimators, tuning["nominal"] = _tuned("nominal", train, out / "nominal" / "tuning" / label,
+                                                       settings)
     else:
         estimators = _estimators(trained, work / "compiled", settings)
     compile_seconds = time.perf_counter() - compile_start
