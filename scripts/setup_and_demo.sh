@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install everything into .venv/ and run the main job: the built-in cartpole demo.
+# Install the locked Python environment into .venv/ and run the main job: the cartpole demo.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

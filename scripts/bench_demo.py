@@ -1,0 +1,54 @@
+"""The demo as a user runs it (`learnest demo`, its defaults): accuracy and time per step.
+
+Runs ``learnest demo --out build/bench/demo`` in a fresh process (the README's main job, the
+default training, seeds 0 and 1) and keeps its report. The trained model it leaves in
+``build/bench/demo/model`` is the one the instruction-count benchmarks measure.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import figures
+
+MINUTES = 5
+ORDER = 10
+OUT = figures.ROOT / "build" / "bench" / "demo"
+
+
+def measure(args) -> tuple[dict, dict]:
+    shutil.rmtree(OUT, ignore_errors=True)
+    cond = figures.conditions(
+        model="the demo's KNODE cartpole, default training (learnest_codegen.config.DEFAULT_TRAINING), "
+              "trained on the seed-0 run", run="cartpole seed 1, 10 s at 500 Hz (5000 samples)",
+        settings="learnest demo (every option at its default)")
+    subprocess.run([sys.executable, "-m", "learnest_codegen.cli", "demo", "--out", str(OUT)], check=True)
+    report = json.loads((OUT / "report.json").read_text())
+    return {"rows": report["rows"], "train_seconds": report["meta"]["train_seconds"]}, cond
+
+
+def model_dir() -> Path:
+    """The demo's trained model, running the demo first if it has not run on this checkout."""
+    if not (OUT / "model" / "model.json").exists():
+        measure(None)
+    return OUT / "model"
+
+
+def render_table(data: dict) -> str:
+    from learnest_codegen.experiments.demo import accuracy_table
+    return accuracy_table(data["figures"]["rows"])
+
+
+def render_times(data: dict) -> str:
+    rows = [r for r in data["figures"]["rows"]]
+    lines = ["| estimator | backend | us/step |", "|---|---|---|"]
+    lines += [f"| {r['method']} | {r['backend']} | {r['us_per_step']:.1f} |" for r in rows]
+    m = data["conditions"]["machine"]
+    lines.append(f"\n{m['cpu']}, {m['cores']} cores, load {m['load_1min']} before and "
+                 f"{m.get('load_1min_at_end', '?')} after; {data['conditions']['date']}, commit "
+                 f"{data['conditions']['commit']}.")
+    return "\n".join(lines)

@@ -1,0 +1,40 @@
+"""Fill every figure block and inline value of the README and docs/ from docs/figures/*.json.
+
+    python scripts/render_docs.py            # rewrite the pages whose figures changed
+    python scripts/render_docs.py --check    # exit 1 and name the pages that would change
+
+The block syntax is in ``scripts/figures.py``; ``tests/test_figures.py`` runs the check.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import figures
+
+
+def stale_pages() -> list[tuple]:
+    out = []
+    for page in figures.PAGES:
+        text = page.read_text()
+        new = figures.render_page(text)
+        if new != text:
+            out.append((page, new))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    stale = stale_pages()
+    for page, new in stale:
+        rel = page.relative_to(figures.ROOT)
+        if "--check" in argv:
+            print(f"{rel}: its figures differ from docs/figures/ (python scripts/render_docs.py)")
+        else:
+            page.write_text(new)
+            print(f"rendered {rel}")
+    return 1 if stale and "--check" in argv else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""Every figure the README and docs quote is rendered from its benchmark's JSON
+(docs/figures/, written by ``python scripts/bench.py``), and says what it measured and how."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+sys.path.insert(0, str(SCRIPTS))
+import figures  # noqa: E402
+import render_docs  # noqa: E402
+
+JSONS = sorted(figures.FIGURES.glob("*.json"))
+
+
+def test_every_quoted_figure_equals_its_json():
+    stale = [str(page.relative_to(figures.ROOT)) for page, _ in render_docs.stale_pages()]
+    assert stale == [], "run python scripts/render_docs.py (or the benchmark that changed)"
+
+
+@pytest.mark.parametrize("path", JSONS, ids=[p.stem for p in JSONS])
+def test_every_figure_file_names_its_model_run_and_conditions(path):
+    data = json.loads(path.read_text())
+    assert data["schema"] == figures.SCHEMA and data["name"] == path.stem
+    assert data["command"].startswith(f"python scripts/bench.py {path.stem}")
+    cond = data["conditions"]
+    for key in ("model", "run", "commit", "date", "machine", "versions"):
+        assert cond.get(key), f"{path.name}: conditions.{key} missing"
+    assert {"cpu", "cores", "load_1min", "load_1min_at_end"} <= set(cond["machine"])
+    assert (SCRIPTS / f"bench_{path.stem}.py").exists(), "a figure file without its benchmark"
+
+
+def test_every_page_block_names_an_existing_view():
+    for page in figures.PAGES:
+        for m in figures.BLOCK.finditer(page.read_text()):
+            bench, view = m.group("name").split(".", 1)
+            module = figures.bench_module(bench)
+            assert hasattr(module, f"render_{view}"), f"{page.name}: {m.group('name')}"
+
+
+def test_a_changed_figure_is_caught(tmp_path, monkeypatch):
+    """The check is not vacuous: a page quoting a value that differs from the JSON is stale."""
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / "toy.json").write_text(json.dumps({"figures": {"x": 2.5}}))
+    monkeypatch.setattr(figures, "FIGURES", tmp_path / "figures")
+    page = "MSE <!-- value: toy figures.x .2f -->2.40<!-- /value --> here"
+    assert figures.render_page(page) == "MSE <!-- value: toy figures.x .2f -->2.50<!-- /value --> here"
