@@ -7,14 +7,14 @@ from here without slowing ``learnest --help``. :class:`TrainingSettings` and
 :mod:`~learnest_codegen.learning.network`.
 
 * :data:`DEFAULT_TRAINING` - the one default: ``ln.train``, ``train_on_run``, ``learnest train``
-  and ``learnest demo`` train with it (chosen by measurement, see ``docs/training.md``).
+  and ``learnest demo`` train with it (chosen by measurement, see ``docs/reports/training.md``).
 * Recipes of the paper's experiments (``TRAINING_RECIPES``): ``paper``
   (:data:`PAPER_TRAINING` = ``TrainingSettings()``, the paper's Adam at 1e-2 for 250 epochs,
   full batch, nothing added) and ``table1_cartpole`` (:data:`TABLE1_CARTPOLE_TRAINING`, the
   cartpole Table I task's).
 
 The measured effect of every setting is in :mod:`~learnest_codegen.learning.training`'s
-docstring and the project's ``docs/training.md``.
+docstring and the project's ``docs/reports/training.md``.
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ class TrainingSettings:
     batch_size : pairs per optimiser step; at least the number of training pairs is full batch
         (the default, :data:`FULL_BATCH`). The paper's 256 (32 steps per epoch on the demo data)
         costs about 8 times as much per epoch and reaches the same loss; the Table I recipe
-        trains in batches of 1024 (see ``docs/training.md``).
+        trains in batches of 1024 (see ``docs/reports/training.md``).
     seed : network initialisation, mini-batch order and (full-state training) the state noise.
     network : the residual MLP's architecture.
     validation_fraction : final segment of the run held out for early stopping; 0 disables.
@@ -128,7 +128,7 @@ class TrainingSettings:
         ``restarts`` nets from scratch with the settings above.
     precision : the floating-point type the net is trained in, one of :data:`PRECISIONS`;
         float32 for every recipe (the same Table I cells and demo gap closure as float64 at
-        less cost, measured in ``docs/training.md``). The data, the observers and the trained
+        less cost, measured in ``docs/reports/training.md``). The data, the observers and the trained
         model stay float64 (the weights are cast back); only the optimisation runs in this type.
     """
 
@@ -189,14 +189,14 @@ PAPER_TRAINING = TrainingSettings()
 #: 0.1 and two refinement rounds (the states smoothed again through the model and the net
 #: retrained). On held-out runs it closes more of the gap than one round (cartpole and the
 #: README's pendulum) at about three rounds' cost; the Table I recipe closes a little more at ten
-#: times the cost. The measurement is in ``docs/training.md``.
+#: times the cost. The measurement is in ``docs/reports/training.md``.
 DEFAULT_TRAINING = TrainingSettings(weight_decay=0.1, refine=2)
 #: The training of the cartpole Table I task: the paper's Adam at 1e-2 for 250 epochs with the
 #: additions of :mod:`~learnest_codegen.learning.training` (each one's measured effect is
 #: described there): five refinement rounds of three initialisations each, chosen by the
 #: measurement likelihood, batches of 1024 pairs with the weight average 0.9606 = 0.99 ** 4 per
 #: step, weight decay 0.1. Training the first round's choice alone in the later rounds
-#: (``refine_restarts=1``) costs the hardest seeds 0.1-0.2 point: see ``docs/training.md``.
+#: (``refine_restarts=1``) costs the hardest seeds 0.1-0.2 point: see ``docs/reports/training.md``.
 TABLE1_CARTPOLE_TRAINING = TrainingSettings(epochs=250, batch_size=1024, refine=5, restarts=3,
                                             weight_decay=0.1, weight_average=0.9606)
 

@@ -26,7 +26,7 @@ from typing import Sequence
 from .errors import BuildError
 
 # The one set of flags of every generated estimator: the package's libraries, the folders'
-# build fragments and docs/firmware.md use them alike (a firmware adds its target's flags).
+# build fragments and docs/guide/firmware.md use them alike (a firmware adds its target's flags).
 # -O2 rather than -O3: measured on generated CasADi code, -O3 costs more compile time for no
 # measurable run-time gain. -fno-math-errno lets libm calls inline; no -ffast-math, which would
 # break bit-level parity with the reference implementations; -std=c99 and -ffp-contract=off

@@ -5,7 +5,7 @@ test run, MHE horizon 20: max |state difference| of mhe_rti and mhe_gn (float64 
 to the Ipopt MHE, of each float32 build to its float64 build (UKF: float32 at alpha 0.5, the
 float32 minimum), and every estimate's MSE against the true state. The Cortex-M runs
 (examples/cortex_m) equal the host builds bit for bit in float32, so these are also the
-firmware's figures (docs/cortex_m.md). Usage::
+firmware's figures (docs/reports/cortex_m.md). Usage::
 
     python scripts/bench_accuracy.py --out bench_accuracy.json [--steps 300]
 """

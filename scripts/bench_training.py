@@ -64,13 +64,13 @@ EPOCH_CASES = {
 #: default epochs, one cartpole Table I job with its recipe, the whole sweep on 2 cores.
 BEFORE = {"default_250_epochs_seconds": 39.0, "cartpole_job_seconds": 635.0,
           "table1_sweep_seconds": 6004.0,
-          "source": "issue figures and docs/results.md (code of commit a9b6c0a / b12bfa1, idle machine)",
+          "source": "issue figures and docs/reports/results.md (code of commit a9b6c0a / b12bfa1, idle machine)",
           "observer_cpu_seconds_issue_26": 5.6, "default_250_epochs_cpu_seconds_issue_26": 2.7,
           "table1_sweep_seconds_issue_26": 4030.0}
 
 
 #: The code the issue measured its 5.6 s + 2.7 s on (before the fourth round of
-#: ``docs/training.md``).
+#: ``docs/reports/training.md``).
 ISSUE_COMMIT = "5686e62"
 ROOT = Path(__file__).resolve().parents[1]
 #: The same measurement in any version of the package: the default observer on the demo's

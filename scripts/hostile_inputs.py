@@ -995,7 +995,7 @@ def summary(results: list[dict]) -> dict:
 
 
 def markdown(results: list[dict]) -> str:
-    """The table of docs/reliability.md: case, owner, expected, before (if known), outcome."""
+    """The table of docs/reports/reliability.md: case, owner, expected, before (if known), outcome."""
     lines = ["| case | owner | expected | before | after | detail (after) |",
              "| --- | --- | --- | --- | --- | --- |"]
     for r in results:

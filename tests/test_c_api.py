@@ -1,4 +1,4 @@
-"""The C API every generated estimator shares (docs/c_api.md), in all four estimators and both
+"""The C API every generated estimator shares (docs/guide/c_api.md), in all four estimators and both
 precisions: missing outputs, predict, run-time tuning, bounded options, the fingerprint, and
 two estimators of different precisions in one program.
 

@@ -364,7 +364,7 @@ def start(k, prefix, model_matrices, x0, P0, Q, R):
 def test_kalman_filters_equal_a_kalman_filter_skipping_missing_updates(libraries, linear, cc,
                                                                       prefix, source):
     """The kit's UKF logic over the Kalman filter's predict and masked update, and the kit's
-    EKF (docs/c_kit.md's worked example) over the linear model: both equal FilterPy's
+    EKF (docs/guide/c_kit.md's worked example) over the linear model: both equal FilterPy's
     KalmanFilter that predicts every sample after the first and updates on the outputs present
     only (none: no update), to 1e-12."""
     from filterpy.kalman import KalmanFilter

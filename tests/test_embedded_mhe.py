@@ -300,7 +300,7 @@ def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
 def test_float32_embedded_mhe_and_ukf_track_float64(builds, parity_run, cartpole, tmp_path):
     """float32 builds (single-precision FPUs): the embedded MHE's MSE within 1 % of float64 on
     the cartpole; the UKF's within 1 % on the ground robot (on the cartpole its covariance
-    loses too many digits: docs/embedded_mhe.md)."""
+    loses too many digits: docs/reports/embedded_mhe.md)."""
     model = prior_model(cartpole)
     settings = estimator_kind("mhe").default_settings(model)
     solver = GaussNewtonSettings(mode="rti", precision="float32")

@@ -1,4 +1,4 @@
-"""docs/firmware.md, followed step by step: generate with learnest-compile, copy the folder
+"""docs/guide/firmware.md, followed step by step: generate with learnest-compile, copy the folder
 without the Python parts, build the page's main.c with its Makefile and with its CMake file,
 run them on a simulated run with missing outputs, and compare with the Python binding.
 

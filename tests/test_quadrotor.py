@@ -408,7 +408,7 @@ def test_real_flights_load():
     flights = [nb.read_flight(p) for p in nb.list_flights(_nanobench())]
     assert len(flights) >= 2
     # the dataset interpolates its onboard streams onto the Vicon clock: no held output is
-    # left inside a trimmed flight, so held="missing" changes nothing (docs/recordings.md)
+    # left inside a trimmed flight, so held="missing" changes nothing (docs/reports/flights.md)
     assert not any(np.isnan(f.run.y).any() for f in flights)
     for f in flights:
         assert f.duration > 10.0 and f.run.y.shape[1] == 6

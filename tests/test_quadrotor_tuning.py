@@ -122,7 +122,7 @@ def test_a_tuned_study_pairs_knode_with_both_nominal_estimators(tmp_path, small_
 
 @pytest.mark.slow
 def test_real_flights_every_held_out_type_improves_with_the_tuned_fitted_prior(tmp_path):
-    """Issue 29's acceptance on real data (UKF; the MHE-RTI figures are in docs/recordings.md):
+    """Issue 29's acceptance on real data (UKF; the MHE-RTI figures are in docs/reports/flights.md):
     leave one trajectory type out, the fitted prior with its noise tuned on the training flights
     improves at least 90 % of the flights, by at least +10 % on average, and no flight is more
     than 5 % worse, against the nominal UKF as built and as tuned the same way (measured:

@@ -43,7 +43,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = ["README.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").glob("*.md"))]
+PAGES = ["README.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
 MARKER = re.compile(r"<!--\s*test:\s*(.*?)\s*-->")
 #: A block written as a file of the firmware page (tests/test_handoff.py follows that page).
 HANDOFF_FILE = re.compile(r"<!--\s*file:\s*(\S+)\s*-->")
@@ -326,7 +326,7 @@ def test_docs_site_builds_strictly(tmp_path):
 
 
 def test_api_reference_builds_from_the_docstrings(tmp_path):
-    """The API reference page (docs/api.md, mkdocstrings) builds strictly and documents the
+    """The API reference page (docs/guide/python_api.md, mkdocstrings) builds strictly and documents the
     public calls and settings."""
     try:
         import mkdocstrings  # noqa: F401

@@ -139,7 +139,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
                    "quadrotor_linear), linear_prior (that fitted prior alone, no net), "
                    "thrust_prior, thrust_prior_axes, thrust_prior_z (fitted priors with the thrust "
                    "command: system quadrotor_thrust_linear), thrust_linear (thrust_prior and a "
-                   "residual on v, a); see docs/recordings.md")
+                   "residual on v, a); see docs/reports/flights.md")
 @click.option("--matrix", default="", show_default=True,
               help="single protocol: more training flights, tested with the UKF only (comma-separated, "
                    "or 'default' for a slow and a fast circle and figure-eight)")
@@ -158,7 +158,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
                    "(default: such a net is zeroed and the model is its prior)")
 @click.option("--tune-noise", is_flag=True,
               help="choose each KNODE estimator's noise scales on the training flights against their "
-                   "reference, and the nominal estimators' the same way as a control (docs/recordings.md)")
+                   "reference, and the nominal estimators' the same way as a control (docs/reports/flights.md)")
 @click.option("--savgol-window", default=151, show_default=True, type=click.IntRange(min=3),
               help="Savitzky-Golay window of the reference [samples]")
 @click.option("--out", default="results/quadrotor", show_default=True, type=click.Path(file_okay=False))

@@ -9,7 +9,7 @@ builds under ``-Wall -Wextra -Werror -pedantic`` with gcc, clang and g++ without
 flag (tested in tests/test_handoff.py). It also includes the kit's ``learnest_math.h`` after
 CasADi's definitions and renames CasADi's calls of the C math routines (``sin(``, ``tanh(``,
 ...) to the kit's ``learnest_sin(``, ...: the one place where a build's math routines are
-chosen by precision (a float32 build calls float routines; docs/cortex_m.md).
+chosen by precision (a float32 build calls float routines; docs/reports/cortex_m.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A generator (``ukf.py``, ``mhe.py``, ``mhe_gn.py``) describes its estimator as a
 :class:`Design`: the CasADi functions of its model, the kit file that holds its algorithm,
 the hooks that name the model for the kit, its tuned defaults and its settings. :func:`emit`
-then writes the folder (docs/c_kit.md):
+then writes the folder (docs/guide/c_kit.md):
 
 - ``learnest_*.h``: the C kit, copied, and ``learnest_status.h``;
 - ``<prefix>_model.c/.h``: CasADi's code of the model (``casadi_c.py``);

@@ -3,7 +3,7 @@
 CasADi writes the RK4 model ``F`` and the measurement ``h`` with their state Jacobians (from
 CasADi's AD) into ``<prefix>_model.c``; the C kit's ``learnest_mhe_gn.h`` holds the estimator
 (the Gauss-Newton core ``learnest_gn.h``, the window and gate the Ipopt MHE shares, the API),
-and ``codegen/emit.py`` writes and builds the folder (docs/embedded_mhe.md).
+and ``codegen/emit.py`` writes and builds the folder (docs/reports/embedded_mhe.md).
 """
 
 from __future__ import annotations

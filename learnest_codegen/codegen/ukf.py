@@ -7,7 +7,7 @@ unscented transform, re-drawing the sigma points from the prior, an explicit ``S
 :func:`generate_ukf` has CasADi write the C of the model alone (``F`` and ``h``, one copy each)
 into an estimator folder whose C kit (``learnest_ukf.h``) runs the same predict and masked
 update operation for operation through a loop over the sigma points, and the samples, missing
-outputs, gate, covariance guards and API around them (``codegen/emit.py``, docs/c_kit.md);
+outputs, gate, covariance guards and API around them (``codegen/emit.py``, docs/guide/c_kit.md);
 the CasADi functions here are its tested reference.
 """
 
@@ -25,7 +25,7 @@ from ..export import DiscreteModel
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, comment, emit, resolve_prefix
 
-# The smallest sigma-point spread a float32 UKF accepts (docs/embedded_mhe.md, float32 table).
+# The smallest sigma-point spread a float32 UKF accepts (docs/reports/embedded_mhe.md, float32 table).
 FLOAT32_MIN_ALPHA = 0.5
 ARG_NAMES = ["x", "P", "u", "y", "Q", "R"]
 RES_NAMES = ["x_post", "P_post"]

@@ -13,7 +13,7 @@ until it is no larger than the running covariance (``P+ <= P_run`` in the positi
 semidefinite order); from then on the running weight applies. Jumping straight from the
 first prior to the steady-state weight instead pins the states the outputs see only through
 the dynamics to whatever the first window made of them: after a recovery restart the
-cartpole's rates stayed off for hundreds of samples (``docs/reliability.md``).
+cartpole's rates stayed off for hundreds of samples (``docs/reports/reliability.md``).
 """
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ accepted nor rejected. The streak is kept per output and counts that output's ow
 a missing sample neither lengthens nor ends it, and the accepted samples of a fast output do
 not end the streak of a slow one that keeps being rejected (counted per step, a quarter-rate
 output of the cartpole was rejected 589 times out of 1,250 and never recovered: the UKF's MSE
-was 4.6 times the clean run's; ``docs/reliability.md``). A step whose outputs are all missing
+was 4.6 times the clean run's; ``docs/reports/reliability.md``). A step whose outputs are all missing
 (a pure prediction) carries no evidence either way and leaves the streaks and ``rho`` as they
 were.
 """
@@ -58,7 +58,7 @@ from .inputs import INPUT_REJECTED, MEASUREMENT_REJECTED, InputCheck
 #: chi2.isf(1e-12, df=1) (7.1 sigma). A consistent filter rejects 1e-12 of clean outputs; a
 #: model with model error (the nominal prior) has innovations larger than its ``S``, and at
 #: the textbook 15.14 (1e-4) the nominal cartpole UKF rejected 4 % of a clean test run's
-#: outputs and its MSE moved by 11 %; at 50.8 it rejects none (docs/reliability.md), while
+#: outputs and its MSE moved by 11 %; at 50.8 it rejects none (docs/reports/reliability.md), while
 #: garbage of 10 units on a 0.01-std output scores d^2 ~ 1e6.
 DEFAULT_THRESHOLD = 50.844127911818155
 #: Largest factor one recovery episode multiplies the uncertainty by, per precision (the
@@ -70,7 +70,7 @@ def max_inflation(estimator: str, precision: str) -> float:
     """The inflation cap of ``estimator`` in ``precision``: 1e12, but 1e6 for a float32 MHE,
     whose arrival weight (the inverse covariance) enters float32 normal equations. A float32
     UKF's variances times 1e12 stay far inside float32's range, and at 1e6 it never
-    re-acquired a 45 rad jump of the cartpole's angle (docs/reliability.md, float32 soak)."""
+    re-acquired a 45 rad jump of the cartpole's angle (docs/reports/reliability.md, float32 soak)."""
     return MAX_INFLATION["float64"] if estimator == "ukf" else MAX_INFLATION[precision]
 
 

@@ -9,7 +9,7 @@ that component instead (the input held, as the actuator's zero-order hold would;
 input was accepted, zero clipped into the limits) and reports :data:`INPUT_REJECTED`. The check
 keeps no streak: the next plausible value is used at once. What a wrong but plausible input
 does to the state is the innovation gate's recovery to repair (:mod:`.gate`, and the MHE's
-window restart in :mod:`.mhe`). Rule and measurements: ``docs/reliability.md``.
+window restart in :mod:`.mhe`). Rule and measurements: ``docs/reports/reliability.md``.
 
 Status of a step (``last_status``), a bit set so that both can be reported at once:
 ``0`` OK, ``MEASUREMENT_REJECTED`` (1) the innovation gate left an output out,

@@ -45,7 +45,7 @@ covariance until the window is full again. A lost track means the whole state is
 with the running weight instead, states the outputs do not see (the cartpole's rates after a
 few samples of a wrong input) stayed pinned to their wrong values, each restart was followed
 by new rejections, and the MHE rejected 73 % of the clean samples for good (measured,
-``docs/reliability.md``). ``rho`` then shrinks by ``inflation`` per step without rejection, so
+``docs/reports/reliability.md``). ``rho`` then shrinks by ``inflation`` per step without rejection, so
 the gate stays wide while the window re-learns (resetting ``rho`` to 1 at the restart made a
 wrap of the whole cartpole state lose the track again for 1,500 samples). A step the solver
 fails on also restarts the window at the next step (the estimate stays as it was; the prior is

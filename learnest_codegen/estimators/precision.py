@@ -1,7 +1,7 @@
 """The floating-point precisions generated estimators can be built in, and their C types.
 
 float64 is the default and the reference; float32 is for microcontrollers with a
-single-precision FPU (accuracy cost and guards: ``docs/embedded_mhe.md``).
+single-precision FPU (accuracy cost and guards: ``docs/reports/embedded_mhe.md``).
 """
 
 from __future__ import annotations

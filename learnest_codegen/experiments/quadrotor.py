@@ -24,7 +24,7 @@ the thrust vector and the measured acceleration are turned by the same onboard a
 ``thrust_linear`` (``thrust_prior`` then the net on velocity and acceleration).
 Each per-flight result records the gate's rejections and the share of samples outside the
 training range (:mod:`learnest_codegen.learning.ranges`); the report
-(:mod:`.quadrotor_report`) is paired per flight. Measured: ``docs/recordings.md``.
+(:mod:`.quadrotor_report`) is paired per flight. Measured: ``docs/reports/flights.md``.
 
 Layout of OUT::
 

@@ -4,7 +4,7 @@ A median over test flights can improve while most flights get worse (the flights
 median improve, the others do not), so the headline is paired: per test flight, the relative
 change of a KNODE estimator's MSE against its nominal estimator's on the same flight, and over
 the flights its mean, the share of flights it improves and the worst flight, per trajectory
-type and overall, beside the median. Measured results: ``docs/recordings.md``.
+type and overall, beside the median. Measured results: ``docs/reports/flights.md``.
 """
 
 from __future__ import annotations

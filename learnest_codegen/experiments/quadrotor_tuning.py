@@ -2,7 +2,7 @@
 
 A model that predicts better can be trusted more, but how much is a number the system's
 hand tuning cannot know; it is chosen on the training flights against their reference, the
-same way for the KNODE and the nominal estimators (see docs/recordings.md, "Tuned noise").
+same way for the KNODE and the nominal estimators (see docs/reports/flights.md, "Tuned noise").
 """
 
 from __future__ import annotations

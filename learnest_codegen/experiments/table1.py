@@ -138,7 +138,7 @@ class TaskConfig:
 
 
 # THE place for the defaults of the sweep (the paper's settings; tune here). Why each setting,
-# with its measured effect: docs/training.md and docs/results.md.
+# with its measured effect: docs/reports/training.md and docs/reports/results.md.
 DEFAULT_TASKS: dict[str, TaskConfig] = {
     # TABLE1_CARTPOLE_TRAINING (learnest_codegen.config): restarts chosen by the measurements,
     # weight decay, the weight average and refinement rounds; the full-state model needs

@@ -305,7 +305,7 @@ class _Tanh(torch.autograd.Function):
     """``tanh(x)`` as ``2 sigmoid(2 x) - 1``, with tanh's own backward ``g (1 - y^2)``.
 
     torch's float64 tanh costs about twice its sigmoid and was the largest single operation of
-    a training epoch (see the project's ``docs/training.md``). The two differ by at most 4e-16
+    a training epoch (see the project's ``docs/reports/training.md``). The two differ by at most 4e-16
     (absolute; the rounding of an O(1) value), which is all a trained net can see of it. Only
     training's :meth:`StackedMLP.forward_t` uses it; the trained model, its export and every
     estimator evaluate tanh itself.

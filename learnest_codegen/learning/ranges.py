@@ -7,7 +7,7 @@ cosine, prior features), the least and greatest value over the training data in 
 samples that leave that box; :func:`training_box` gives the box that the export can clamp the
 net's inputs to (``clamp_inputs``, see :func:`learnest_codegen.export.hybrid_model`).
 
-Why the flights need it, and what clamping does there: ``docs/recordings.md``.
+Why the flights need it, and what clamping does there: ``docs/reports/flights.md``.
 """
 
 from __future__ import annotations

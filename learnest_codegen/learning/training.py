@@ -45,7 +45,7 @@ once per training (:meth:`~learnest_codegen.learning.network.ResidualNet.start_t
 batch carries the validation pairs in its forward pass: the weights an epoch ends with are
 those the next step starts from, so that pass gives the previous epoch's validation loss (the
 last epoch's is a pass of its own). Both give the same numbers up to rounding; see
-``docs/training.md``.
+``docs/reports/training.md``.
 
 Two optional ways to quiet the last iterates of Adam at a constant rate 1e-2: on the 15
 cartpole Table I jobs the last epoch's validation loss sat 0-140 % (median 34 %) above the best

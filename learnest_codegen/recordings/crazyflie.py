@@ -29,7 +29,7 @@ agrees with Vicon to a few cm; its acceleration is gravity-free). Beside it lies
    positions in 17 flights (both outside the trimmed flights) and no held accelerometer row:
    the dataset interpolates its onboard streams onto the Vicon clock
    (its metadata counts e.g. 1,997 IMU rows for 2,725 Vicon rows) rather than holding them,
-   so every accelerometer row is an interpolation of a ~73 Hz stream (``docs/recordings.md``).
+   so every accelerometer row is an interpolation of a ~73 Hz stream (``docs/reports/flights.md``).
    The inputs (motors, battery) are held as logged: that is what was applied.
 
 :func:`reference_states` gives the paper's baseline states from Vicon position alone: the

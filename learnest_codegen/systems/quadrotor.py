@@ -22,7 +22,7 @@ does next (on a circle of angular rate ``w``: ``adot = -w^2 v``), which does not
 other speeds or shapes; with the thrust and the battery voltage it can learn the physics below.
 :mod:`learnest_codegen.experiments.quadrotor` measures both. :data:`QUADROTOR_LINEAR` and
 :data:`QUADROTOR_THRUST_LINEAR` are grey-box priors whose acceleration rows are fitted to
-flights, the latter of the true model's form below (``docs/recordings.md``).
+flights, the latter of the true model's form below (``docs/reports/flights.md``).
 
 Pre-training observer (``default_observer``): ``linear_rts``, the exact Kalman filter and RTS
 smoother of the prior ``A x`` with white jerk on each axis (intensity by maximum likelihood)
