@@ -166,9 +166,9 @@ def _split_prefix(prefix: str) -> tuple[str, str, str]:
     for estimator in sorted(ESTIMATOR_NAMES, key=len, reverse=True):
         for kind in ("nominal", "true", "knode"):
             for system in SYSTEMS:
-                if prefix == f"{system}_{kind}_{estimator}":
+                if re.fullmatch(rf"{system}_{kind}_{estimator}(_n20)?", prefix):
                     return system, kind, estimator
-    raise AssertionError(f"C block includes {prefix}.h: not <system>_<kind>_<estimator>")
+    raise AssertionError(f"C block includes {prefix}.h: not <system>_<kind>_<estimator>[_n20]")
 
 
 def _folder(block: Block, state) -> Path:
