@@ -113,9 +113,9 @@ def knode_model(trained, clamp_inputs: bool | None = None) -> tuple[DiscreteMode
     training range when ``clamp_inputs`` (default :data:`CLAMP_INPUTS`).
 
     The clamp is part of the model's CasADi graph, so every estimator and precision gets it; a
-    clamped model has its own hash. A model that records no training range (trained before
-    ranges were recorded) cannot be clamped: :class:`ModelMismatchError` when asked
-    explicitly; by default it is not clamped.
+    clamped model has its own hash. A model that records no training range (its
+    ``model.json`` has no ``training_ranges``) cannot be clamped: :class:`ModelMismatchError`
+    when asked explicitly; by default it is not clamped.
     """
     from .learning.ranges import training_box
 
