@@ -1,7 +1,9 @@
 """The compile stage: a model (nominal, true or trained KNODE) to compiled estimator directories.
 
-``compile_estimators`` generates and builds each requested estimator into
-``out/<system>_<kind>_<estimator>/`` (C sources, header, shared library, ``manifest.json``),
+``compile_estimators`` generates and builds each requested estimator into a folder of ``out``
+named by its C prefix (:func:`estimator_dir`: ``<system>_<kind>_<estimator>``, with the horizon
+``_n<N>`` of an MHE and ``_float32`` of a float32 build; C sources, header, shared library,
+``manifest.json``),
 each folder whole or not at all: it is written beside its place under a temporary name and
 renamed into place when complete. Generation is deterministic and the toolchain reuses a
 library whose inputs did not change and which is still the file it built, so compiling the same
@@ -111,9 +113,9 @@ def knode_model(trained, clamp_inputs: bool | None = None) -> tuple[DiscreteMode
     training range when ``clamp_inputs`` (default :data:`CLAMP_INPUTS`).
 
     The clamp is part of the model's CasADi graph, so every estimator and precision gets it; a
-    clamped model has its own hash. A model that records no training range (trained before
-    ranges were recorded) cannot be clamped: :class:`ModelMismatchError` when asked
-    explicitly; by default it is not clamped.
+    clamped model has its own hash. A model that records no training range (its
+    ``model.json`` has no ``training_ranges``) cannot be clamped: :class:`ModelMismatchError`
+    when asked explicitly; by default it is not clamped.
     """
     from .learning.ranges import training_box
 
@@ -152,14 +154,30 @@ def precision_problem(estimators: tuple[str, ...], precision: str) -> str | None
     return None
 
 
-def estimator_dir(out: Path, model: DiscreteModel, name: str, precision: str = "float64") -> Path:
-    """Where an estimator of ``model`` is compiled to inside ``out`` (float32 builds apart)."""
-    suffix = "" if precision == "float64" else f"_{precision}"
-    return Path(out) / f"{model.system.name}_{model.kind}_{name}{suffix}"
-
-
 #: The estimators with a moving horizon (``horizon`` applies to them).
 MHE_NAMES = ("mhe", "mhe_gn", "mhe_rti")
+
+
+def default_horizon() -> int:
+    """The MHE horizon N when none is given (``MHESettings``' default)."""
+    from .estimators.mhe_problem import MHESettings
+
+    return MHESettings.__dataclass_fields__["horizon"].default
+
+
+def estimator_dir(out: Path, model: DiscreteModel, name: str, precision: str = "float64",
+                  horizon: int | None = None) -> Path:
+    """Where an estimator of ``model`` is compiled to inside ``out``: the folder named by the
+    estimator's C prefix (:func:`~learnest_codegen.codegen.emit.default_prefix`), e.g.
+    ``cartpole_knode_ukf``, ``cartpole_knode_mhe_rti_n20``, ``cartpole_knode_mhe_rti_n20_float32``.
+    ``horizon`` applies to the MHEs (default :func:`default_horizon`)."""
+    from .codegen.emit import default_prefix
+
+    if name in MHE_NAMES:
+        horizon = default_horizon() if horizon is None else horizon
+    else:
+        horizon = None
+    return Path(out) / default_prefix(model, name, precision, horizon)
 
 
 def check_horizon(estimators: tuple[str, ...], horizon: int | None) -> None:
@@ -215,7 +233,7 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
         kind = estimator_kind(name)
         chosen = estimator_settings(name, model, (settings or {}).get(name), precision=precision,
                                     gate=gate, horizon=horizon if name in MHE_NAMES else None)
-        directory = estimator_dir(Path(out), model, name, precision)
+        directory = estimator_dir(Path(out), model, name, precision, getattr(chosen, "horizon", None))
         extra = {} if precision == "float64" else {"precision": precision}
         with atomic_dir(directory) as tmp:
             _reusable(directory, tmp)

@@ -26,7 +26,6 @@ import numpy as np
 from .compilation import (
     ESTIMATOR_NAMES,
     compile_estimators,
-    estimator_dir,
     estimator_kind,
     estimator_settings,
     knode_model,
@@ -144,10 +143,10 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
         return _with_system(kind.python(resolved.model, chosen), resolved.model.system)
     if backend != "c":
         raise SettingsError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
-    compile_model(resolved, out, (estimator,), precision=precision, gate=gate, horizon=horizon,
-                  settings={estimator: settings} if settings is not None else None)
-    return _with_system(load_estimator(estimator_dir(Path(out), resolved.model, estimator, precision),
-                                       expect=expected_manifest(resolved)), resolved.model.system)
+    built = compile_model(resolved, out, (estimator,), precision=precision, gate=gate, horizon=horizon,
+                          settings={estimator: settings} if settings is not None else None)
+    return _with_system(load_estimator(built[estimator].directory, expect=expected_manifest(resolved)),
+                        resolved.model.system)
 
 
 def compile_model(model: ModelLike, out: str | Path, estimators: tuple[str, ...] = ("mhe", "ukf"), *,
@@ -164,8 +163,8 @@ def compile_model(model: ModelLike, out: str | Path, estimators: tuple[str, ...]
     from .learning.source import system_source, write_sidecar
 
     record = system_source(resolved.model.system)
-    for name in results:
-        write_sidecar(estimator_dir(Path(out), resolved.model, name, precision), record)
+    for result in results.values():
+        write_sidecar(result.directory, record)
     return results
 
 

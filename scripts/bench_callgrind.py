@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
             compile_estimators(model, root, model_hash="bench", estimators=(name,),
                                precision=args.precision,
                                horizon=args.horizon if name in MHE_NAMES else None)
-            directory = estimator_dir(root, model, name, args.precision)
+            directory = estimator_dir(root, model, name, args.precision, args.horizon)
             prefix = json.loads((directory / "manifest.json").read_text())["prefix"]
             t1, t2 = args.samples
             counts = [instructions(build(directory, prefix, run, T, root)) for T in (t1, t2)]

@@ -452,7 +452,7 @@ def option_cases() -> list[Case]:
               "GaussNewtonSettings(max_iterations=2**32 + 3) on a compiled mhe_gn (C int)", '''
               from learnest_codegen.estimators.mhe_gn import GaussNewtonSettings
               from learnest_codegen.runtime.mhe_gn import CompiledEmbeddedMHE
-              est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn",
+              est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn_n20",
                                         solver=GaussNewtonSettings(max_iterations=2**32 + 3))
               est.reset(np.array([0, 0, 0.3, 0.0]))
               ''', needles=("max_iterations",)),
@@ -463,7 +463,7 @@ def option_cases() -> list[Case]:
               from learnest_codegen.data import read_run
               from learnest_codegen import get_system
               run = read_run(RUN, get_system("cartpole"))
-              est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn",
+              est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn_n20",
                   solver=GaussNewtonSettings(max_iterations=10**9, tolerance=1e-300))
               est.run(run.u, run.y, np.array([0, 0, 0.3, 0.0]))
               ''', timeout=60, needles=("max_iterations",)),
@@ -498,7 +498,7 @@ def _raw_set_options(tol: str, max_iter: int) -> str:
     from learnest_codegen.data import read_run
     from learnest_codegen import get_system
     run = read_run(RUN, get_system("cartpole"))
-    est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn")
+    est = CompiledEmbeddedMHE(LIB / "cartpole_nominal_mhe_gn_n20")
     clean = est.run(run.u, run.y, np.array([0, 0, 0.3, 0.0]))
     est.reset(np.array([0, 0, 0.3, 0.0]))
     code = est._c["set_options"](est._handle, 0, {max_iter}, {tol})
@@ -663,7 +663,7 @@ def library_cases() -> list[Case]:
               ''', needles=("bytes",)),
         _case("libraries/manifest-precision-mhe_gn", "boundaries", ERROR,
               "manifest.json of a float64 mhe_gn edited to say float32", '''
-              folder = copy_folder("cartpole_nominal_mhe_gn")
+              folder = copy_folder("cartpole_nominal_mhe_gn_n20")
               m = json.loads((folder / "manifest.json").read_text())
               m["precision"] = "float32"
               (folder / "manifest.json").write_text(json.dumps(m))
@@ -680,7 +680,7 @@ def library_cases() -> list[Case]:
               load_estimator(folder)
               ''', needles=("float32", "float64")),
         _case("libraries/manifest-nx", "boundaries", ERROR, "control: manifest nx edited to 5", '''
-              folder = copy_folder("cartpole_nominal_mhe_rti")
+              folder = copy_folder("cartpole_nominal_mhe_rti_n20")
               m = json.loads((folder / "manifest.json").read_text())
               m["nx"] = 5
               (folder / "manifest.json").write_text(json.dumps(m))
@@ -740,19 +740,19 @@ def thread_cases() -> list[Case]:
         bad += sum(o is not None and not np.array_equal(o, r) for o, r in zip(outs, refs))
     verdict(not errors and not bad, f"{{len(errors)}} failed runs, {{bad}} differing; {{errors[:1]}}")
     '''
-    ipopt2 = ["cartpole_nominal_mhe", "cartpole_nominal_mhe"]
+    ipopt2 = ["cartpole_nominal_mhe_n20", "cartpole_nominal_mhe_n20"]
     return [
         _case("threads/ipopt-mhe-one-library", "boundaries", RESULT,
               "two Ipopt-MHE handles of one library in two threads (NO_MEMORY before)",
               body.format(T=150, folders=ipopt2, rounds=6), timeout=240),
         _case("threads/ipopt-mhe-two-libraries", "boundaries", RESULT,
               "Ipopt MHEs of two libraries (nominal, true) in two threads",
-              body.format(T=150, folders=["cartpole_nominal_mhe", "cartpole_true_mhe"], rounds=6),
+              body.format(T=150, folders=["cartpole_nominal_mhe_n20", "cartpole_true_mhe_n20"], rounds=6),
               timeout=240),
         _case("threads/ukf-and-mhe_gn", "boundaries", RESULT,
               "control: two UKF and two mhe_gn handles in four threads",
               body.format(T=300, folders=["cartpole_nominal_ukf", "cartpole_nominal_ukf",
-                                          "cartpole_nominal_mhe_gn", "cartpole_nominal_mhe_gn"],
+                                          "cartpole_nominal_mhe_gn_n20", "cartpole_nominal_mhe_gn_n20"],
                           rounds=4), timeout=240),
     ]
 
@@ -768,8 +768,8 @@ def csv_cases() -> list[Case]:
     big = []
     for folder, owner in (("cartpole_nominal_ukf", "boundaries"),
                           ("cartpole_nominal_ukf_float32", "boundaries"),
-                          ("cartpole_nominal_mhe_gn_float32", "boundaries"),
-                          ("cartpole_nominal_mhe_rti_float32", "boundaries")):
+                          ("cartpole_nominal_mhe_gn_n20_float32", "boundaries"),
+                          ("cartpole_nominal_mhe_rti_n20_float32", "boundaries")):
         big.append(_case(f"float32/csv-1e39-{folder.replace('cartpole_nominal_', '')}", owner, RESULT,
                          f"a y value of 1e39 (beyond float32) in the run, {folder}: gated as in float64",
                          rejected, f'''
@@ -829,12 +829,12 @@ def csv_cases() -> list[Case]:
               ''', needles=("y",)),
         _case("api/run-complex-U", "boundaries", ERROR, "est.run(U, Y, x0) with a complex U", '''
               from learnest_codegen.pipeline import load_estimator
-              est = load_estimator(LIB / "cartpole_nominal_mhe_rti")
+              est = load_estimator(LIB / "cartpole_nominal_mhe_rti_n20")
               est.run(np.zeros((10, 1)) + 1j, np.zeros((10, 2)), np.array([0, 0, 0.3, 0.0]))
               ''', needles=("complex",)),
         _case("api/step-wrong-shape", "boundaries", ERROR, "control: y of 3 values for 2 outputs", '''
               from learnest_codegen.pipeline import load_estimator
-              est = load_estimator(LIB / "cartpole_nominal_mhe_gn")
+              est = load_estimator(LIB / "cartpole_nominal_mhe_gn_n20")
               est.reset(np.array([0, 0, 0.3, 0.0]))
               est.step(np.zeros(1), np.zeros(3))
               ''', needles=("shape",)),
@@ -865,9 +865,10 @@ def input_cases() -> list[Case]:
     py = ('from learnest_codegen.pipeline import reference_estimator\n'
           'est = reference_estimator("nominal", "{}", system="cartpole")')
     rows = [("mhe", "python", 3, 1e3, "data"), ("ukf", "python", 1, 1e6, "data"),
-            ("cartpole_nominal_mhe", "c", 3, 1e3, "c-api"), ("cartpole_nominal_mhe_gn", "c", 3, 1e3, "c-api"),
-            ("cartpole_nominal_mhe_rti", "c", 3, 1e3, "c-api"),
-            ("cartpole_nominal_mhe_gn_float32", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_n20", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_gn_n20", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_rti_n20", "c", 3, 1e3, "c-api"),
+            ("cartpole_nominal_mhe_gn_n20_float32", "c", 3, 1e3, "c-api"),
             ("cartpole_nominal_ukf", "c", 1, 1e6, "c-api"),
             ("cartpole_nominal_ukf_float32", "c", 1, 1e6, "c-api")]
     out = []
@@ -954,7 +955,7 @@ def judge(case: Case, code: int | None, out: str, err: str) -> tuple[str, str]:
 
 
 def setup(workdir: Path) -> None:
-    if (workdir / "lib" / "cartpole_true_mhe" / "manifest.json").is_file() \
+    if (workdir / "lib" / "cartpole_true_mhe_n20" / "manifest.json").is_file() \
             and (workdir / "run.csv").is_file():
         return
     code, out, err = _execute(SETUP, workdir, workdir / "setup", 1800)

@@ -90,7 +90,7 @@ def test_every_door_builds_the_same_mhe(cartpole, tmp_path):
                                       "mhe_gn", "--horizon", "10", "--out", str(tmp_path / "cli")])
     assert result.exit_code == 0, result.output
     doors["learnest compile --horizon 10"] = (10, read_manifest(
-        tmp_path / "cli" / "cartpole_nominal_mhe_gn")["settings"])
+        tmp_path / "cli" / "cartpole_nominal_mhe_gn_n10")["settings"])
     example_file = Path(__file__).resolve().parents[1] / "examples" / "cortex_m" / "build_and_compare.py"
     spec = importlib.util.spec_from_file_location("build_and_compare", example_file)
     example = importlib.util.module_from_spec(spec)

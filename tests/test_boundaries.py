@@ -443,7 +443,7 @@ def test_an_edited_precision_is_named(tmp_path):
 
     compile_estimators(resolve("nominal", "cartpole").model, tmp_path, model_hash="nominal",
                        estimators=("ukf", "mhe_rti"))
-    for name in ("cartpole_nominal_ukf", "cartpole_nominal_mhe_rti"):
+    for name in ("cartpole_nominal_ukf", "cartpole_nominal_mhe_rti_n20"):
         path = tmp_path / name / "manifest.json"
         manifest = json.loads(path.read_text())
         path.write_text(json.dumps({**manifest, "precision": "float32"}))

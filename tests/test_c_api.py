@@ -1,6 +1,6 @@
 """The C API every generated estimator shares (docs/guide/c_api.md), in all four estimators and both
 precisions: missing outputs, predict, run-time tuning, bounded options, the fingerprint, and
-two estimators of different precisions in one program.
+two estimators of different precisions, and two horizons of one MHE, in one program.
 
 References: a sample with every output missing is a prediction (the UKF's CasADi predict
 function; the MHEs' window then holds F's predictions); a missing output is the references'
@@ -252,13 +252,11 @@ int main(void) {
 """
 
 
-def test_two_estimators_of_two_precisions_in_one_program(folders, run, cartpole, tmp_path):
-    """A float32 UKF and a float64 embedded MHE linked into one C program from their folders'
-    sources (no symbol clash: the kit is static to each), each equal to its own library."""
+def _one_program(a, b, run, cartpole, tmp_path, n: int = 40) -> None:
+    """The estimators of folders ``a`` and ``b`` linked into one C program from their folders'
+    sources, stepped side by side; each must equal its own library bit for bit."""
     data, _ = run
-    a, b = folders["ukf", "float32"], folders["mhe_rti", "float64"]
     pa, pb = (json.loads((f / "manifest.json").read_text())["prefix"] for f in (a, b))
-    n = 40
     source = TWO_ESTIMATORS
     for key, value in (("AU", pa.upper()), ("BU", pb.upper()), ("A", pa), ("B", pb), ("T", str(n)),
                        ("U", "{" + ",".join(repr(float(v)) for v in data.u[:n, 0]) + "}"),
@@ -280,6 +278,28 @@ def test_two_estimators_of_two_precisions_in_one_program(folders, run, cartpole,
         for j, folder in enumerate((a, b)):
             expected = load_estimator(folder).run(data.u[:n], data.y[:n], cartpole.x0)
             np.testing.assert_array_equal(X[:, :, j], expected)
+
+
+def test_two_estimators_of_two_precisions_in_one_program(folders, run, cartpole, tmp_path):
+    """A float32 UKF and a float64 embedded MHE linked into one C program from their folders'
+    sources (no symbol clash: the kit is static to each), each equal to its own library."""
+    _one_program(folders["ukf", "float32"], folders["mhe_rti", "float64"], run, cartpole, tmp_path)
+
+
+def test_two_horizons_of_one_mhe_in_one_program(model, folders, run, cartpole, tmp_path):
+    """The horizon is part of an MHE's prefix and folder (``..._mhe_rti_n10`` beside
+    ``..._mhe_rti_n20``): two horizons compiled into one folder keep apart and link into one
+    program, each equal to its own library (their estimates differ: they are two estimators)."""
+    out = tmp_path / "gen"
+    n10 = compile_estimators(model, out, model_hash="nominal", estimators=("mhe_rti",),
+                             horizon=10)["mhe_rti"].directory
+    n20 = compile_estimators(model, out, model_hash="nominal", estimators=("mhe_rti",))["mhe_rti"].directory
+    assert (n10.name, n20.name) == ("cartpole_nominal_mhe_rti_n10", "cartpole_nominal_mhe_rti_n20")
+    assert n10.is_dir() and n20.is_dir()
+    _one_program(n10, n20, run, cartpole, tmp_path)
+    data, _ = run
+    x10, x20 = (load_estimator(f).run(data.u[:40], data.y[:40], cartpole.x0) for f in (n10, n20))
+    assert not np.array_equal(x10, x20)
 
 
 def test_errors_name_the_call_and_keep_the_state(folders, cartpole, run):

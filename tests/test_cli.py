@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import click
 import numpy as np
@@ -34,14 +35,27 @@ def test_simulate_train_compile_estimate(workdir):
     r = invoke(cli, ["train", "--system", "cartpole", "--data", run_csv, "--out", model_dir, "--epochs", 3,
                      "--weight-decay", 0.1, "--final-lr", 1e-3, "--weight-average", 0.9])
     assert r.exit_code == 0, r.output
+    # not a terminal here: the recipe, the observer's choice and one line per training on stderr
+    lines = r.stderr.splitlines()
+    assert lines[0] == (f"training cartpole on {run_csv} (300 samples): observer chosen for the system; "
+                        "3 epochs (full batch), 2 refinement rounds, 1 initialisation per training, "
+                        "weight decay 0.1, float32"), lines
+    assert lines[1].startswith("pre-training observer: rts (")
+    assert [line.split(" ", 1)[0] for line in lines[2:]] == ["[1/3]", "[2/3]", "[3/3]"], lines
+    assert all(re.search(r"best epoch \d+, validation loss \S+, \d+\.\d s$", line) for line in lines[2:])
     training = json.loads((model_dir / "model.json").read_text())["training"]
     assert (training["epochs"], training["weight_decay"], training["final_learning_rate"],
             training["weight_average"]) == (3, 0.1, 1e-3, 0.9)
 
+    r = invoke(cli, ["train", "--system", "cartpole", "--data", run_csv, "--out", workdir / "quiet",
+                     "--epochs", 1, "--refine", 0, "--quiet"])
+    assert r.exit_code == 0 and r.stderr == "" and r.stdout.startswith(f"wrote {workdir / 'quiet'}: ")
+
     r = invoke(compile_standalone, [model_dir, "--out", compiled])
     assert r.exit_code == 0, r.output
+    folders = {"mhe": "cartpole_knode_mhe_n20", "ukf": "cartpole_knode_ukf"}  # an MHE's: its horizon
     for est in ("mhe", "ukf"):
-        manifest = json.loads((compiled / f"cartpole_knode_{est}" / "manifest.json").read_text())
+        manifest = json.loads((compiled / folders[est] / "manifest.json").read_text())
         assert manifest["system"] == "cartpole" and manifest["nx"] == 4
 
     outputs = {}
@@ -51,7 +65,7 @@ def test_simulate_train_compile_estimate(workdir):
             args = ["estimate", "--system", "cartpole", "--data", run_csv, "--estimator", est,
                     "--model", model_dir, "--backend", backend, "--out", out]
             if backend == "c":
-                args += ["--compiled", compiled / f"cartpole_knode_{est}"]
+                args += ["--compiled", compiled / folders[est]]
             r = invoke(cli, args)
             assert r.exit_code == 0, r.output
             header = out.read_text().splitlines()[0]
@@ -65,7 +79,11 @@ def test_estimate_compiles_on_demand_and_nominal_compile(workdir):
     invoke(cli, ["simulate", "--duration", 0.2, "--out", run_csv])
     r = invoke(cli, ["estimate", "--data", run_csv, "--estimator", "ukf", "--model", "true",
                      "--out", workdir / "true_ukf.csv"])
-    assert r.exit_code == 0 and "MSE vs truth" in r.output
+    assert r.exit_code == 0 and "MSE vs truth" in r.stdout
+    where = workdir.resolve() / ".learnest_compiled"  # said on stderr, one line
+    assert r.stderr == f"compiling ukf into {where} (reused while the model is unchanged; --compiled " \
+                       "DIR runs a folder of learnest-compile)\n", r.stderr
+    assert (where / "cartpole_true_ukf" / "manifest.json").is_file()
     r = invoke(cli, ["compile", "--nominal", "--out", workdir / "nominal", "--estimator", "ukf"])
     assert r.exit_code == 0 and (workdir / "nominal" / "cartpole_nominal_ukf" / "manifest.json").is_file()
 

@@ -143,13 +143,29 @@ def test_quadrotor_axis_by_axis_on_the_m4f(tmp_path):
     np.testing.assert_array_equal(host.X, bc.host_reference(gen))
 
 
-def test_command_line_with_a_system_file(user_system_file, tmp_path):
-    """``--system path/to/file.py`` (the README's pendulum): the whole example runs and reports
-    QEMU equal to the host."""
-    assert bc.main(["--system", str(user_system_file), "--steps", "100", "--estimator", "mhe_rti",
+def test_command_line_with_a_model_of_a_system_file(user_system_file, tmp_path, capsys):
+    """A trained model of the README's pendulum (a system file), no ``--system``: the example
+    reads the system the model records (as ``learnest-compile``), runs, reports QEMU equal to
+    the host in a three-line summary and writes the whole report to its file."""
+    import learnest_codegen as ln
+
+    system = ln.get_system(str(user_system_file))
+    ln.train(ln.simulate(system, 0, duration=1.0), system, ln.TrainingSettings(epochs=2),
+             progress=False).save(tmp_path / "model")
+    assert bc.main(["--model", str(tmp_path / "model"), "--steps", "100", "--estimator", "mhe_rti",
                     "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out.splitlines()
     (report,) = (tmp_path / "out").glob("report_my_pendulum_*.json")
+    assert len(printed) == 3 and printed[0].startswith("my_pendulum_knode_mhe_rti_n20 (")
+    assert printed[2] == f"report: {report}"
     assert json.loads(report.read_text())["max_relative_difference"] <= PARITY_RTOL
+
+
+def test_command_line_errors_are_one_line(tmp_path, capsys):
+    """A model directory that does not exist: exit 1 and one line naming it, no traceback."""
+    assert bc.main(["--model", str(tmp_path / "no_model"), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no_model" in err and "Traceback" not in err, err
 
 
 def _expect_failure(paths, code: int, steps: int) -> None:

@@ -281,7 +281,7 @@ def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
     result = runner.invoke(compile_standalone, ["--nominal", "--system", "cartpole", "--estimator",
                                                 "mhe_rti", "--out", str(tmp_path / "gen")])
     assert result.exit_code == 0, result.output
-    directory = tmp_path / "gen" / "cartpole_nominal_mhe_rti"
+    directory = tmp_path / "gen" / "cartpole_nominal_mhe_rti_n20"
     result = runner.invoke(cli, ["estimate", "--system", "cartpole", "--data", str(data),
                                  "--estimator", "mhe_rti", "--compiled", str(directory),
                                  "--out", str(tmp_path / "est.csv")])

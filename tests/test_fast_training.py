@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -396,8 +397,8 @@ def test_the_training_derivative_equals_the_hybrid_model(name):
 
 def test_progress_stays_quiet_off_a_terminal(cartpole, cartpole_run, capsys):
     """Redirected to a file (not a terminal), training writes no progress bar: one log line per
-    refresh would fill a log (90 KB for one training before); only the observer choice, said
-    once, is written."""
+    refresh would fill a log; only the observer choice, said once, and one line per training of
+    ``train_on_run`` (the first, then each refinement round) are written."""
     from learnest_codegen.learning.training import train, train_on_run
 
     train(cartpole, cartpole_run.x[:300], cartpole_run.u[:300], cartpole_run.dt,
@@ -405,9 +406,14 @@ def test_progress_stays_quiet_off_a_terminal(cartpole, cartpole_run, capsys):
     err = capsys.readouterr().err
     assert "training cartpole" not in err and "it/s" not in err and len(err) < 100, err
     run = simulate(cartpole, 0, duration=0.4)
-    train_on_run(run, cartpole, config.TrainingSettings(epochs=2), progress=True)
+    train_on_run(run, cartpole, config.TrainingSettings(epochs=2, refine=1), progress=True)
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["pre-training observer: rts (the system declares kinematic chains covering its states)"]
+    assert err[0] == "pre-training observer: rts (the system declares kinematic chains covering its states)"
+    assert [line.split(":")[0] for line in err[1:]] == [
+        "[1/2] trained on the rts states", "[2/2] smoothed through the model (EKF-RTS) and retrained"], err
+    assert all(re.search(r"best epoch \d+, validation loss \S+, \d+\.\d s$", line) for line in err[1:]), err
+    train_on_run(run, cartpole, config.TrainingSettings(epochs=2), progress=False)
+    assert capsys.readouterr().err == ""
 
 
 def test_the_validation_loss_riding_along_in_the_next_epoch_equals_a_pass_of_its_own(cartpole, cartpole_run):

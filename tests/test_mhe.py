@@ -272,7 +272,7 @@ def test_manifest_content(built, models, cartpole):
     gen = built["knode"]
     m = CompiledMHE(gen.directory).manifest
     assert (m["estimator"], m["system"], m["model_kind"], m["prefix"]) == \
-        ("mhe", "cartpole", "knode", "cartpole_knode_mhe")
+        ("mhe", "cartpole", "knode", "cartpole_knode_mhe_n20")
     assert (m["nx"], m["nu"], m["ny"], m["dt"], m["horizon"]) == (4, 1, 2, 0.002, 20)
     assert m["settings"] == mhe_settings(models["knode"]).to_json()
     assert m["model_hash"] == "test-knode" and m["casadi_version"] == cs.__version__
@@ -303,7 +303,7 @@ def test_manifest_mismatch_raises(built, cartpole, tmp_path):
     with pytest.raises(FileNotFoundError, match="missing does not exist"):
         CompiledMHE(directory / "missing")
     shutil.copy(directory / "manifest.json", tmp_path / "manifest.json")
-    with pytest.raises(FileNotFoundError, match=r"libcartpole_nominal_mhe-\w+\.so does not exist"):
+    with pytest.raises(FileNotFoundError, match=r"libcartpole_nominal_mhe_n20-\w+\.so does not exist"):
         CompiledMHE(tmp_path)
 
 

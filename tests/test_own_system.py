@@ -72,7 +72,7 @@ def test_the_command_line_job_needs_no_system_after_training(work):
     assert (work / "diag" / "diagnosis.json").is_file()
     # a compiled folder finds its system file too: ``load_estimator`` then ``evaluate``, no system
     test_run = ln.read_run(work / "test.csv", ln.get_system(str(work / "my_pendulum.py")))
-    result = ln.evaluate(ln.load_estimator(work / "generated" / "my_pendulum_knode_mhe_rti"), test_run)
+    result = ln.evaluate(ln.load_estimator(work / "generated" / "my_pendulum_knode_mhe_rti_n20"), test_run)
     written = np.loadtxt(work / "est_mhe_rti.csv", delimiter=",", skiprows=1)[:, 1:]
     np.testing.assert_allclose(result.x_hat, written, rtol=0, atol=1e-12)
 
@@ -90,7 +90,8 @@ def test_the_api_job_needs_no_system_after_training(tmp_path):
     for estimator in ESTIMATORS:
         compiled = ln.compile_estimator(tmp_path / "model", estimator, out=tmp_path / "generated")
         errors[estimator] = ln.evaluate(compiled, test_run).mse(test_run.x)
-        again = ln.load_estimator(tmp_path / "generated" / f"my_pendulum_knode_{estimator}")
+        folder = f"my_pendulum_knode_{estimator}" + ("" if estimator == "ukf" else "_n20")  # N = 20
+        again = ln.load_estimator(tmp_path / "generated" / folder)
         assert ln.evaluate(again, test_run).mse(test_run.x) == pytest.approx(errors[estimator], rel=1e-12)
     nominal = ln.evaluate(ln.compile_estimator("nominal", "ukf", system=system, out=tmp_path / "generated"),
                           test_run).mse(test_run.x)

@@ -1,5 +1,5 @@
-"""Every code block of README.md and docs/*.md runs as written; every link resolves; the docs
-site (with its API reference) builds strictly.
+"""Every code block of README.md and docs/**/*.md runs as written; every link resolves; the docs
+site (with its API reference) builds strictly, and its nav lists every page.
 
 How a block runs, by its fence's language:
 
@@ -8,8 +8,9 @@ How a block runs, by its fence's language:
   loaded as a system file when it defines ``SYSTEM``.
 * ``bash``: each line is a ``learnest`` or ``learnest-compile`` command (comments and ``\\``
   continuations as in a shell), run in-process; any other command needs the ``shell`` marker.
-* ``c``: compiled (not run) against the generated estimator its ``#include "<prefix>.h"``
-  names (``<system>_<nominal|true|knode>_<estimator>``; knode: the model in tests/data).
+* ``c``: compiled (not run) against the generated estimators its ``#include "<prefix>.h"``
+  lines name (``<system>_<nominal|true|knode>_<estimator>``, ``_n<N>`` for an MHE of horizon N;
+  knode: the model in tests/data).
 * ``json``: parsed. ``text``, ``console`` and ``csv`` are listings, not code.
 
 Every block runs in a fresh folder holding the page's files so far. An HTML comment on the line
@@ -150,25 +151,27 @@ def compiled(tmp_path_factory):
         if prefix not in made:
             import learnest_codegen as ln
 
-            system, kind, estimator = _split_prefix(prefix)
+            system, kind, estimator, horizon = _split_prefix(prefix)
             model = (ROOT / "tests" / "data" / "model_b12bfa1") if kind == "knode" else kind
-            ln.compile_estimator(model, estimator, system=system, out=folder)
+            built = ln.compile_estimator(model, estimator, system=system, out=folder, horizon=horizon)
             made[prefix] = folder / prefix
+            assert built.directory == made[prefix], (built.directory, prefix)
         return made[prefix]
 
     return get
 
 
-def _split_prefix(prefix: str) -> tuple[str, str, str]:
+def _split_prefix(prefix: str) -> tuple[str, str, str, int | None]:
+    """``(system, kind, estimator, horizon)`` of ``<system>_<kind>_<estimator>[_n<N>]``."""
     from learnest_codegen.compilation import ESTIMATOR_NAMES
     from learnest_codegen.systems import SYSTEMS
 
     for estimator in sorted(ESTIMATOR_NAMES, key=len, reverse=True):
         for kind in ("nominal", "true", "knode"):
             for system in SYSTEMS:
-                if prefix == f"{system}_{kind}_{estimator}":
-                    return system, kind, estimator
-    raise AssertionError(f"C block includes {prefix}.h: not <system>_<kind>_<estimator>")
+                if m := re.fullmatch(rf"{system}_{kind}_{estimator}(?:_n(\d+))?", prefix):
+                    return system, kind, estimator, None if m.group(1) is None else int(m.group(1))
+    raise AssertionError(f"C block includes {prefix}.h: not <system>_<kind>_<estimator>[_n<N>]")
 
 
 def _folder(block: Block, state) -> Path:
@@ -288,6 +291,21 @@ def test_the_readme_quick_start_prints_what_it_computes(short_systems, tmp_path,
     assert mses[1] < mses[0]
 
 
+def test_the_replay_loop_fails_when_u_and_y_are_paired_wrongly(short_systems, tmp_path, monkeypatch):
+    """The quick start's replay loop (``step(u[k-1], y[k])``) checks itself against ``run``: as
+    written it passes (test_block_runs_as_written), and with ``u[k]`` paired with ``y[k]`` its
+    check fails, so the example can tell the two pairings apart."""
+    (block,) = [b for b in blocks("docs/guide/quick_start.md") if "u_applied" in b.code]
+    right = "run.u[k - 1] if k > 0 else run.u[0]"
+    assert right in block.code
+    monkeypatch.chdir(tmp_path)
+    with contextlib.redirect_stdout(io.StringIO()):
+        exec(compile(block.code, block.id, "exec"), {"__name__": "__docs__"})  # noqa: S102
+        with pytest.raises(AssertionError, match="not equal"):
+            exec(compile(block.code.replace(right, "run.u[k]"), block.id, "exec"),  # noqa: S102
+                 {"__name__": "__docs__"})
+
+
 def _links(path: Path):
     for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", path.read_text()):
         if not re.match(r"[a-z]+:", target):
@@ -320,9 +338,33 @@ def _mkdocs_build(tmp_path: Path, with_api: bool) -> Path:
 
 
 def test_docs_site_builds_strictly(tmp_path):
-    """``mkdocs build --strict`` of the pages: a broken link or anchor fails."""
+    """``mkdocs build --strict`` of the pages: a broken link or anchor, or a page left out of
+    the nav, fails."""
     site = _mkdocs_build(tmp_path, with_api=False)
-    assert (site / "results" / "index.html").is_file()
+    assert (site / "reports" / "results" / "index.html").is_file()
+    assert (site / "guide" / "quick_start" / "index.html").is_file()
+
+
+def _nav_pages(node) -> list[str]:
+    """Every page a mkdocs ``nav`` (lists of ``{title: page or list}``) names."""
+    if isinstance(node, str):
+        return [node]
+    if isinstance(node, dict):
+        return [page for value in node.values() for page in _nav_pages(value)]
+    return [page for item in node for page in _nav_pages(item)]
+
+
+def test_the_nav_lists_every_page_of_docs():
+    """The site's navigation reaches every page: each .md under docs/ is in mkdocs.yml's nav,
+    once, and the nav names no page that does not exist."""
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load(re.sub(r"(?ms)^plugins:.*?(?=^\S|\Z)", "", (ROOT / "mkdocs.yml").read_text()))
+    listed = _nav_pages(config["nav"])
+    pages = sorted(p.relative_to(ROOT / "docs").as_posix() for p in (ROOT / "docs").rglob("*.md"))
+    assert sorted(set(listed)) == pages, {"not in the nav": sorted(set(pages) - set(listed)),
+                                          "not a page": sorted(set(listed) - set(pages))}
+    assert len(listed) == len(set(listed)), "a page is listed twice"
+    assert {"guide", "reports"} <= {page.split("/")[0] for page in listed}
 
 
 def test_api_reference_builds_from_the_docstrings(tmp_path):
@@ -332,7 +374,7 @@ def test_api_reference_builds_from_the_docstrings(tmp_path):
         import mkdocstrings  # noqa: F401
     except ImportError:
         pytest.skip("the API reference needs mkdocstrings-python (pip install -e .[test])")
-    page = (_mkdocs_build(tmp_path, with_api=True) / "api" / "index.html").read_text()
+    page = (_mkdocs_build(tmp_path, with_api=True) / "guide" / "python_api" / "index.html").read_text()
     for name in ("pipeline.train", "pipeline.compile_estimator", "pipeline.evaluate",
                  "config.TrainingSettings", "systems.base.System", "data.read_run", "errors.SettingsError"):
         assert f'id="learnest_codegen.{name}"' in page, name

@@ -6,8 +6,10 @@ write ``estimator_config.h`` (the estimator's header and prefix: the tuning come
 header) and ``run_data.h`` (a simulated test run: inputs and measurements per step), ``make``
 the firmware (arm-none-eabi-gcc) and the host build (gcc) of the same loop from the folder's
 build fragment, run the firmware in ``qemu-system-arm -M mps2-an386`` and the host binary, and
-compare their estimates step by step. Prints the comparison, flash/RAM sizes and stack use,
-and writes them to ``<out>/report_<...>.json``.
+compare their estimates step by step. Prints a three-line summary (the comparison, the
+instructions per step, flash, RAM and stack) and writes the whole report to
+``<out>/report_<...>.json``. A trained model directory brings its own system, as in
+``learnest-compile``; an error is one line (``LEARNEST_TRACEBACK=1`` shows the traceback).
 
     python examples/cortex_m/build_and_compare.py --model nominal --steps 1000 --out build/cm
     python examples/cortex_m/build_and_compare.py --system quadrotor --estimator mhe_rti
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -32,9 +35,9 @@ import numpy as np
 
 from learnest_codegen import get_system
 from learnest_codegen.compilation import compile_estimators
-from learnest_codegen.errors import BuildError, SolverError
+from learnest_codegen.errors import BuildError, LearnestError, SolverError
 from learnest_codegen.export import DiscreteModel
-from learnest_codegen.pipeline import load_estimator
+from learnest_codegen.pipeline import load_estimator, resolve
 from learnest_codegen.simulation import simulate
 
 EXAMPLE_DIR = Path(__file__).resolve().parent
@@ -356,10 +359,36 @@ def worst_stack_path(build_dir: Path, root: str = "main") -> dict:
 
 # -- command line --------------------------------------------------------------------------
 
+def model_of(system_name: str | None, model: str) -> DiscreteModel:
+    """The model ``--system`` and ``--model`` name, as ``learnest-compile`` reads them: a trained
+    model directory brings the system it records (``--system``, when given, is checked against
+    it); ``nominal``, ``true`` and ``untrained`` take ``--system`` (default cartpole)."""
+    if model == "untrained":
+        return untrained_knode(get_system(system_name or "cartpole"))
+    if model in ("nominal", "true"):
+        return resolve(model, system_name or "cartpole").model
+    return resolve(model, system_name).model
+
+
+def summary(report: dict, path: Path) -> str:
+    """The report in three lines; the whole of it is in ``path``."""
+    ins, sec = report["qemu_instructions_per_step"], report["sections"]
+    parity = ("bit for bit" if report["bit_identical_steps"] == report["steps"]
+              else f"max relative difference {report['max_relative_difference']:.2e}")
+    return (f"{report['prefix']} ({report['model']}) on {report['machine']}, a "
+            f"{MACHINES[report['machine']]}, {report['steps']} steps: QEMU equals the host {parity}, "
+            f"status {report['qemu_summary']['status']}\n"
+            f"instructions per step (QEMU -icount): mean {ins['mean']:.0f}, worst {ins['max']:.0f}, "
+            f"worst after the first {ins['max_after_first']:.0f}; flash {sec['flash']} B, "
+            f"RAM {sec['ram']} B, stack peak {report['qemu_summary']['stack_peak_bytes']} B\n"
+            f"report: {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--system", default="cartpole",
-                        help="a built-in system's name or a system file (default: cartpole)")
+    parser.add_argument("--system", default=None,
+                        help="a built-in system's name or a system file (default: the one a model "
+                             "directory records; cartpole for nominal, true and untrained)")
     parser.add_argument("--model", default="nominal",
                         help="nominal, true, a trained model directory, or untrained (a KNODE "
                              "with the default net at its seed-0 initialisation: the same C as "
@@ -381,10 +410,21 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         print(f"missing tools: {', '.join(missing)} (see examples/cortex_m/README.md)", file=sys.stderr)
         return 1
-    from learnest_codegen.compilation import resolve_model
+    try:
+        report, path = compare(args)
+    except (LearnestError, OSError, ValueError) as exc:  # a cause the user can fix: one line
+        if os.environ.get("LEARNEST_TRACEBACK"):
+            raise
+        print(f"build_and_compare.py: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 1
+    print(summary(report, path))
+    return 0 if report["max_relative_difference"] <= 1e-6 and report["qemu_summary"]["status"] == 0 else 1
 
-    system = get_system(args.system)
-    model = untrained_knode(system) if args.model == "untrained" else resolve_model(system, args.model)[0]
+
+def compare(args) -> tuple[dict, Path]:
+    """Generate, build, run both and compare (``main``'s options); the report and its file."""
+    model = model_of(args.system, args.model)
+    system = model.system
     tag = f"{args.estimator}_{args.precision}"
     tag = f"{system.name}_{tag}" + (f"_N{args.horizon}" if args.horizon else "")
     gen = generate(model, args.out / "gen", steps=args.steps, seed=args.seed,
@@ -414,9 +454,9 @@ def main(argv: list[str] | None = None) -> int:
         "largest_stack_frames": stack_frames(build_dir)[:8],
         "worst_stack_path": worst_stack_path(build_dir),
     }
-    (args.out / f"report_{tag}_{args.machine}.json").write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
-    return 0 if rel.max() <= 1e-6 and fw.summary["status"] == 0 else 1
+    path = args.out / f"report_{tag}_{args.machine}.json"
+    path.write_text(json.dumps(report, indent=2))
+    return report, path
 
 
 if __name__ == "__main__":

@@ -114,6 +114,10 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
              clamp_inputs)
 
 
+#: Where ``estimate`` compiles an estimator it is not given (``--compiled``): beside the output.
+ON_DEMAND = ".learnest_compiled"
+
+
 @click.command()
 @click.option("--system", "system_name", default=None,
               help=SYSTEM_HELP + " (default: the one --model or --compiled records; cartpole otherwise)")
@@ -123,7 +127,8 @@ def compile_standalone(model_dir, out, system_name, nominal, estimators, precisi
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
 @click.option("--compiled", type=click.Path(file_okay=False), default=None,
-              help="compiled estimator directory (C backend; default: compile on demand)")
+              help="compiled estimator directory (C backend; default: compile on demand into "
+                   f"{ON_DEMAND}/ beside --out, said on stderr)")
 @click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
               show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
 @HORIZON
@@ -150,7 +155,9 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     error of each state in its unit. Samples whose outputs the innovation gate rejected are
     counted in the summary line; they are not errors. Empty y_ cells of the run are missing
     measurements (both backends take them). With a trained model, the summary also gives the
-    share of samples whose estimates and inputs lie outside the range the net was trained on."""
+    share of samples whose estimates and inputs lie outside the range the net was trained on.
+    Without --compiled the C backend compiles the estimator into .learnest_compiled/ beside
+    --out (one line on stderr says where; an unchanged build is reused)."""
     from ..compilation import check_horizon, estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -183,9 +190,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
         est = load_estimator(compiled, expect={**expect, **({} if horizon is None else {"horizon": horizon})},
                              gate=gate)
     else:  # compiled on demand next to the output (reused while the model is unchanged)
+        where = Path(out).resolve().parent / ON_DEMAND
+        if backend == "c":
+            click.echo(f"compiling {estimator} into {where} (reused while the model is unchanged; "
+                       "--compiled DIR runs a folder of learnest-compile)", err=True)
         est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
-                             out=Path(out).resolve().parent / ".learnest_compiled", gate=gate,
-                             horizon=horizon)
+                             out=where, gate=gate, horizon=horizon)
     result = run_estimator(est, run, np.asarray(system.x0, float) if x0 is None else x0,
                            f"{estimator}:{model}:{backend}", P0)
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)

@@ -158,7 +158,8 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
                    "(default: such a net is zeroed and the model is its prior)")
 @click.option("--tune-noise", is_flag=True,
               help="choose each KNODE estimator's noise scales on the training flights against their "
-                   "reference, and the nominal estimators' the same way as a control (docs/reports/flights.md)")
+                   "reference, and the nominal estimators' the same way as a control "
+                   "(docs/reports/flights.md)")
 @click.option("--savgol-window", default=151, show_default=True, type=click.IntRange(min=3),
               help="Savitzky-Golay window of the reference [samples]")
 @click.option("--out", default="results/quadrotor", show_default=True, type=click.Path(file_okay=False))

@@ -67,17 +67,20 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
               help="validate and keep the moving average of the weights with this decay per step "
                    "(e.g. 0.99); 0 = the weights themselves")
 @click.option("--seed", default=_TRAIN.seed, show_default=True)
+@click.option("--quiet", is_flag=True, help="print only the result line (no recipe, no progress)")
 @RESAMPLE
 @FORCE
 @friendly
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
           observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
-          weight_average, seed, resample, force) -> None:
+          weight_average, seed, quiet, resample, force) -> None:
     """Train the KNODE residual network on a run and write a model directory.
 
     The option defaults are the one default training, ``DEFAULT_TRAINING``
     (learnest_codegen.config), the same as the library's ``ln.train``. The model records its
-    system, so later commands need no --system."""
+    system, so later commands need no --system. On stderr: the recipe first, the observer chosen,
+    then one line per training (the first, then each refinement round) with its best epoch,
+    validation loss and the time so far; --quiet leaves only the result line."""
     from dataclasses import replace
 
     from ..config import NetworkSettings
@@ -92,9 +95,28 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
                        validation_fraction=validation_fraction, refine=refine, restarts=restarts,
                        weight_decay=weight_decay, final_learning_rate=final_learning_rate,
                        weight_average=weight_average)
-    model = train_on_run(run, system, settings, observer=observer, full_state=full_state)
+    if not quiet:
+        click.echo(recipe_line(settings, system.name, data, len(run), observer, full_state), err=True)
+    model = train_on_run(run, system, settings, observer=observer, full_state=full_state,
+                         progress=not quiet)
     with atomic_dir(out) as tmp:
         model.save(tmp)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "
                f"(prior alone {model.meta['prior_loss']:.4e}), observer {model.meta['observer']}, "
                f"{model.meta['train_seconds']:.1f} s")
+
+
+def recipe_line(settings, system: str, data: str, samples: int, observer: str | None,
+                full_state: bool) -> str:
+    """What ``learnest train`` is about to do, in one line: the data, the observer, the epochs,
+    refinement rounds, initialisations, weight decay and precision."""
+    batch = "full batch" if settings.batch_size >= samples else f"batches of {settings.batch_size}"
+    source = ("noisy full states, smoothed" if full_state
+              else f"observer {observer}" if observer else "observer chosen for the system")
+    rounds = 0 if full_state else settings.refine
+    return (f"training {system} on {data} ({samples} samples): {source}; {settings.epochs} epochs "
+            f"({batch}), {rounds} refinement round{'s' * (rounds != 1)}, {settings.restarts} "
+            f"initialisation{'s' * (settings.restarts != 1)} per training"
+            + (f" ({settings.refine_restarts} in the refinement rounds)"
+               if rounds and settings.refine_restarts not in (None, settings.restarts) else "")
+            + f", weight decay {settings.weight_decay:g}, {settings.precision}")

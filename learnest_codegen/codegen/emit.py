@@ -78,10 +78,15 @@ class Design:
     extra: Mapping[str, object] = field(default_factory=dict)
 
 
-def default_prefix(model: DiscreteModel, estimator: str, precision: str = "float64") -> str:
-    """``<system>_<kind>_<estimator>`` (``_float32`` appended for a float32 build, so that both
-    builds of one estimator link into one image): every exported symbol's prefix."""
+def default_prefix(model: DiscreteModel, estimator: str, precision: str = "float64",
+                   horizon: int | None = None) -> str:
+    """``<system>_<kind>_<estimator>``, then ``_n<N>`` for an MHE of horizon ``N`` and
+    ``_float32`` for a float32 build: every exported symbol's prefix and the folder's name. The
+    horizon and the precision are in it so that MHEs of several horizons and both precisions of
+    one estimator link into one image."""
     name = f"{model.system.name}_{model.kind}_{estimator}"
+    if horizon is not None:
+        name += f"_n{int(horizon)}"
     if precision != "float64":
         name += f"_{precision}"
     return re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9]", "_", name)).strip("_")
@@ -132,10 +137,12 @@ def c_list(values) -> str:
 
 
 def resolve_prefix(prefix: str | None, model: DiscreteModel, estimator: str,
-                   precision: str) -> str:
-    """``prefix``, or the default one, checked against the prefix rule."""
+                   precision: str, horizon: int | None = None) -> str:
+    """``prefix``, or the default one (:func:`default_prefix`; ``horizon`` for an MHE), checked
+    against the prefix rule."""
     check_precision(precision, f"generate {estimator}")
-    return check_prefix(prefix or default_prefix(model, estimator, precision), f"generate {estimator}")
+    return check_prefix(prefix or default_prefix(model, estimator, precision, horizon),
+                        f"generate {estimator}")
 
 
 def emit(model: DiscreteModel, design: Design, out: Path, *, prefix: str, model_hash: str,

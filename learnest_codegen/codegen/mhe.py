@@ -41,12 +41,12 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
         default ``MHESettings.from_system(model.system)``; through
         :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE.
     out_dir : the folder for this estimator (created).
-    prefix : C symbol prefix, default ``"<system>_<kind>_mhe"``.
+    prefix : C symbol prefix, default ``"<system>_<kind>_mhe_n<N>"`` (N the horizon).
     model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
     force : rebuild the library even when nothing changed.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
-    prefix = resolve_prefix(prefix, model, "mhe", "float64")
+    prefix = resolve_prefix(prefix, model, "mhe", "float64", settings.horizon)
     problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     F = cs.Function(f"{prefix}_model_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])

@@ -28,13 +28,14 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
 
     The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
     tolerance and precision (default converged, float64). The default prefix is
-    ``"<system>_<kind>_<mhe_gn|mhe_rti>"`` (``_float32`` appended in float32). The settings
-    go through :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE's.
+    ``"<system>_<kind>_<mhe_gn|mhe_rti>_n<N>"`` (N the horizon; ``_float32`` appended in
+    float32). The settings go through
+    :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE's.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
-    prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision)
+    prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision, settings.horizon)
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
     groups = state_groups(functions[0], functions[1], nx, ny)

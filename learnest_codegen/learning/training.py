@@ -405,13 +405,25 @@ class _ZeroNet(torch.nn.Module):
         return torch.zeros_like(x)
 
 
+def _said(progress: bool, step: int, steps: int, what: str, model: TrainedModel, start: float) -> None:
+    """One line on stderr per training of :func:`train_on_run` (the first, then each refinement
+    round), when ``progress``: which step, what it trained on, where it stopped, the time so far."""
+    if progress:
+        meta = model.meta
+        print(f"[{step}/{steps}] {what}: best epoch {meta['best_epoch']}, validation loss "
+              f"{min(meta['validation_history']):.3e}, {time.perf_counter() - start:.1f} s",
+              file=sys.stderr, flush=True)
+
+
 def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_TRAINING, *,
                  observer: str | None = None, full_state: bool = False,
                  progress: bool = True) -> TrainedModel:
     """Alg. 1 phase 1 on one run: observe (or take noisy full states), then train.
 
     ``observer`` defaults to :func:`~learnest_codegen.observers.choose_observer`'s choice (said
-    on stderr when ``progress``, and stored as ``observer_choice``). Through an observer, restarts
+    on stderr when ``progress``, and stored as ``observer_choice``). With ``progress`` each
+    training (the first, then one per refinement round) also says on stderr, in one line, where
+    it stopped and the time so far. Through an observer, restarts
     are chosen by the EKF innovation likelihood of the run's measurements
     (:func:`~learnest_codegen.observers.innovation_loglik`), not by the validation loss on the
     observer's states.
@@ -434,8 +446,9 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
         choice = observations.info.get("chosen_because")
         if choice and progress:  # a choice the caller did not make: say which
             print(f"pre-training observer: {source} ({choice})", file=sys.stderr)
-    model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
     rounds = 0 if full_state else settings.refine
+    model = train(system, zeta, run.u, run.dt, settings, observer=source, progress=progress, score=score)
+    _said(progress, 1, rounds + 1, f"trained on the {source} states", model, start)
     warm = settings.warm_refinement
     round_settings, round_score = settings, score
     if settings.refine_restarts is not None and settings.refine_restarts < settings.restarts:
@@ -458,6 +471,7 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
                                   restarts=1, warm_refinement=None),
                           observer=round_observer, progress=progress, init=model)
             model.meta.update(first, training=settings.to_json())
+        _said(progress, k + 2, rounds + 1, "smoothed through the model (EKF-RTS) and retrained", model, start)
     model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
     if choice:
         model.meta["observer_choice"] = choice
