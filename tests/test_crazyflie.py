@@ -22,6 +22,8 @@ are missing.
 from __future__ import annotations
 
 import importlib.util
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -83,6 +85,11 @@ def test_the_app_folder_names_its_estimator_and_the_firmware_build(tmp_path):
     for name in (f"{prefix}.c", f"{prefix}_model.c", f"{prefix}.h", "learnest_ukf.h", f"{prefix}.mk"):
         assert (app / "src" / prefix / name).read_bytes() == (estimator / name).read_bytes()
     assert not list(app.rglob("*.so")) and not (app / "src" / prefix / "manifest.json").exists()
+    # float32 code computes in float: the firmware builds it with -Wdouble-promotion -Werror
+    if shutil.which("gcc"):
+        for source in (f"{prefix}.c", f"{prefix}_model.c"):
+            subprocess.run(["gcc", *CFLAGS, "-Wdouble-promotion", "-Werror", "-c",
+                            str(app / "src" / prefix / source), "-o", str(tmp_path / "x.o")], check=True)
     # again without --force: refused before any work; with --force: replaced whole
     r = invoke(["--nominal", "--system", "quadrotor_linear", "--target", "crazyflie", "--out", tmp_path])
     assert r.exit_code == 1 and "--force" in r.output
