@@ -171,6 +171,50 @@ def build_firmware(firmware: Path, app: Path | None = None, jobs: int = 2) -> Fi
     return FirmwareBuild(binary, parse_size_report(text), time.perf_counter() - start, warnings)
 
 
+#: Input sections by where they land (tools/make/F405/linker): flash holds code, constants and
+#: the initial values of .data; RAM .data and .bss; CCM .ccmbss.
+REGIONS = {".text": ("flash",), ".rodata": ("flash",), ".data": ("flash", "ram"), ".bss": ("ram",),
+           "COMMON": ("ram",), ".ccmbss": ("ccm",)}
+MAP_SECTION = re.compile(r"^ (?P<name>[.\w]+)(?:\s+0x[0-9a-f]+\s+0x(?P<size>[0-9a-f]+)\s+(?P<file>\S+))?$")
+MAP_PLACE = re.compile(r"^\s+0x[0-9a-f]+\s+0x(?P<size>[0-9a-f]+)\s+(?P<file>\S+)$")
+
+
+def app_memory(build: FirmwareBuild, app: Path) -> dict[str, int]:
+    """The bytes of flash, RAM and CCM the app's own objects take in the linked firmware (the
+    input sections of its folder's objects in the build's linker map, after the link dropped
+    what nothing uses)."""
+    text = (build.binary.parent / "cf2.map").read_text()
+    text = text.split("Linker script and memory map", 1)[-1]
+    folder = str(Path(app).resolve())
+    out = {"flash": 0, "ram": 0, "ccm": 0}
+    name = None
+    for line in text.splitlines():
+        m = MAP_SECTION.match(line)
+        if m:
+            name, size, file = m.group("name"), m.group("size"), m.group("file")
+        else:
+            placed = MAP_PLACE.match(line) if name else None
+            if not placed:
+                name = None
+                continue
+            size, file = placed.group("size"), placed.group("file")
+        if size is None or not file.startswith(folder):
+            continue
+        kind = next((k for k in REGIONS if name == k or name.startswith(k + ".")), None)
+        for region in REGIONS.get(kind, ()):
+            out[region] += int(size, 16)
+        name = None
+    return out
+
+
+def path_bytes(build: FirmwareBuild, firmware: Path) -> int:
+    """Bytes of ``cf2.bin`` that the firmware's own file names take beyond the in-tree build's:
+    an out-of-tree build compiles the firmware's files by their absolute path (``../src/...`` in
+    its own tree), which its assertions keep."""
+    root = str(Path(firmware).resolve()).encode()
+    return build.binary.read_bytes().count(root + b"/") * (len(root) - len(b".."))
+
+
 def firmware_cflags(cmd_file: Path) -> list[str]:
     """The flags the firmware's build compiled one file with (its Kbuild ``.<name>.o.cmd``),
     without the include folders, the dependency output and the file names."""
@@ -473,8 +517,9 @@ def main() -> None:
         if args.qemu:
             fw = run_qemu(build_qemu(args.app, firmware, flight.records, args.work / "qemu" / flight.name))
             entry["qemu_equal"] = bool(np.array_equal(fw.x, replay.x, equal_nan=True))
+            seconds = len(fw.x) * float(estimator.manifest["dt"])
             entry["instructions_per_second"] = int(
-                (fw.busy_sample.sum() + fw.busy_other.sum()) * INSTRUCTIONS_PER_TICK / (0.01 * len(fw.x)))
+                (fw.busy_sample.sum() + fw.busy_other.sum()) * INSTRUCTIONS_PER_TICK / seconds)
         report[flight.name] = entry
     print(json.dumps(report, indent=2))
 
