@@ -13,7 +13,8 @@ chosen by precision (a float32 build calls float routines; docs/reports/cortex_m
 float32 build it writes CasADi's integral double operands ``(2.*a)`` and ``(1./a)`` as ``(2*a)``
 and ``(1/a)``: the same float result (a product or quotient of floats computed in double and
 rounded to float is the correctly rounded float one), without promoting ``a`` to double, which
-a single-precision FPU would run in software and ``-Wdouble-promotion`` rejects.
+``-Wdouble-promotion`` rejects (the Crazyflie firmware builds with it and ``-Werror``; gcc -O2
+folds the promotion away, so the code it makes is the same).
 """
 
 from __future__ import annotations
