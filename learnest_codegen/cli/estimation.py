@@ -30,13 +30,21 @@ from .common import (
 
 
 def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: bool,
-             estimators: tuple[str, ...], precision: str = "float64", gate=None,
+             estimators: tuple[str, ...], precision: str | None = None, gate=None,
              force: bool = False, horizon: int | None = None,
-             clamp_inputs: bool | None = None) -> dict:
-    from ..compilation import check_horizon, estimator_dir, precision_problem
+             clamp_inputs: bool | None = None, target: str = "host") -> dict:
+    from ..codegen import crazyflie
+    from ..compilation import DEFAULT_ESTIMATORS, check_horizon, estimator_dir, precision_problem
     from ..outputs import claim_output
     from ..pipeline import compile_model, resolve
 
+    if target == "crazyflie":
+        estimators, precision = estimators or (crazyflie.DEFAULT_ESTIMATOR,), precision or crazyflie.PRECISION
+        if len(estimators) != 1:
+            raise click.UsageError(f"--target crazyflie builds one estimator into the app, got "
+                                   f"{list(estimators)}")
+        crazyflie.check_target(estimators[0], precision, None)
+    estimators, precision = estimators or DEFAULT_ESTIMATORS, precision or "float64"
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
     try:
@@ -49,16 +57,27 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         if model_dir is None:
             raise click.UsageError("give MODEL_DIR, or --nominal for the prior-only estimators")
         model, system = model_dir, resolve_system(system_name, model_dir)
+    if target == "crazyflie":
+        crazyflie.check_target(estimators[0], precision, system)
     resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
+    inputs = (model_dir,) if model_dir else ()
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
-        claim_output(estimator_dir(Path(out), resolved.model, name, precision),
-                     inputs=(model_dir,) if model_dir else (), force=force, kind="dir")
+        folder = estimator_dir(Path(out), resolved.model, name, precision)
+        claim_output(folder, inputs=inputs, force=force, kind="dir")
+        if target == "crazyflie":
+            claim_output(Path(out) / crazyflie.app_name(folder.name), inputs=inputs, force=force, kind="dir")
     results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused
                       else f"built in {res.build_seconds:.2f} s)"))
+    if target == "crazyflie":
+        (name, res), = results.items()
+        app = crazyflie.write_app(res, system, out)
+        click.echo(f"crazyflie app: {app.directory}  ({name} every {1000 // app.sample_rate_hz} ms, "
+                   f"workspace {app.workspace_bytes} B); build it with "
+                   f"make -C {app.directory} CRAZYFLIE_BASE=path/to/crazyflie-firmware")
     return results
 
 
@@ -70,9 +89,12 @@ COMPILE_OPTIONS = [
                  help=SYSTEM_HELP + " (default: the one the model records; cartpole with --nominal)"),
     click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
     click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
-                 default=("mhe", "ukf"), show_default=True, help=ESTIMATOR_HELP),
-    click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
-                 show_default=True, help=PRECISION_HELP),
+                 help=ESTIMATOR_HELP + " (default: mhe and ukf; ukf with --target crazyflie)"),
+    click.option("--precision", type=click.Choice(["float64", "float32"]), default=None,
+                 help=PRECISION_HELP + " (default: float64; float32 with --target crazyflie)"),
+    click.option("--target", type=click.Choice(["host", "crazyflie"]), default="host", show_default=True,
+                 help="host: the estimator folders; crazyflie: also <prefix>_crazyflie/, an "
+                      "out-of-tree estimator app for the Crazyflie 2.x firmware (docs/guide/crazyflie.md)"),
     click.option("--force", is_flag=True,
                  help="replace existing estimator folders (an unchanged library is reused)"),
     HORIZON,
@@ -89,7 +111,7 @@ def _with_compile_options(fn):
 @click.command("compile")
 @_with_compile_options
 @friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, target, force, horizon,
                 clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
@@ -97,21 +119,21 @@ def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, for
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
              gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
-             clamp_inputs)
+             clamp_inputs, target)
 
 
 @click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
 @_with_compile_options
 @friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, force, horizon,
-                       clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
+def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, target, force,
+                       horizon, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
     """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
     Each estimator gets its own folder under --out, written whole or not at all; an existing
     folder is replaced only with --force."""
     _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
              gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
-             clamp_inputs)
+             clamp_inputs, target)
 
 
 #: Where ``estimate`` compiles an estimator it is not given (``--compiled``): beside the output.

@@ -9,7 +9,12 @@ builds under ``-Wall -Wextra -Werror -pedantic`` with gcc, clang and g++ without
 flag (tested in tests/test_handoff.py). It also includes the kit's ``learnest_math.h`` after
 CasADi's definitions and renames CasADi's calls of the C math routines (``sin(``, ``tanh(``,
 ...) to the kit's ``learnest_sin(``, ...: the one place where a build's math routines are
-chosen by precision (a float32 build calls float routines; docs/reports/cortex_m.md).
+chosen by precision (a float32 build calls float routines; docs/reports/cortex_m.md). In a
+float32 build it writes CasADi's integral double operands ``(2.*a)`` and ``(1./a)`` as ``(2*a)``
+and ``(1/a)``: the same float result (a product or quotient of floats computed in double and
+rounded to float is the correctly rounded float one), without promoting ``a`` to double, which
+``-Wdouble-promotion`` rejects (the Crazyflie firmware builds with it and ``-Werror``; gcc -O2
+folds the promotion away, so the code it makes is the same).
 """
 
 from __future__ import annotations
@@ -36,6 +41,9 @@ MATH_ROUTINES = ("sin", "cos", "tan", "tanh", "exp", "log", "sqrt", "fabs", "asi
                  "atan", "sinh", "cosh", "asinh", "acosh", "atanh", "log1p", "expm1", "floor",
                  "ceil", "erf", "atan2", "pow", "fmod", "fmin", "fmax", "hypot", "copysign")
 _MATH_CALL = re.compile(r"(?<![\w.\"])(" + "|".join(MATH_ROUTINES) + r")(?=\s*\()")
+# CasADi writes some operations with an integral double literal as operand, "(2.*a)" (twice)
+# and "(1./a)" (inverse), which in a float build promote the float operand to double.
+_INTEGRAL_OPERAND = re.compile(r"\((\d+)\.([*/])")
 
 
 
@@ -48,7 +56,11 @@ def write_casadi_c(functions: Sequence[cs.Function], directory: Path, name: str,
         generator.add(function)
     generator.generate(f"{directory}/")
     source = Path(directory) / f"{name}.c"
-    source.write_text(clean(source.read_text()))
+    text = clean(source.read_text())
+    if precision == "float32":
+        head, tail = text.split(_MATH_ANCHOR, 1)
+        text = head + _MATH_ANCHOR + _INTEGRAL_OPERAND.sub(r"(\1\2", tail)
+    source.write_text(text)
     return source, source.with_suffix(".h")
 
 
