@@ -1,0 +1,316 @@
+"""The accuracy floor of the default training: held-out MSE of the KNODE estimators it gives.
+
+A floor suite of four systems: the cartpole demo's runs, the ground robot, the README's
+own-system pendulum (``my_pendulum.py``, read from ``docs/guide/own_system.md``) and the
+DC-motor-driven inertia-wheel pendulum ``examples/systems/wheel_pendulum.py`` (3 states, two
+outputs, a torque constant 20 % off and unmodelled friction). Case ``s`` of a system simulates
+its training run with seed ``2 s`` and its test run with seed ``2 s + 1`` and trains with
+``TrainingSettings.seed = 2 s`` (case 0 is the demo's seeds 0/1); every case trains with the
+default of the code measured (``ln.train(run, system)``, nothing passed) in a fresh process, and
+today's compiled estimators score it on the test run: the KNODE UKF (``ukf``) and the KNODE MHE
+(the embedded ``mhe_gn``, which solves the Ipopt MHE's problem to the same minimiser), beside the
+nominal and true-dynamics ones for the share of the gap closed.
+
+The reference code (``--reference``, by default :data:`REFERENCE`, unpacked with ``git archive``)
+trains the same cases in the same session: its MSE is the floor, the standard deviation of its
+MSE over the cases the margin. A floor holds when the mean over the cases of today's default is
+at most the reference's mean plus that margin, for each system and estimator
+(``tests/test_floors.py`` checks it with the same cases). ``--variants`` also trains settings
+that differ from today's default in one thing each (the ablation, :data:`VARIANTS`).
+
+    python scripts/bench.py floors                       # reference and default, 3 cases each
+    python scripts/bench.py floors --variants all        # + the ablation
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import figures
+
+MINUTES = 60
+ORDER = 30
+ROOT = figures.ROOT
+OUT = ROOT / "build" / "bench" / "floors"
+#: The code whose default training set the floors.
+REFERENCE = "5686e62"
+#: Cases per system (``s = 0 .. CASES - 1``: training run ``2 s``, test run ``2 s + 1``).
+CASES = 3
+#: The floor suite: name -> the system (a built-in name or a path under the checkout; the
+#: README's pendulum is written out from the guide's first code block).
+SYSTEMS = {"cartpole": "cartpole", "ground_robot": "ground_robot", "my_pendulum": "my_pendulum.py",
+           "wheel_pendulum": "examples/systems/wheel_pendulum.py"}
+ESTIMATORS = {"mhe": "mhe_gn", "ukf": "ukf"}
+#: Ablation: settings that differ from today's default in one thing each (``replace`` of
+#: ``DEFAULT_TRAINING``); ``default`` is the default itself.
+VARIANTS: dict[str, dict] = {
+    "default": {},
+    "float64": {"precision": "float64"},
+    "no_weight_decay": {"weight_decay": 0.0},
+    "one_round": {"refine": 0},
+    "no_early_stop": {"validation_fraction": 0.0},
+    "restarts_3": {"restarts": 3},
+    "batches_1024_average": {"batch_size": 1024, "weight_average": 0.9606},
+    "reference_recipe": {"batch_size": 1024, "weight_average": 0.9606, "restarts": 3,
+                         "weight_decay": 0.1, "refine": 2},
+    "reference_recipe_float64": {"batch_size": 1024, "weight_average": 0.9606, "restarts": 3,
+                                 "weight_decay": 0.1, "refine": 2, "precision": "float64"},
+}
+
+#: Trains one case in the code on PYTHONPATH: its default (the reference code has no
+#: DEFAULT_TRAINING: its ``ln.train`` default is QUICK_TRAINING) with ``overrides``.
+_TRAIN = r"""
+import json, sys, time
+from dataclasses import replace
+spec = json.loads(sys.argv[1])
+cpu = time.process_time()
+import learnest_codegen as ln
+from learnest_codegen import config
+system = ln.get_system(spec["system"])
+if spec.get("chains") and not system.kinematic_chains:  # code that cannot infer them: declared
+    from learnest_codegen.systems.base import KinematicChain
+    system = replace(system, kinematic_chains=tuple(KinematicChain(o, tuple(s)) for o, s in spec["chains"]))
+run = ln.simulate(system, spec["train_seed"])
+base = getattr(config, "DEFAULT_TRAINING", None) or config.QUICK_TRAINING
+settings = replace(base, seed=spec["train_seed"], **spec["overrides"])
+model = ln.train(run, system, settings, progress=False)
+model.save(spec["out"])
+print(json.dumps({"cpu_seconds": time.process_time() - cpu, "observer": model.meta["observer"],
+                  "settings": settings.to_json()}))
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--reference", default=REFERENCE, help="the code whose default sets the floors")
+    parser.add_argument("--cases", type=int, default=CASES, help="cases per system")
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help="systems of the suite")
+    parser.add_argument("--variants", default="default",
+                        help=f"today's settings to train, of {','.join(VARIANTS)} or 'all'")
+    parser.add_argument("--jobs", type=int, default=2, help="cases trained at once")
+    parser.add_argument("--keep", action="store_true", help="reuse models already trained in build/")
+
+
+def system_path(name: str, where: Path) -> str:
+    """The system of the suite as ``get_system`` takes it; the README's pendulum written to
+    ``where`` from the guide's first code block."""
+    spec = SYSTEMS[name]
+    if name == "my_pendulum":
+        text = (ROOT / "docs" / "guide" / "own_system.md").read_text()
+        code = re.search(r"```python\n(# my_pendulum.py\n.*?)```", text, re.S).group(1)
+        path = where / "my_pendulum.py"
+        path.write_text(code)
+        return str(path)
+    return spec if "/" not in spec else str(ROOT / spec)
+
+
+def _python(tree: Path, code: str, *args: str, cwd: Path) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    done = subprocess.run([sys.executable, "-c", code, *args], cwd=cwd, env=env, capture_output=True,
+                          text=True)
+    if done.returncode:
+        raise RuntimeError(f"{code[:40]!r} in {tree} failed: {done.stderr.strip()[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def train_case(tree: Path, system: str, seed: int, overrides: dict, out: Path, keep: bool,
+               chains: list | None = None) -> dict:
+    """Train case ``seed`` in the code at ``tree`` (a fresh process); the model goes to ``out``."""
+    if keep and (out / "model.json").exists() and (out.parent / f"{out.name}.json").exists():
+        return json.loads((out.parent / f"{out.name}.json").read_text())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    spec = {"system": system, "train_seed": 2 * seed, "overrides": overrides, "out": str(out),
+            "chains": chains}
+    info = _python(tree, _TRAIN, json.dumps(spec), cwd=out.parent)
+    (out.parent / f"{out.name}.json").write_text(json.dumps(info))
+    return info
+
+
+def score(model, system, seed: int, compiled: Path) -> dict:
+    """MSE over every state of each estimator of ``model`` on case ``seed``'s test run."""
+    import learnest_codegen as ln
+
+    test = ln.simulate(system, 2 * seed + 1)
+    out = {}
+    for key, name in ESTIMATORS.items():
+        est = ln.make_estimator(ln.resolve(model, system), name, out=compiled)
+        out[key] = float(ln.evaluate(est, test).mse(test.x))
+    return out
+
+
+def _score_case(system: str, seed: int, model_dir: Path) -> dict:
+    code = ("import json, sys; sys.path.insert(0, sys.argv[4]); import bench_floors as b; "
+            "import learnest_codegen as ln; s = ln.get_system(sys.argv[1]); "
+            "print(json.dumps(b.score(sys.argv[2], s, int(sys.argv[3]), b.Path(sys.argv[2]).parent / "
+            "'compiled')))")
+    return _python(ROOT, code, system, str(model_dir), str(seed), str(ROOT / "scripts"), cwd=model_dir.parent)
+
+
+def gap_closed(mse: float, nominal: float, true: float) -> float:
+    return (nominal - mse) / (nominal - true)
+
+
+def summarise(values: list[float]) -> dict:
+    import numpy as np
+
+    a = np.asarray(values, float)
+    spread = float(a.std(ddof=1)) if len(a) > 1 else 0.0
+    return {"per_case": a.tolist(), "mean": float(a.mean()), "std": spread, "worst": float(a.max())}
+
+
+def measure(args) -> tuple[dict, dict]:
+    import learnest_codegen as ln
+
+    variants = list(VARIANTS) if args.variants == "all" else [v for v in args.variants.split(",") if v]
+    systems = [s for s in args.systems.split(",") if s]
+    cond = figures.conditions(
+        model="KNODE residual trained by ln.train(run, system) with each code's default, one fresh process "
+              "per case",
+        run=f"{args.cases} cases per system: training run 2s, test run 2s+1, training seed 2s",
+        settings=f"reference code {args.reference} (git archive) and this checkout in the same session; "
+                 f"estimators {ESTIMATORS} compiled by this checkout", jobs=args.jobs)
+    OUT.mkdir(parents=True, exist_ok=True)
+    reference = OUT / f"code_{args.reference}"
+    if not (reference / "learnest_codegen").is_dir():
+        reference.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(["git", "archive", args.reference], cwd=ROOT, capture_output=True,
+                                 check=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(reference)], input=archive, check=True)
+    paths = {name: system_path(name, OUT) for name in systems}
+    # the nominal and true-dynamics estimators, once per system and test run (before any job)
+    references: dict = {}
+    for name in systems:
+        system = ln.get_system(paths[name])
+        for seed in range(args.cases):
+            for kind in ("nominal", "true"):
+                mse = score(kind, system, seed, OUT / "compiled" / name)
+                references.setdefault(name, {}).setdefault(kind, []).append(mse)
+        print(f"{name}: nominal and true-dynamics estimators scored", flush=True)
+    # the reference code reads kinematic chains only where a system declares them: it is given
+    # the chains this checkout reads from the equations, so both train on the same observer
+    chains = {}
+    for name in systems:
+        from learnest_codegen.observers.kinematic import inferred_chains
+
+        system = ln.get_system(paths[name])
+        declared = system.kinematic_chains or inferred_chains(system)
+        chains[name] = [[c.output, list(c.states)] for c in declared]
+    trees = [("reference", reference, {})] + [(v, ROOT, VARIANTS[v]) for v in variants]
+    # case by case: the first cases of every system and variant are in before the later ones
+    jobs = [(label, tree, name, seed, overrides) for seed in range(args.cases) for name in systems
+            for label, tree, overrides in trees]
+
+    def run(job):
+        label, tree, name, seed, overrides = job
+        model_dir = OUT / "models" / label / name / f"case_{seed}"
+        start = time.perf_counter()
+        info = train_case(tree, paths[name], seed, overrides, model_dir, args.keep,
+                          chains[name] if label == "reference" else None)
+        mse = _score_case(paths[name], seed, model_dir)
+        print(f"{label} {name} case {seed}: {json.dumps(mse)} ({info['cpu_seconds']:.1f} s CPU training, "
+              f"{time.perf_counter() - start:.0f} s, load {os.getloadavg()[0]:.1f})", flush=True)
+        return label, name, seed, info, mse
+
+    results: dict = {}
+    with ThreadPoolExecutor(args.jobs) as pool:
+        for label, name, seed, info, mse in pool.map(run, jobs):
+            results.setdefault(label, {}).setdefault(name, {})[seed] = {"training": info, "mse": mse}
+    figs = {"reference": args.reference, "cases": args.cases, "estimators": ESTIMATORS,
+            "systems": {name: paths[name].replace(str(ROOT) + "/", "").replace(str(OUT) + "/", "")
+                        for name in systems},
+            "references": {}, "floors": {}, "variants": {}}
+    for name in systems:
+        nominal, true = references[name]["nominal"], references[name]["true"]
+        figs["references"][name] = {kind: {est: summarise([c[est] for c in references[name][kind]])
+                                           for est in ESTIMATORS} for kind in ("nominal", "true")}
+        for label, per in results.items():
+            rows = {}
+            for est in ESTIMATORS:
+                values = [per[name][s]["mse"][est] for s in range(args.cases)]
+                gaps = [gap_closed(v, n[est], t[est]) for v, n, t in zip(values, nominal, true)]
+                rows[est] = {"mse": summarise(values), "gap_closed": summarise(gaps)}
+            rows["train_cpu_seconds"] = summarise([per[name][s]["training"]["cpu_seconds"]
+                                                   for s in range(args.cases)])
+            rows["observer"] = per[name][0]["training"]["observer"]
+            target = figs["floors"] if label == "reference" else figs["variants"]
+            if label == "reference":
+                target[name] = rows
+            else:
+                target.setdefault(label, {})[name] = rows
+    figs["holds"] = holds(figs)
+    if not args.keep:
+        shutil.rmtree(OUT / "models", ignore_errors=True)
+    return figs, cond
+
+
+def holds(figs: dict, variant: str = "default") -> dict:
+    """Per system and estimator: does ``variant``'s mean MSE stay within the floor (the
+    reference's mean) plus its margin (the reference's standard deviation over the cases)?"""
+    out = {}
+    for name, floor in figs["floors"].items():
+        got = figs["variants"].get(variant, {}).get(name)
+        if got is None:
+            continue
+        out[name] = {est: got[est]["mse"]["mean"] <= floor[est]["mse"]["mean"] + floor[est]["mse"]["std"]
+                     for est in ESTIMATORS}
+    return out
+
+
+def render_table(data: dict, variant: str = "default") -> str:
+    """The floor table: per system and estimator the reference's MSE (mean and spread over the
+    cases) against today's default, and the share of the gap each closes."""
+    f = data["figures"]
+    lines = [f"| system | estimator | {f['reference']} MSE (mean +- std) | default MSE (mean +- std) | "
+             f"gap closed {f['reference']} / default | holds |", "|---|---|---|---|---|---|"]
+    for name, floor in f["floors"].items():
+        got = f["variants"][variant][name]
+        for est in ESTIMATORS:
+            a, b = floor[est], got[est]
+            ok = b["mse"]["mean"] <= a["mse"]["mean"] + a["mse"]["std"]
+            lines.append(f"| {name} | KNODE-{est.upper()} | "
+                         f"{a['mse']['mean']:.3e} +- {a['mse']['std']:.1e} | "
+                         f"{b['mse']['mean']:.3e} +- {b['mse']['std']:.1e} | "
+                         f"{100 * a['gap_closed']['mean']:.2f} / {100 * b['gap_closed']['mean']:.2f} % | "
+                         f"{'yes' if ok else 'no'} |")
+    return "\n".join(lines)
+
+
+def render_ablation(data: dict) -> str:
+    """Each variant's mean MSE relative to the floor (the reference's mean), per system and
+    estimator, and its training CPU seconds (mean per case)."""
+    f = data["figures"]
+    systems = list(f["floors"])
+    head = " | ".join(f"{s} {e.upper()}" for s in systems for e in ESTIMATORS)
+    lines = [f"| variant | {head} | training CPU s |",
+             "|---|" + "---|" * (len(systems) * len(ESTIMATORS) + 1)]
+    for label, per in f["variants"].items():
+        cells = [f"{per[s][e]['mse']['mean'] / f['floors'][s][e]['mse']['mean']:.2f}" for s in systems
+                 for e in ESTIMATORS]
+        cpu = sum(per[s]["train_cpu_seconds"]["mean"] for s in systems) / len(systems)
+        lines.append(f"| {label} | {' | '.join(cells)} | {cpu:.1f} |")
+    ref_cpu = sum(f["floors"][s]["train_cpu_seconds"]["mean"] for s in systems) / len(systems)
+    lines.append(f"| {f['reference']} default | {' | '.join('1.00' for _ in systems for _ in ESTIMATORS)} | "
+                 f"{ref_cpu:.1f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":  # one-off runs: python scripts/bench_floors.py [options]
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    parser.add_argument("--out", type=Path, default=None, help="write the JSON here too")
+    args = parser.parse_args()
+    figs, cond = measure(args)
+    text = json.dumps({"figures": figs, "conditions": figures.finish(cond)}, indent=1)
+    if args.out:
+        args.out.write_text(text)
+    print(text[:4000])
+
