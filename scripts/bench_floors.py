@@ -50,19 +50,17 @@ SYSTEMS = {"cartpole": "cartpole", "ground_robot": "ground_robot", "my_pendulum"
            "wheel_pendulum": "examples/systems/wheel_pendulum.py"}
 ESTIMATORS = {"mhe": "mhe_gn", "ukf": "ukf"}
 #: Ablation: settings that differ from today's default in one thing each (``replace`` of
-#: ``DEFAULT_TRAINING``); ``default`` is the default itself.
+#: ``DEFAULT_TRAINING``); ``default`` is the default itself, ``full_batch`` the full-batch
+#: recipe of one initialisation with no weight average and no patience.
 VARIANTS: dict[str, dict] = {
     "default": {},
     "float64": {"precision": "float64"},
+    "one_restart": {"restarts": 1},
+    "no_weight_average": {"weight_average": 0.0},
     "no_weight_decay": {"weight_decay": 0.0},
+    "no_patience": {"patience": None},
     "one_round": {"refine": 0},
-    "no_early_stop": {"validation_fraction": 0.0},
-    "restarts_3": {"restarts": 3},
-    "batches_1024_average": {"batch_size": 1024, "weight_average": 0.9606},
-    "reference_recipe": {"batch_size": 1024, "weight_average": 0.9606, "restarts": 3,
-                         "weight_decay": 0.1, "refine": 2},
-    "reference_recipe_float64": {"batch_size": 1024, "weight_average": 0.9606, "restarts": 3,
-                                 "weight_decay": 0.1, "refine": 2, "precision": "float64"},
+    "full_batch": {"batch_size": 1_000_000, "weight_average": 0.0, "restarts": 1, "patience": None},
 }
 
 #: Trains one case in the code on PYTHONPATH: its default (the reference code has no
@@ -83,8 +81,10 @@ base = getattr(config, "DEFAULT_TRAINING", None) or config.QUICK_TRAINING
 settings = replace(base, seed=spec["train_seed"], **spec["overrides"])
 model = ln.train(run, system, settings, progress=False)
 model.save(spec["out"])
-print(json.dumps({"cpu_seconds": time.process_time() - cpu, "observer": model.meta["observer"],
-                  "settings": settings.to_json()}))
+info = json.dumps({"cpu_seconds": time.process_time() - cpu, "observer": model.meta["observer"],
+                   "settings": settings.to_json()})
+open(spec["info"], "w").write(info)
+print(info)
 """
 
 
@@ -94,6 +94,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--systems", default=",".join(SYSTEMS), help="systems of the suite")
     parser.add_argument("--variants", default="default",
                         help=f"today's settings to train, of {','.join(VARIANTS)} or 'all'")
+    parser.add_argument("--variant-cases", type=int, default=None,
+                        help="cases per system of the variants other than the default (default: --cases)")
+    parser.add_argument("--train-only", action="store_true",
+                        help="train and score the variants' cases only (not the reference's), for a later "
+                             "--keep run to gather")
     parser.add_argument("--jobs", type=int, default=2, help="cases trained at once")
     parser.add_argument("--keep", action="store_true", help="reuse models already trained in build/")
 
@@ -123,14 +128,16 @@ def _python(tree: Path, code: str, *args: str, cwd: Path) -> dict:
 def train_case(tree: Path, system: str, seed: int, overrides: dict, out: Path, keep: bool,
                chains: list | None = None) -> dict:
     """Train case ``seed`` in the code at ``tree`` (a fresh process); the model goes to ``out``."""
-    if keep and (out / "model.json").exists() and (out.parent / f"{out.name}.json").exists():
-        return json.loads((out.parent / f"{out.name}.json").read_text())
+    info = out.parent / f"{out.name}.json"
+    if keep and (out / "model.json").exists():
+        if info.exists():
+            return json.loads(info.read_text())
+        meta = json.loads((out / "model.json").read_text())  # its process was cut off: no CPU time
+        return {"cpu_seconds": None, "observer": meta["observer"], "settings": meta["training"]}
     out.parent.mkdir(parents=True, exist_ok=True)
     spec = {"system": system, "train_seed": 2 * seed, "overrides": overrides, "out": str(out),
-            "chains": chains}
-    info = _python(tree, _TRAIN, json.dumps(spec), cwd=out.parent)
-    (out.parent / f"{out.name}.json").write_text(json.dumps(info))
-    return info
+            "chains": chains, "info": str(info)}
+    return _python(tree, _TRAIN, json.dumps(spec), cwd=out.parent)
 
 
 def score(model, system, seed: int, compiled: Path) -> dict:
@@ -185,14 +192,19 @@ def measure(args) -> tuple[dict, dict]:
         subprocess.run(["tar", "-x", "-C", str(reference)], input=archive, check=True)
     paths = {name: system_path(name, OUT) for name in systems}
     # the nominal and true-dynamics estimators, once per system and test run (before any job)
+    cache = OUT / "references.json"  # with --keep: scored once per system and case
+    stored = json.loads(cache.read_text()) if args.keep and cache.exists() else {}
     references: dict = {}
     for name in systems:
         system = ln.get_system(paths[name])
         for seed in range(args.cases):
             for kind in ("nominal", "true"):
-                mse = score(kind, system, seed, OUT / "compiled" / name)
-                references.setdefault(name, {}).setdefault(kind, []).append(mse)
+                key = f"{name}/{seed}/{kind}"
+                if key not in stored:
+                    stored[key] = score(kind, system, seed, OUT / "compiled" / name)
+                references.setdefault(name, {}).setdefault(kind, []).append(stored[key])
         print(f"{name}: nominal and true-dynamics estimators scored", flush=True)
+    cache.write_text(json.dumps(stored))
     # the reference code reads kinematic chains only where a system declares them: it is given
     # the chains this checkout reads from the equations, so both train on the same observer
     chains = {}
@@ -204,8 +216,10 @@ def measure(args) -> tuple[dict, dict]:
         chains[name] = [[c.output, list(c.states)] for c in declared]
     trees = [("reference", reference, {})] + [(v, ROOT, VARIANTS[v]) for v in variants]
     # case by case: the first cases of every system and variant are in before the later ones
+    ablation = args.cases if args.variant_cases is None else args.variant_cases
     jobs = [(label, tree, name, seed, overrides) for seed in range(args.cases) for name in systems
-            for label, tree, overrides in trees]
+            for label, tree, overrides in trees
+            if seed < ablation or label in ("reference", "default")]
 
     def run(job):
         label, tree, name, seed, overrides = job
@@ -214,14 +228,19 @@ def measure(args) -> tuple[dict, dict]:
         info = train_case(tree, paths[name], seed, overrides, model_dir, args.keep,
                           chains[name] if label == "reference" else None)
         mse = _score_case(paths[name], seed, model_dir)
-        print(f"{label} {name} case {seed}: {json.dumps(mse)} ({info['cpu_seconds']:.1f} s CPU training, "
+        cpu = info["cpu_seconds"] or float("nan")
+        print(f"{label} {name} case {seed}: {json.dumps(mse)} ({cpu:.1f} s CPU training, "
               f"{time.perf_counter() - start:.0f} s, load {os.getloadavg()[0]:.1f})", flush=True)
         return label, name, seed, info, mse
 
+    if args.train_only:
+        jobs = [job for job in jobs if job[0] != "reference"]
     results: dict = {}
     with ThreadPoolExecutor(args.jobs) as pool:
         for label, name, seed, info, mse in pool.map(run, jobs):
             results.setdefault(label, {}).setdefault(name, {})[seed] = {"training": info, "mse": mse}
+    if args.train_only:
+        return {}, cond
     figs = {"reference": args.reference, "cases": args.cases, "estimators": ESTIMATORS,
             "systems": {name: paths[name].replace(str(ROOT) + "/", "").replace(str(OUT) + "/", "")
                         for name in systems},
@@ -231,13 +250,14 @@ def measure(args) -> tuple[dict, dict]:
         figs["references"][name] = {kind: {est: summarise([c[est] for c in references[name][kind]])
                                            for est in ESTIMATORS} for kind in ("nominal", "true")}
         for label, per in results.items():
-            rows = {}
+            rows, cases = {}, sorted(per[name])
             for est in ESTIMATORS:
-                values = [per[name][s]["mse"][est] for s in range(args.cases)]
-                gaps = [gap_closed(v, n[est], t[est]) for v, n, t in zip(values, nominal, true)]
+                values = [per[name][s]["mse"][est] for s in cases]
+                gaps = [gap_closed(v, nominal[c][est], true[c][est]) for v, c in zip(values, cases)]
                 rows[est] = {"mse": summarise(values), "gap_closed": summarise(gaps)}
-            rows["train_cpu_seconds"] = summarise([per[name][s]["training"]["cpu_seconds"]
-                                                   for s in range(args.cases)])
+            cpu = [per[name][s]["training"]["cpu_seconds"] for s in cases]
+            rows["train_cpu_seconds"] = summarise([c for c in cpu if c is not None] or [float("nan")])
+            rows["cases"] = len(cases)
             rows["observer"] = per[name][0]["training"]["observer"]
             target = figs["floors"] if label == "reference" else figs["variants"]
             if label == "reference":
@@ -279,6 +299,22 @@ def render_table(data: dict, variant: str = "default") -> str:
                          f"{b['mse']['mean']:.3e} +- {b['mse']['std']:.1e} | "
                          f"{100 * a['gap_closed']['mean']:.2f} / {100 * b['gap_closed']['mean']:.2f} % | "
                          f"{'yes' if ok else 'no'} |")
+    return "\n".join(lines)
+
+
+def render_demo(data: dict) -> str:
+    """The cartpole's first case, the demo's runs (seeds 0/1): each KNODE estimator's MSE and
+    share of the gap closed, the reference code's default against today's."""
+    f = data["figures"]
+    floor, got = f["floors"]["cartpole"], f["variants"]["default"]["cartpole"]
+    lines = [f"| estimator | {f['reference']} MSE | default MSE | {f['reference']} gap closed | "
+             "default gap closed |", "|---|---|---|---|---|"]
+    for est in ESTIMATORS:
+        (a, b), (ga, gb) = ((x[est][k]["per_case"][0] for x in (floor, got)) for k in ("mse", "gap_closed"))
+        lines.append(f"| KNODE-{est.upper()} | {a:.3e} | {b:.3e} | {100 * ga:.2f} % | {100 * gb:.2f} % |")
+    n = f["references"]["cartpole"]["nominal"]
+    lines.append(f"\nNominal MHE {n['mhe']['per_case'][0]:.3e}, nominal UKF {n['ukf']['per_case'][0]:.3e} "
+                 "on the same test run.")
     return "\n".join(lines)
 
 
