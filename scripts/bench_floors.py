@@ -59,6 +59,7 @@ VARIANTS: dict[str, dict] = {
     "no_weight_average": {"weight_average": 0.0},
     "no_weight_decay": {"weight_decay": 0.0},
     "no_patience": {"patience": None},
+    "patience_25": {"patience": 25},
     "one_round": {"refine": 0},
     "full_batch": {"batch_size": 1_000_000, "weight_average": 0.0, "restarts": 1, "patience": None},
 }
@@ -99,6 +100,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--train-only", action="store_true",
                         help="train and score the variants' cases only (not the reference's), for a later "
                              "--keep run to gather")
+    parser.add_argument("--gather", action="store_true",
+                        help="with --keep: gather the cases earlier runs trained and scored, train none")
     parser.add_argument("--jobs", type=int, default=2, help="cases trained at once")
     parser.add_argument("--keep", action="store_true", help="reuse models already trained in build/")
 
@@ -234,7 +237,12 @@ def measure(args) -> tuple[dict, dict]:
         start = time.perf_counter()
         info = train_case(tree, paths[name], seed, overrides, model_dir, args.keep,
                           chains[name] if label == "reference" else None)
-        mse = _score_case(paths[name], seed, model_dir)
+        scored = model_dir.parent / f"{model_dir.name}.score.json"
+        if args.keep and scored.exists():
+            mse = json.loads(scored.read_text())
+        else:
+            mse = _score_case(paths[name], seed, model_dir)
+            scored.write_text(json.dumps(mse))
         cpu = info["cpu_seconds"] or float("nan")
         print(f"{label} {name} case {seed}: {json.dumps(mse)} ({cpu:.1f} s CPU training, "
               f"{time.perf_counter() - start:.0f} s, load {os.getloadavg()[0]:.1f})", flush=True)
@@ -242,6 +250,9 @@ def measure(args) -> tuple[dict, dict]:
 
     if args.train_only:
         jobs = [job for job in jobs if job[0] != "reference"]
+    if args.gather:  # only what earlier runs left, trained and scored
+        jobs = [job for job in jobs
+                if (OUT / "models" / job[0] / job[2] / f"case_{job[3]}.score.json").exists()]
     results: dict = {}
     with ThreadPoolExecutor(args.jobs) as pool:
         for label, name, seed, info, mse in pool.map(run, jobs):
@@ -257,6 +268,8 @@ def measure(args) -> tuple[dict, dict]:
         figs["references"][name] = {kind: {est: summarise([c[est] for c in references[name][kind]])
                                            for est in ESTIMATORS} for kind in ("nominal", "true")}
         for label, per in results.items():
+            if name not in per:
+                continue
             rows, cases = {}, sorted(per[name])
             for est in ESTIMATORS:
                 values = [per[name][s]["mse"][est] for s in cases]
@@ -325,22 +338,29 @@ def render_demo(data: dict) -> str:
     return "\n".join(lines)
 
 
+def _floor_mean(f: dict, name: str, est: str, cases: int) -> float:
+    """The reference's mean MSE over the first ``cases`` cases (those a variant ran)."""
+    values = f["floors"][name][est]["mse"]["per_case"][:cases]
+    return sum(values) / len(values)
+
+
 def render_ablation(data: dict) -> str:
-    """Each variant's mean MSE relative to the floor (the reference's mean), per system and
-    estimator, and its training CPU seconds (mean per case)."""
+    """Each variant's mean MSE relative to the reference's mean over the same cases, per system and
+    estimator, and its training CPU seconds per system (mean per case); "-" where it was not
+    measured."""
     f = data["figures"]
     systems = list(f["floors"])
     head = " | ".join(f"{s} {e.upper()}" for s in systems for e in ESTIMATORS)
-    lines = [f"| variant | {head} | training CPU s |",
+    lines = [f"| variant | {head} | training CPU s ({' / '.join(systems)}) |",
              "|---|" + "---|" * (len(systems) * len(ESTIMATORS) + 1)]
     for label, per in f["variants"].items():
-        cells = [f"{per[s][e]['mse']['mean'] / f['floors'][s][e]['mse']['mean']:.2f}" for s in systems
-                 for e in ESTIMATORS]
-        cpu = sum(per[s]["train_cpu_seconds"]["mean"] for s in systems) / len(systems)
-        lines.append(f"| {label} | {' | '.join(cells)} | {cpu:.1f} |")
-    ref_cpu = sum(f["floors"][s]["train_cpu_seconds"]["mean"] for s in systems) / len(systems)
+        cells = [f"{per[s][e]['mse']['mean'] / _floor_mean(f, s, e, per[s]['cases']):.2f}"
+                 if s in per else "-" for s in systems for e in ESTIMATORS]
+        cpu = " / ".join(f"{per[s]['train_cpu_seconds']['mean']:.1f}" if s in per else "-" for s in systems)
+        lines.append(f"| {label} | {' | '.join(cells)} | {cpu} |")
+    ref_cpu = " / ".join(f"{f['floors'][s]['train_cpu_seconds']['mean']:.1f}" for s in systems)
     lines.append(f"| {f['reference']} default | {' | '.join('1.00' for _ in systems for _ in ESTIMATORS)} | "
-                 f"{ref_cpu:.1f} |")
+                 f"{ref_cpu} |")
     return "\n".join(lines)
 
 
