@@ -1,188 +1,177 @@
-"""Benchmark the KNODE training: the pre-training observer and the default training on the demo
-data (separately), epochs of the Table I recipe, one Table I job, the whole sweep.
+"""The cost of the default training as a user meets it: cold and warm CPU seconds of ``ln.train``
+on the demo run, beside a bare torch loop of the same net size on the same data.
 
-Usage::
+Every figure comes from fresh processes, one torch thread each, run alternately in the same
+minutes (``--rounds`` times; the shortest CPU time of each kind is kept, and every run's load
+is recorded):
 
-    python scripts/bench_training.py --out bench_training.json            # observer and epochs
-    python scripts/bench_training.py --job --out bench_training.json      # + cartpole job 0
-    python scripts/bench_training.py --job --sweep --out ...              # + the whole Table I
-    python scripts/bench_training.py --read-sweep /tmp/table1_fast ...     # a sweep run before
+* ``train``: in a fresh process, ``import learnest_codegen``, simulate the demo's training run
+  (cartpole, seed 0), then time ``ln.train(run, system, settings)`` twice: the first call is
+  the cold one (it imports torch and pays every first-call set-up), the second the warm one.
+  ``settings`` is the default's first round (``replace(DEFAULT_TRAINING, refine=0)``: the
+  pre-training observer plus one round of the default's epochs); the whole default (every
+  round) is timed the same way.
+* ``bare``: in a fresh process, ``import torch``, read the same observer's states and train a
+  plain ``torch.nn.Sequential`` MLP of the default net's size (the same features in, hidden
+  width and outputs) on the one-step RK4 loss of the same training pairs with
+  ``torch.optim.AdamW``, as many epochs and in the same precision and batches as the default;
+  cold (import included) and the epochs alone.
 
-Every figure is recorded with the wall time, the process's CPU time (its children's for the
-job and the sweep, which run in subprocesses) and the load average when it ran: the machine is
-shared, and the CPU time is the figure that load disturbs least. The observer and the 250
-epochs are timed ``--repeat`` times and the shortest kept (``observer_plus_250_epochs``, next
-to the target, ``TARGET_CPU_SECONDS``); the 250 epochs in each training precision of
-``--precisions`` (``TrainingSettings.precision``; the repeats alternate between them, so each
-precision sees the same minutes), ``observer_plus_250_epochs`` with the default's. Beside the
-times stand the final losses (epochs) and the gap closures (job, sweep).
+The ratios are same-minute ratios: the cold ``train`` against the cold bare loop, the warm one
+against the bare loop's epochs. ``--sweep`` also times ``learnest reproduce table1 --jobs 2``
+(wall and CPU seconds, children included, the load before and after).
 
-This machine's speed changes by a factor of up to three from day to day, so ``--against
-COMMIT`` (by default the code the issue measured, :data:`ISSUE_COMMIT`) also times that code's
-observer and 250 default epochs and today's, in fresh processes, alternating, on the same
-minutes; the ratio turns the issue's figures into today's (``against``), and the target is
-judged on both the raw CPU time and on the issue's day's scale.
+    python scripts/bench.py training                 # the training's cost
+    python scripts/bench.py training --sweep         # + Table I (about 40 min)
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
-import torch
+import figures
 
-from learnest_codegen import get_system
-from learnest_codegen.config import DEFAULT_TRAINING, PRECISIONS, TABLE1_CARTPOLE_TRAINING, TrainingSettings
-from learnest_codegen.learning.training import train, train_on_run
-from learnest_codegen.observers import observe
-from learnest_codegen.simulation import simulate
+MINUTES = 3
+ORDER = 31
+ROOT = figures.ROOT
 
-#: observer plus 250 epochs of the default training on the demo data, CPU seconds (the issue's
-#: target; before: 5.6 s + 2.7 s)
-TARGET_CPU_SECONDS = 3.0
-#: ``learnest reproduce table1`` on 2 cores, wall seconds (the issue's target; before: 67 min)
-TABLE1_TARGET_SECONDS = 20 * 60
-#: the settings timed: one round of the default, one round of the cartpole Table I recipe (3
-#: restarts), and the earlier default and round with 256-pair mini-batches (the "before")
-EPOCH_CASES = {
-    "default": replace(DEFAULT_TRAINING, refine=0),
-    "table1_cartpole_round": replace(TABLE1_CARTPOLE_TRAINING, refine=0),
-    "before_default_batches_256": replace(DEFAULT_TRAINING, refine=0, batch_size=256),
-    "before_table1_round_batches_256": replace(TABLE1_CARTPOLE_TRAINING, refine=0, batch_size=256,
-                                               weight_average=0.99),
-}
-#: The issue's figures for the code before (commit b12bfa1, idle machine, wall seconds): 250
-#: default epochs, one cartpole Table I job with its recipe, the whole sweep on 2 cores.
-BEFORE = {"default_250_epochs_seconds": 39.0, "cartpole_job_seconds": 635.0,
-          "table1_sweep_seconds": 6004.0,
-          "source": "issue figures and docs/reports/results.md (code of commit a9b6c0a / b12bfa1, idle machine)",
-          "observer_cpu_seconds_issue_26": 5.6, "default_250_epochs_cpu_seconds_issue_26": 2.7,
-          "table1_sweep_seconds_issue_26": 4030.0}
-
-
-#: The code the issue measured its 5.6 s + 2.7 s on (before the fourth round of
-#: ``docs/reports/training.md``).
-ISSUE_COMMIT = "5686e62"
-ROOT = Path(__file__).resolve().parents[1]
-#: The same measurement in any version of the package: the default observer on the demo's
-#: training run, then 250 epochs of that version's default training (one round; the issue's
-#: code had no ``DEFAULT_TRAINING``, its default was ``TrainingSettings()``), shortest CPU of three.
-_SAME_MEASUREMENT = """
-import json, time
+#: One fresh process: the demo's training run, ``ln.train`` cold then warm (CPU seconds).
+_TRAIN = r"""
+import json, os, sys, time
 from dataclasses import replace
+start = time.process_time()
+import learnest_codegen as ln
+system = ln.get_system("cartpole")
+run = ln.simulate(system, 0)
+settings = replace(ln.DEFAULT_TRAINING, **json.loads(sys.argv[1]))
+ready = time.process_time()
+out = {"load": os.getloadavg()[0], "import_and_simulate": ready - start}
+for kind in ("cold", "warm"):
+    cpu, wall = time.process_time(), time.perf_counter()
+    model = ln.train(run, system, settings, progress=False)
+    out[kind] = time.process_time() - cpu
+    out[kind + "_wall"] = time.perf_counter() - wall
+if len(sys.argv) > 2:  # the observer's states and the net's shape, for the bare loop
+    from learnest_codegen.observers import observe
+    import numpy as np
+    net = model.net
+    np.savez(sys.argv[2], zeta=observe(run, system).zeta, u=run.u, dt=run.dt,
+             inputs=[i for i in net.inputs if i not in net.periodic],
+             periodic=[i for i in net.periodic if i in net.inputs], prior_features=list(net.prior_features),
+             outputs=list(net.outputs), mean=net.in_mean.numpy(), scale=net.in_scale.numpy())
+out["final_loss"] = model.meta["final_loss"]
+print(json.dumps(out))
+"""
+
+#: One fresh process: a bare torch loop of the same size on the same pairs.
+_BARE = r"""
+import json, os, sys, time
+start = time.process_time()
+import numpy as np
 import torch
 torch.set_num_threads(1)
 from learnest_codegen import get_system
-from learnest_codegen import config
-from learnest_codegen.learning.training import train
-from learnest_codegen.observers import observe
-from learnest_codegen.simulation import simulate
+spec = json.loads(sys.argv[2])
+data = np.load(sys.argv[1])
+dtype = getattr(torch, spec["precision"])
 system = get_system("cartpole")
-run = simulate(system, seed=0)
-settings = replace(getattr(config, "DEFAULT_TRAINING", config.TrainingSettings()), refine=0)
-warm_up = replace(settings, epochs=1)
-train(system, observe(run, system).zeta[:200], run.u[:200], run.dt, warm_up, progress=False)
-observer = epochs = float("inf")
-for _ in range(3):
-    cpu = time.process_time(); obs = observe(run, system); observer = min(observer, time.process_time() - cpu)
-    cpu = time.process_time(); model = train(system, obs.zeta, run.u, run.dt, settings, progress=False)
-    epochs = min(epochs, time.process_time() - cpu)
-print(json.dumps({"observer": observer, "epochs": epochs, "final_loss": model.meta["final_loss"]}))
+n_train = len(data["zeta"]) - 1 - int(spec["validation_fraction"] * (len(data["zeta"]) - 1))
+zeta = torch.as_tensor(data["zeta"][:n_train], dtype=dtype)
+u = torch.as_tensor(data["u"][:n_train], dtype=dtype)
+target = torch.as_tensor(data["zeta"][1:n_train + 1], dtype=dtype)
+dt = float(data["dt"])
+torch.manual_seed(0)
+keep, periodic, extra, outputs = (torch.as_tensor(data[k], dtype=torch.long)
+                                  for k in ("inputs", "periodic", "prior_features", "outputs"))
+mean, scale = (torch.as_tensor(data[k], dtype=dtype) for k in ("mean", "scale"))
+mlp = torch.nn.Sequential(torch.nn.Linear(len(mean), spec["hidden"]), torch.nn.Tanh(),
+                          torch.nn.Linear(spec["hidden"], len(outputs))).to(dtype)
+optimiser = torch.optim.AdamW(mlp.parameters(), lr=spec["learning_rate"], weight_decay=spec["weight_decay"])
+
+
+def f(x, v):  # prior plus the net on the same features (inputs, sin and cos of the angles, prior)
+    xu, prior = torch.cat([x, v], dim=1), system.f(x, v)
+    angles = xu[:, periodic]
+    feats = torch.cat([xu[:, keep], torch.sin(angles), torch.cos(angles), prior[:, extra]], dim=1)
+    return prior.index_add(1, outputs, mlp((feats - mean) / scale))
+
+
+def rk4(x, v):
+    k1 = f(x, v)
+    k2 = f(x + dt / 2 * k1, v)
+    k3 = f(x + dt / 2 * k2, v)
+    k4 = f(x + dt * k3, v)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+ready = time.process_time()
+for epoch in range(spec["epochs"]):
+    for idx in torch.arange(n_train).split(spec["batch_size"]):
+        optimiser.zero_grad()
+        loss = ((rk4(zeta[idx], u[idx]) - target[idx]) ** 2).sum(dim=1).mean()
+        loss.backward()
+        optimiser.step()
+done = time.process_time()
+print(json.dumps({"load": os.getloadavg()[0], "cold": done - start, "epochs": done - ready,
+                  "final_loss": float(loss)}))
 """
 
 
-def bench_against(commit: str, rounds: int = 2) -> dict:
-    """The issue's code (``commit``, unpacked with ``git archive``) and today's, each timed by
-    :data:`_SAME_MEASUREMENT` in a fresh process, alternating ``rounds`` times; the shortest of
-    each, their ratio and the issue's figures scaled by it."""
-    best: dict[str, dict] = {}
+def add_arguments(parser) -> None:
+    parser.add_argument("--rounds", type=int, default=3, help="fresh processes of each kind, alternating")
+    parser.add_argument("--sweep", action="store_true", help="also time learnest reproduce table1 --jobs 2")
+    parser.add_argument("--sweep-out", type=Path, default=None, help="the sweep's results directory")
+
+
+def _run(code: str, *args: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, env=env, capture_output=True,
+                          text=True)
+    if done.returncode:
+        raise RuntimeError(f"timing failed: {done.stderr.strip()[-1500:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _best(runs: list[dict], key: str) -> dict:
+    return min(runs, key=lambda r: r[key])
+
+
+def measure_training(rounds: int) -> dict:
+    from learnest_codegen.config import DEFAULT_TRAINING
+
+    first_round = {"refine": 0}
+    d = DEFAULT_TRAINING
+    spec = {"precision": d.precision, "validation_fraction": d.validation_fraction,
+            "hidden": d.network.hidden,
+            "learning_rate": d.learning_rate, "weight_decay": d.weight_decay, "epochs": d.epochs,
+            "batch_size": d.batch_size}
+    runs: dict[str, list] = {"train": [], "bare": [], "whole": []}
     with tempfile.TemporaryDirectory() as tmp:
-        archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True,
-                                 check=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        for _ in range(rounds):
-            for name, tree in ((commit, tmp), ("today", str(ROOT))):
-                env = {**os.environ, "PYTHONPATH": tree}
-                done = subprocess.run([sys.executable, "-c", _SAME_MEASUREMENT], cwd=tree, env=env,
-                                      capture_output=True, text=True)
-                if done.returncode:
-                    raise RuntimeError(f"timing {name} failed: {done.stderr.strip().splitlines()[-1:]}")
-                value = json.loads(done.stdout.strip().splitlines()[-1])
-                value["total"] = value["observer"] + value["epochs"]
-                value["load_average"] = os.getloadavg()[0]
-                if name not in best or value["total"] < best[name]["total"]:
-                    best[name] = value
-                print(name, json.dumps(value), flush=True)
-    issue = BEFORE["observer_cpu_seconds_issue_26"] + BEFORE["default_250_epochs_cpu_seconds_issue_26"]
-    slower = best[commit]["total"] / issue
-    equivalent = best["today"]["total"] / slower
-    out = {"commit": commit, "issue_code": best[commit], "today": best["today"],
-           "speed_up": best[commit]["total"] / best["today"]["total"],
-           "machine_slower_than_issue_day": slower,
-           "today_on_issue_day_scale_cpu_seconds": equivalent,
-           "met_on_issue_day_scale": equivalent <= TARGET_CPU_SECONDS}
-    print(json.dumps(out), flush=True)
-    return out
-
-
-def _best_cpu(fn, repeat: int):
-    """``fn()``'s shortest CPU time over ``repeat`` calls, its wall time then, and its value."""
-    best = None
-    for _ in range(repeat):
-        wall, cpu = time.perf_counter(), time.process_time()
-        value = fn()
-        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        if best is None or cpu < best[0]:
-            best = (cpu, wall, value)
-    return best
-
-
-def bench_observer_and_default(repeat: int = 3, precisions: tuple[str, ...] = PRECISIONS) -> dict:
-    """The demo's training run: the default pre-training observer, 250 epochs (one round) of the
-    default training on its states in each of ``precisions``, and the whole default training
-    (every round, observers included), CPU seconds; the observer plus the default precision's
-    epochs against :data:`TARGET_CPU_SECONDS`."""
-    system = get_system("cartpole")
-    run = simulate(system, seed=0)
-    load = os.getloadavg()[0]
-    cpu_obs, wall_obs, obs = _best_cpu(lambda: observe(run, system), repeat)
-    epochs = {}
-    for precision in precisions:  # warm-up
-        settings = replace(EPOCH_CASES["default"], precision=precision)
-        train(system, obs.zeta[:200], run.u[:200], run.dt, replace(settings, epochs=1), progress=False)
-    for _ in range(repeat):  # alternating: every precision sees the same minutes
-        for precision in precisions:
-            settings = replace(EPOCH_CASES["default"], precision=precision)
-            cpu, wall, model = _best_cpu(
-                lambda s=settings: train(system, obs.zeta, run.u, run.dt, s, progress=False), 1)
-            if precision not in epochs or cpu < epochs[precision]["cpu_seconds"]:
-                epochs[precision] = {"precision": precision, "settings": settings.to_json(),
-                                     "cpu_seconds": cpu, "wall_seconds": wall,
-                                     "final_loss": model.meta["final_loss"],
-                                     "best_epoch": model.meta["best_epoch"]}
-    default = epochs.get(DEFAULT_TRAINING.precision) or next(iter(epochs.values()))
-    cpu_all, wall_all, whole = _best_cpu(
-        lambda: train_on_run(run, system, DEFAULT_TRAINING, progress=False), 1)
-    cpu_train = default["cpu_seconds"]
-    out = {"observer": {"method": obs.method, "cpu_seconds": cpu_obs, "wall_seconds": wall_obs},
-           "default_250_epochs": default, "default_250_epochs_by_precision": epochs,
-           "observer_plus_250_epochs_cpu_seconds": cpu_obs + cpu_train,
-           "target_cpu_seconds": TARGET_CPU_SECONDS, "met": cpu_obs + cpu_train <= TARGET_CPU_SECONDS,
-           "default_whole_training": {"settings": DEFAULT_TRAINING.to_json(),
-                                      "precision": DEFAULT_TRAINING.precision, "cpu_seconds": cpu_all,
-                                      "wall_seconds": wall_all, "observer": whole.meta["observer"]},
-           "repeat": repeat, "load_average": [load, os.getloadavg()[0]]}
-    print(json.dumps(out), flush=True)
-    return out
+        data = str(Path(tmp) / "states.npz")
+        _run(_TRAIN, json.dumps(first_round), data)  # the data for the bare loop (not timed)
+        for r in range(rounds):
+            runs["train"].append(_run(_TRAIN, json.dumps(first_round)))
+            runs["bare"].append(_run(_BARE, data, json.dumps(spec)))
+            print(f"round {r}: train {json.dumps(runs['train'][-1])}, bare {json.dumps(runs['bare'][-1])}",
+                  flush=True)
+        runs["whole"].append(_run(_TRAIN, json.dumps({})))
+    train, bare = _best(runs["train"], "cold"), _best(runs["bare"], "cold")
+    warm, bare_epochs = _best(runs["train"], "warm"), _best(runs["bare"], "epochs")
+    return {"settings_timed": {**DEFAULT_TRAINING.to_json(), "refine": 0}, "bare_loop": spec,
+            "cold_cpu_seconds": train["cold"], "warm_cpu_seconds": warm["warm"],
+            "bare_cold_cpu_seconds": bare["cold"], "bare_epochs_cpu_seconds": bare_epochs["epochs"],
+            "ratio_cold": train["cold"] / bare["cold"], "ratio_warm": warm["warm"] / bare_epochs["epochs"],
+            "whole_default": {"settings": DEFAULT_TRAINING.to_json(),
+                              "cold_cpu_seconds": runs["whole"][0]["cold"],
+                              "warm_cpu_seconds": runs["whole"][0]["warm"]},
+            "loads": [r["load"] for kind in ("train", "bare") for r in runs[kind]], "runs": runs}
 
 
 def _children_cpu() -> float:
@@ -190,137 +179,57 @@ def _children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def bench_epochs(cases: dict[str, TrainingSettings], epochs: int = 250,
-                 precisions: tuple[str, ...] = PRECISIONS) -> dict:
-    """``epochs`` epochs of each case in each of ``precisions`` (one after the other) on the
-    demo's training run through its observer, ``out[case][precision]``; the times are also
-    given scaled to 250 epochs (``*_per_250_epochs``)."""
-    system = get_system("cartpole")
-    run = simulate(system, seed=0)
-    zeta = observe(run, system).zeta
-    for precision in precisions:
-        warm_up = replace(DEFAULT_TRAINING, epochs=1, precision=precision)
-        train(system, zeta[:200], run.u[:200], run.dt, warm_up, progress=False)
-    out: dict = {}
-    for name, case in cases.items():
-        for precision in precisions:
-            settings = replace(case, epochs=epochs, precision=precision)
-            load = os.getloadavg()[0]
-            wall, cpu = time.perf_counter(), time.process_time()
-            model = train(system, zeta, run.u, run.dt, settings, progress=False)
-            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-            out.setdefault(name, {})[precision] = {
-                "precision": precision, "settings": settings.to_json(), "epochs": epochs,
-                "wall_seconds": wall, "cpu_seconds": cpu, "wall_seconds_per_250_epochs": wall * 250 / epochs,
-                "cpu_seconds_per_250_epochs": cpu * 250 / epochs, "load_average": load,
-                "final_loss": model.meta["final_loss"], "prior_loss": model.meta["prior_loss"],
-                "best_epoch": model.meta["best_epoch"]}
-            print(name, precision, json.dumps(out[name][precision]), flush=True)
-    return out
+def measure_sweep(out_dir: Path) -> dict:
+    """``learnest reproduce table1 --jobs 2 --force`` in a subprocess: wall and CPU seconds
+    (children included), the load, and the table's cells against the paper."""
+    cmd = [sys.executable, "-m", "learnest_codegen.cli", "reproduce", "table1", "--jobs", "2",
+           "--out", str(out_dir), "--force"]
+    load, cpu0, wall = os.getloadavg(), _children_cpu(), time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=ROOT,
+                   env={**os.environ, "PYTHONPATH": str(ROOT)})
+    summary = json.loads((out_dir / "summary.json").read_text())
+    return {"command": "learnest reproduce table1 --jobs 2 --force",
+            "wall_seconds": time.perf_counter() - wall, "cpu_seconds": _children_cpu() - cpu0,
+            "load_at_start": list(load), "load_at_end": list(os.getloadavg()), "summary": summary}
 
 
-def _closures(result: dict) -> dict:
-    mse = {label: row["mse"] for label, row in result["methods"].items()}
-    out = {}
-    for est in ("MHE", "UKF"):
-        prior, true = mse[est], mse[f"{est} (true dynamics)"]
-        for row in (f"KNODE-{est}", f"KNODE-{est} (full state)"):
-            out[row] = 100 * (prior - mse[row]) / (prior - true)
-    return out
+def measure(args) -> tuple[dict, dict]:
+    cond = figures.conditions(model="the default training (learnest_codegen.config.DEFAULT_TRAINING)",
+                              run="cartpole seed 0, 10 s at 500 Hz (the demo's training run)",
+                              settings="fresh processes, one torch thread, alternating; "
+                                       "shortest CPU time kept")
+    figs = {"training": measure_training(args.rounds)}
+    if args.sweep:
+        with tempfile.TemporaryDirectory() as tmp:
+            figs["table1"] = measure_sweep(args.sweep_out or Path(tmp) / "table1")
+    return figs, cond
 
 
-def bench_sweep(tasks: str, seeds: int, jobs: int, out_dir: Path) -> dict:
-    """``learnest reproduce table1`` in a subprocess; per job its wall time, training times,
-    final losses and gap closures."""
-    cmd = [sys.executable, "-m", "learnest_codegen.cli", "reproduce", "table1", "--tasks", tasks,
-           "--seeds", str(seeds), "--jobs", str(jobs), "--out", str(out_dir), "--force"]
-    load, cpu0, wall = os.getloadavg()[0], _children_cpu(), time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    result = {"command": " ".join(cmd[2:]), "wall_seconds": time.perf_counter() - wall,
-              "cpu_seconds": _children_cpu() - cpu0, "load_average_at_start": load,
-              "load_average_at_end": os.getloadavg()[0]}
-    return {**result, **read_sweep(out_dir)}
-
-
-def read_sweep(out_dir: Path) -> dict:
-    """Per job of a finished sweep in ``out_dir``: its wall time, stage timings, training times,
-    final losses and gap closures; the sweep's wall time from its ``summary.json``; and the
-    mean gap closures per task."""
-    result: dict = {"out": str(out_dir), "jobs": {}}
-    summary = out_dir / "summary.json"
-    if summary.is_file():
-        result["sweep_wall_seconds"] = json.loads(summary.read_text()).get("sweep", {}).get("wall_seconds")
-    closures: dict = {}
-    for path in sorted((out_dir / "runs").glob("*/seed_*.json")):
-        job = json.loads(path.read_text())
-        result["jobs"][f"{job['task']}/{job['seed']}"] = {
-            "wall_seconds": job["wall_seconds"], "timings": job["timings"],
-            "training": {k: {s: v[s] for s in ("train_seconds", "final_loss", "best_epoch")}
-                         for k, v in job["training"].items()},
-            "gap_closure_percent": _closures(job)}
-        for row, value in _closures(job).items():
-            closures.setdefault(job["task"], {}).setdefault(row, []).append(value)
-    result["mean_gap_closure_percent"] = {t: {r: sum(v) / len(v) for r, v in rows.items()}
-                                          for t, rows in closures.items()}
-    return result
-
-
-def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("bench_training.json"))
-    parser.add_argument("--job", action="store_true", help="also time cartpole Table I job 0")
-    parser.add_argument("--sweep", action="store_true", help="also time the whole Table I sweep")
-    parser.add_argument("--robot-job", action="store_true", help="also time ground-robot Table I job 0")
-    parser.add_argument("--read-sweep", type=Path, default=None,
-                        help="record a sweep already run into this directory (its summary.json "
-                             "and results) instead of running one")
-    parser.add_argument("--jobs", type=int, default=2, help="parallel jobs of the sweep")
-    parser.add_argument("--epochs", type=int, default=250,
-                        help="epochs timed per case (the figures are also scaled to 250)")
-    parser.add_argument("--label", default="", help="what code this is (e.g. a commit)")
-    parser.add_argument("--cases", default=",".join(EPOCH_CASES),
-                        help=f"epoch cases to time, of {','.join(EPOCH_CASES)} ('' for none)")
-    parser.add_argument("--repeat", type=int, default=3, help="repeats of the observer and the epochs")
-    parser.add_argument("--precisions", default=",".join(PRECISIONS),
-                        help="training precisions of the default's 250 epochs (comma separated)")
-    parser.add_argument("--against", default=ISSUE_COMMIT,
-                        help="also time this commit's observer and epochs beside today's ('' for none)")
-    parser.add_argument("--sweep-out", type=Path, default=None,
-                        help="keep the sweep's results in this directory (default: a temporary one)")
-    args = parser.parse_args(argv)
-    precisions = tuple(p for p in args.precisions.split(",") if p)
-    torch.set_num_threads(1)
-    report = {"label": args.label, "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                                                 "torch": torch.__version__,
-                                                 "torch_threads": torch.get_num_threads()},
-              "before": BEFORE,
-              "observer_and_default": bench_observer_and_default(args.repeat, precisions),
-              "epochs": bench_epochs({k: EPOCH_CASES[k] for k in args.cases.split(",") if k},
-                                     args.epochs, precisions)}
-    if args.against:
-        report["against"] = bench_against(args.against)
-    with tempfile.TemporaryDirectory() as tmp:
-        if args.job:
-            report["cartpole_job"] = bench_sweep("cartpole", 1, 1, Path(tmp) / "job")
-        if args.robot_job:
-            report["ground_robot_job"] = bench_sweep("ground_robot", 1, 1, Path(tmp) / "robot_job")
-        if args.sweep:
-            report["table1_sweep"] = bench_sweep("cartpole,ground_robot", 15, args.jobs,
-                                                 args.sweep_out or Path(tmp) / "sweep")
-    if args.read_sweep is not None:
-        report["table1_sweep"] = read_sweep(args.read_sweep)
-    if args.sweep and args.against:  # the machine's speed on both sides of the sweep
-        report["against_after_sweep"] = after = bench_against(args.against)
-        slower = (report["against"]["machine_slower_than_issue_day"]
-                  + after["machine_slower_than_issue_day"]) / 2
-        sweep = report["table1_sweep"]
-        sweep["machine_slower_than_issue_day"] = slower
-        sweep["wall_seconds_on_issue_day_scale"] = sweep["wall_seconds"] / slower
-        sweep["met_on_issue_day_scale"] = sweep["wall_seconds"] / slower <= TABLE1_TARGET_SECONDS
-    args.out.write_text(json.dumps(report, indent=2))
-    print(f"wrote {args.out}")
-    return report
+def render_cost(data: dict) -> str:
+    t = data["figures"]["training"]
+    m = data["conditions"]["machine"]
+    loads = t["loads"]
+    return "\n".join([
+        "| CPU seconds | `ln.train` (observer + one round) | bare torch loop | ratio |", "|---|---|---|---|",
+        f"| cold (fresh process) | {t['cold_cpu_seconds']:.2f} | {t['bare_cold_cpu_seconds']:.2f} | "
+        f"{t['ratio_cold']:.2f} |",
+        f"| warm (second call) / the loop's epochs | {t['warm_cpu_seconds']:.2f} | "
+        f"{t['bare_epochs_cpu_seconds']:.2f} | {t['ratio_warm']:.2f} |",
+        f"| cold call / the loop's epochs | {t['cold_cpu_seconds']:.2f} | "
+        f"{t['bare_epochs_cpu_seconds']:.2f} | {t['cold_cpu_seconds'] / t['bare_epochs_cpu_seconds']:.2f} |",
+        "",
+        "`ln.train` trains three initialisations (stacked) and scores each by the likelihood, and a round "
+        "stops 50 epochs after its best; the bare loop trains one net for 250 epochs.",
+        "",
+        f"The whole default (every round): {t['whole_default']['cold_cpu_seconds']:.2f} s cold, "
+        f"{t['whole_default']['warm_cpu_seconds']:.2f} s warm. {m['cpu']}, {m['cores']} cores, load "
+        f"{min(loads):.1f}-{max(loads):.1f} during the runs; {data['conditions']['date']}, commit "
+        f"{data['conditions']['commit']}."])
 
 
 if __name__ == "__main__":
-    main()
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    print(json.dumps(measure(parser.parse_args())[0], indent=1))

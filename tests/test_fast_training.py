@@ -557,3 +557,56 @@ def test_a_float32_training_takes_float64s_steps_and_returns_a_float64_model(car
     np.testing.assert_allclose(single.meta["validation_history"], double.meta["validation_history"],
                                rtol=1e-4)
     assert all(v.dtype == torch.float64 for v in single.net.state_dict().values())
+
+
+@pytest.mark.parametrize("weight_decay", [0.0, 0.1])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_fused_adam_takes_torch_optims_fused_steps(weight_decay, dtype):
+    """Training's Adam (AdamW with decay) calls torch's fused kernel itself: five steps on the
+    same gradients give torch.optim's ``fused=True`` optimiser's iterates bit for bit (the same
+    kernel on the same state)."""
+    from learnest_codegen.learning.training import FusedAdam
+
+    torch.manual_seed(0)
+    ours, ref = (torch.nn.Linear(5, 3).to(dtype) for _ in range(2))
+    ref.load_state_dict(ours.state_dict())
+    optimiser = FusedAdam(ours.parameters(), 1e-2, weight_decay)
+    kind = torch.optim.AdamW if weight_decay else torch.optim.Adam
+    reference = kind(ref.parameters(), lr=1e-2, weight_decay=weight_decay, fused=True)
+    x = torch.randn(16, 5, dtype=dtype)
+    for _ in range(5):
+        for net, opt in ((ours, optimiser), (ref, reference)):
+            opt.zero_grad()
+            (net(x) ** 2).sum().backward()
+            opt.step()
+        for a, b in zip(ours.parameters(), ref.parameters()):
+            assert torch.equal(a, b)
+
+
+def test_integrator_chains_in_closed_form_equal_expm_and_filterpys_noise():
+    """The kinematic observers' chain model in closed form: ``F`` is ``expm(A dt)`` of the
+    integrator chain and ``Q`` FilterPy's ``Q_continuous_white_noise`` (orders 2-4), to 1e-15
+    relative (the closed forms against a Pade approximation and FilterPy's literals)."""
+    from filterpy.common import Q_continuous_white_noise
+    from scipy.linalg import expm
+
+    from learnest_codegen.observers.kalman import integrator_chain
+
+    for order in (1, 2, 3, 4):
+        for dt in (0.002, 0.01, 1.3):
+            F, Q = integrator_chain(order, dt)
+            np.testing.assert_allclose(F, expm(np.diag(np.full(order - 1, dt), 1)), rtol=1e-15, atol=0)
+            ref = Q_continuous_white_noise(dim=order, dt=dt, spectral_density=1.0) if order > 1 else [[dt]]
+            np.testing.assert_allclose(Q, ref, rtol=1e-15, atol=0)
+
+
+def test_a_cold_training_imports_neither_torchs_compiler_nor_filterpy():
+    """The first ``ln.train`` in a fresh process pays for torch and its epochs only: neither
+    torch.optim's compiler stack (``torch._dynamo``, about 2 s of CPU) nor FilterPy (with
+    scipy.stats, about 0.7 s) is imported on the way (a kinematic observer, one round)."""
+    code = ("import sys\nfrom dataclasses import replace\nimport learnest_codegen as ln\n"
+            "run = ln.simulate('cartpole', 0, duration=1.0)\n"
+            "ln.train(run, 'cartpole', replace(ln.DEFAULT_TRAINING, refine=0, epochs=2), progress=False)\n"
+            "print(sorted(m for m in ('torch._dynamo', 'filterpy', 'torch') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "['torch']"

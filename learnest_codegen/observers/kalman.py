@@ -14,6 +14,7 @@ outputs that are present, as a Kalman filter of the same model given only those 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -179,3 +180,19 @@ def rts_smoother(F: np.ndarray, passes: FilterPasses) -> tuple[np.ndarray, np.nd
         xs[k] += np.einsum("bij,bj->bi", G[k], xs[k + 1] - passes.means_p[k + 1])
         Ps[k] += G[k] @ (Ps[k + 1] - passes.covs_p[k + 1]) @ GT[k]
     return xs, Ps
+
+
+def integrator_chain(order: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """The exact discretisation over ``dt`` of a chain of ``order`` integrators driven by unit
+    white noise on its last derivative: ``F = expm(A dt)`` (``F[i, j] = dt^(j-i) / (j-i)!``) and
+    the covariance of the noise it adds (``Q[i, j] = dt^(2n-1-i-j) / ((n-1-i)! (n-1-j)!
+    (2n-1-i-j))`` for ``n = order``; FilterPy's ``Q_continuous_white_noise`` for 2-4), closed
+    forms that spare the pre-training observers scipy's ``expm`` and FilterPy's import."""
+    n = order
+    i, j = np.indices((n, n))
+    lag = j - i
+    fact = np.array([math.factorial(k) for k in range(2 * n)], float)
+    F = np.where(lag >= 0, dt ** np.maximum(lag, 0) / fact[np.maximum(lag, 0)], 0.0)
+    power = 2 * n - 1 - i - j
+    Q = dt ** power / (fact[n - 1 - i] * fact[n - 1 - j] * power)
+    return F, Q

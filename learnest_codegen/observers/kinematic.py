@@ -5,14 +5,12 @@ white-jerk intensity by maximum innovation likelihood."""
 from __future__ import annotations
 
 import numpy as np
-from filterpy.common import Q_continuous_white_noise
-from scipy.linalg import expm
 
 from ..data import Run
 from ..errors import ObserverError
 from ..systems import KinematicChain, System
 from .base import JERK_GRID, Observations
-from .kalman import FilterPasses, LinearGaussian, kalman_filter, rts_smoother
+from .kalman import FilterPasses, LinearGaussian, integrator_chain, kalman_filter, rts_smoother
 
 
 def _kinematic(run: Run, system: System, smooth: bool) -> Observations:
@@ -182,9 +180,8 @@ def chain_passes(z: np.ndarray, dt: float, order: int, q, r, rows: tuple[int, ..
     qs = np.atleast_1d(np.asarray(q, float))
     B, m = len(qs), z.shape[-1]
     r = np.broadcast_to(np.asarray(r, float), (B, m))
-    F = expm(np.diag(np.full(order - 1, dt), 1))  # exact discretisation of an integrator chain
-    unit = Q_continuous_white_noise(dim=order, dt=dt, spectral_density=1.0) if order in (2, 3, 4) \
-        else np.eye(order) * dt
+    F, unit = integrator_chain(order, dt)  # exact discretisation of an integrator chain
+    unit = unit if order <= 4 else np.eye(order) * dt
     Q = qs[:, None, None] * unit
     H = np.eye(order)[list(rows)]
     R = r[:, :, None] * np.eye(m)

@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from ..data import Run
 from ..integrators import rk4_step
@@ -18,6 +17,8 @@ from .base import Observations
 def _model_ukf(run: Run, system: System) -> Observations:
     """Forward UKF on the RK4-discretised prior (for systems without kinematic chains); an
     output missing at a sample (NaN) is left out of its update."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter  # only this observer's
+
     step: Callable = lambda x, dt, u: rk4_step(lambda s, v: system.f(s, v), x, u, dt)  # noqa: E731
     points = MerweScaledSigmaPoints(system.nx, alpha=0.1, beta=2.0, kappa=0.0)
     ukf = UnscentedKalmanFilter(system.nx, system.ny, run.dt, lambda x: x, step, points)

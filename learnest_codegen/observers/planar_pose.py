@@ -4,14 +4,12 @@ UKF for the pose, then a linear KF for the speed."""
 from __future__ import annotations
 
 import numpy as np
-from filterpy.common import Q_continuous_white_noise
-from scipy.linalg import expm
 
 from ..data import Run
 from ..errors import ObserverError
 from ..systems import System
 from .base import JERK_GRID, Observations
-from .kalman import FilterPasses, kalman_filter, rts_smoother
+from .kalman import FilterPasses, integrator_chain, kalman_filter, rts_smoother
 
 #
 # Stage 1 is a UKF on a kinematic model in the world frame, state ``[x, y, vx, vy, psi, r]``: the
@@ -68,7 +66,7 @@ def _stage1_model(system: System, dt: float, q_accel: np.ndarray, q_turn: np.nda
     F = np.zeros((6, 6))
     for sl in ((0, 2), (1, 3), (4, 5)):  # (position, rate) pairs of [x, y, vx, vy, psi, r]
         F[np.ix_(sl, sl)] = block
-    unit = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=1.0)
+    unit = integrator_chain(2, dt)[1]
     Q = np.zeros((len(q_accel), 6, 6))
     for sl, q in (((0, 2), q_accel), ((1, 3), q_accel), ((4, 5), q_turn)):
         Q[np.ix_(np.arange(len(q)), sl, sl)] = np.asarray(q, float)[:, None, None] * unit
@@ -143,8 +141,8 @@ def _speed_kf(pos: np.ndarray, var: np.ndarray, dt: float, q) -> FilterPasses:
     per member: ``pos``, ``var`` (T, B) (NaN: no position fix), ``q`` (B,) jerk intensities."""
     q = np.asarray(q, float)
     B = len(q)
-    F = expm(np.diag(np.full(2, dt), 1))
-    Q = q[:, None, None] * Q_continuous_white_noise(dim=3, dt=dt, spectral_density=1.0)
+    F = integrator_chain(3, dt)[0]
+    Q = q[:, None, None] * integrator_chain(3, dt)[1]
     x0 = np.zeros((B, 3))
     P0 = np.broadcast_to(np.diag([1.0, 1e4, 1e4]), (B, 3, 3)).copy()
     first = np.isfinite(pos[0])
@@ -212,7 +210,7 @@ def _two_stage(run: Run, system: System, smooth: bool) -> Observations:
     axes = FilterPasses(*(a[:, chosen] for a in (passes.means, passes.covs, passes.means_p, passes.covs_p)),
                         passes.loglik[chosen])
     if smooth:
-        m, c = rts_smoother(expm(np.diag(np.full(2, dt), 1)), axes)
+        m, c = rts_smoother(integrator_chain(3, dt)[0], axes)
     else:
         m, c = axes.means, axes.covs
     vel, vel_var = m[:, :, 1], c[:, :, 1, 1]
