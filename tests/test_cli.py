@@ -38,7 +38,7 @@ def test_simulate_train_compile_estimate(workdir):
     # not a terminal here: the recipe, the observer's choice and one line per training on stderr
     lines = r.stderr.splitlines()
     assert lines[0] == (f"training cartpole on {run_csv} (300 samples): observer chosen for the system; "
-                        "3 epochs (full batch), 2 refinement rounds, 1 initialisation per training, "
+                        "3 epochs (full batch), 2 refinement rounds, 3 initialisations per training, "
                         "weight decay 0.1, float32"), lines
     assert lines[1].startswith("pre-training observer: rts (")
     assert [line.split(" ", 1)[0] for line in lines[2:]] == ["[1/3]", "[2/3]", "[3/3]"], lines
