@@ -300,7 +300,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     valid_start = _start(net_t, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
-    best_state = [p.detach().clone() for p in kept.parameters()]
+    kept_params = list(kept.parameters())
+    best_state = [p.detach().clone() for p in kept_params]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
 
     def validate(epoch: int, loss: torch.Tensor) -> bool:
@@ -312,8 +313,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         if better.any():
             best_loss = torch.where(better, loss, best_loss)
             best_epoch[better] = epoch
-            for saved, p in zip(best_state, kept.parameters()):
-                saved[better] = p[better]
+            for saved, p in zip(best_state, kept_params):
+                saved.copy_(torch.where(better.view(-1, *[1] * (p.dim() - 1)), p, saved))
         return settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience
 
     # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
