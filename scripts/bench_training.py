@@ -1,5 +1,5 @@
 """The cost of the default training as a user meets it: cold and warm CPU seconds of ``ln.train``
-on the demo run, beside a bare torch loop of the same net size on the same data.
+on the demo run, beside a bare torch loop of the same work on the same data.
 
 Every figure comes from fresh processes, one torch thread each, run alternately in the same
 minutes (``--rounds`` times; the shortest CPU time of each kind is kept, and every run's load
@@ -9,31 +9,34 @@ is recorded):
   (cartpole, seed 0), then time ``ln.train(run, system, settings)`` twice: the first call is
   the cold one (it imports torch and pays every first-call set-up), the second the warm one.
   ``settings`` is the default's first round (``replace(DEFAULT_TRAINING, refine=0)``: the
-  pre-training observer plus one round of the default's epochs); the whole default (every
-  round) is timed the same way.
-* ``bare``: in a fresh process, ``import torch``, read the same observer's states and train a
-  plain ``torch.nn.Sequential`` MLP of the default net's size (the same features in, hidden
-  width and outputs) on the one-step RK4 loss of the same training pairs with
-  ``torch.optim.AdamW``, as many epochs and in the same precision and batches as the default;
-  cold (import included) and the epochs alone.
+  pre-training observer, then up to 250 epochs of three initialisations stacked, stopped 50
+  epochs after the best, and the likelihood's choice among them); the whole default (every
+  round) is timed the same way, once.
+* ``bare``: in a fresh process, ``import torch``, read the same observer's states and train,
+  one after another, as many plain ``torch.nn.Sequential`` MLPs as the default has
+  initialisations, each of the default net's size (features in, hidden width, outputs) and
+  structure (the same features, input correction and gains on the prior's accelerations), on
+  the default's training pairs (the first 80 % of the run's pairs and their mirror images), in
+  its batches, precision and optimiser (``torch.optim.AdamW``, rate and weight decay), for
+  its 250 epochs each, on the one-step RK4 loss. It does nothing else: no validation, no
+  weight average, no likelihood, no early stop. Timed cold (its imports included) and its
+  epochs alone (after one optimiser step on a throwaway parameter, so that the epochs do not
+  pay ``torch.optim``'s first-use imports).
 
-The ratios are same-minute ratios: the cold ``train`` against the cold bare loop, the warm one
-against the bare loop's epochs. ``--sweep`` also times ``learnest reproduce table1 --jobs 2``
-(wall and CPU seconds, children included, the load before and after).
+The ratios are same-minute ratios: the cold and the warm ``train`` against the bare loop's
+epochs, and the cold ``train`` against the cold bare loop. Table I's sweep has its own
+benchmark (``python scripts/bench.py table1``).
 
-    python scripts/bench.py training                 # the training's cost
-    python scripts/bench.py training --sweep         # + Table I (about 40 min)
+    python scripts/bench.py training
 """
 
 from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import figures
@@ -58,19 +61,23 @@ for kind in ("cold", "warm"):
     model = ln.train(run, system, settings, progress=False)
     out[kind] = time.process_time() - cpu
     out[kind + "_wall"] = time.perf_counter() - wall
-if len(sys.argv) > 2:  # the observer's states and the net's shape, for the bare loop
+out["epochs_run"] = len(model.meta["loss_history"])
+if len(sys.argv) > 2:  # the observer's states and the net's structure, for the bare loop
     from learnest_codegen.observers import observe
     import numpy as np
     net = model.net
+    signs = system.reflection_signs()
     np.savez(sys.argv[2], zeta=observe(run, system).zeta, u=run.u, dt=run.dt,
              inputs=[i for i in net.inputs if i not in net.periodic],
              periodic=[i for i in net.periodic if i in net.inputs], prior_features=list(net.prior_features),
-             outputs=list(net.outputs), mean=net.in_mean.numpy(), scale=net.in_scale.numpy())
+             outputs=list(net.outputs), via=list(net.via), prior_gains=net.prior_gains,
+             channels=net.channels, mean=net.in_mean.numpy(), scale=net.in_scale.numpy(),
+             state_signs=signs[0], input_signs=signs[1])
 out["final_loss"] = model.meta["final_loss"]
 print(json.dumps(out))
 """
 
-#: One fresh process: a bare torch loop of the same size on the same pairs.
+#: One fresh process: a bare torch loop of the same work on the same pairs.
 _BARE = r"""
 import json, os, sys, time
 start = time.process_time()
@@ -82,52 +89,74 @@ spec = json.loads(sys.argv[2])
 data = np.load(sys.argv[1])
 dtype = getattr(torch, spec["precision"])
 system = get_system("cartpole")
-n_train = len(data["zeta"]) - 1 - int(spec["validation_fraction"] * (len(data["zeta"]) - 1))
-zeta = torch.as_tensor(data["zeta"][:n_train], dtype=dtype)
-u = torch.as_tensor(data["u"][:n_train], dtype=dtype)
-target = torch.as_tensor(data["zeta"][1:n_train + 1], dtype=dtype)
-dt = float(data["dt"])
-torch.manual_seed(0)
-keep, periodic, extra, outputs = (torch.as_tensor(data[k], dtype=torch.long)
-                                  for k in ("inputs", "periodic", "prior_features", "outputs"))
+zeta, u, dt = data["zeta"], data["u"], float(data["dt"])
+n_train = len(zeta) - 1 - int(spec["validation_fraction"] * (len(zeta) - 1))
+x, v, x_next = zeta[:n_train], u[:n_train], zeta[1:n_train + 1]
+sx, su = data["state_signs"], data["input_signs"]  # the mirror image of every training pair
+x, v, x_next = np.vstack([x, x * sx]), np.vstack([v, v * su]), np.vstack([x_next, x_next * sx])
+x, v, step = (torch.as_tensor(a, dtype=dtype) for a in (x, v, x_next - x))
+keep, periodic, extra, outputs, via = (torch.as_tensor(data[k], dtype=torch.long)
+                                       for k in ("inputs", "periodic", "prior_features", "outputs", "via"))
 mean, scale = (torch.as_tensor(data[k], dtype=dtype) for k in ("mean", "scale"))
-mlp = torch.nn.Sequential(torch.nn.Linear(len(mean), spec["hidden"]), torch.nn.Tanh(),
-                          torch.nn.Linear(spec["hidden"], len(outputs))).to(dtype)
-optimiser = torch.optim.AdamW(mlp.parameters(), lr=spec["learning_rate"], weight_decay=spec["weight_decay"])
+channels, gains = int(data["channels"]), bool(data["prior_gains"])
+n_out = channels * (1 + len(extra)) if gains else channels
 
 
-def f(x, v):  # prior plus the net on the same features (inputs, sin and cos of the angles, prior)
+def f(mlp, x, v):  # the prior plus the net, as the default's net acts
     xu, prior = torch.cat([x, v], dim=1), system.f(x, v)
     angles = xu[:, periodic]
     feats = torch.cat([xu[:, keep], torch.sin(angles), torch.cos(angles), prior[:, extra]], dim=1)
-    return prior.index_add(1, outputs, mlp((feats - mean) / scale))
+    out = mlp((feats - mean) / scale)
+    c = out[:, :channels]
+    if gains:  # each channel plus learned gains times the scaled prior features
+        g = out[:, channels:].reshape(-1, channels, len(extra))
+        c = c + (g * (prior[:, extra] / scale[-len(extra):])[:, None, :]).sum(dim=2)
+    if len(via):  # the net corrects the inputs
+        return system.f(x, v.index_add(1, via, c))
+    return prior.index_add(1, outputs, c)
 
 
-def rk4(x, v):
-    k1 = f(x, v)
-    k2 = f(x + dt / 2 * k1, v)
-    k3 = f(x + dt / 2 * k2, v)
-    k4 = f(x + dt * k3, v)
-    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+def increment(mlp, x, v):
+    k1 = f(mlp, x, v)
+    k2 = f(mlp, x + dt / 2 * k1, v)
+    k3 = f(mlp, x + dt / 2 * k2, v)
+    k4 = f(mlp, x + dt * k3, v)
+    return dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
+spare = torch.nn.Parameter(torch.zeros(1))  # torch.optim's first-use imports, before the epochs
+spare.grad = torch.zeros(1)
+torch.optim.AdamW([spare], lr=spec["learning_rate"], weight_decay=spec["weight_decay"]).step()
 ready = time.process_time()
-for epoch in range(spec["epochs"]):
-    for idx in torch.arange(n_train).split(spec["batch_size"]):
-        optimiser.zero_grad()
-        loss = ((rk4(zeta[idx], u[idx]) - target[idx]) ** 2).sum(dim=1).mean()
-        loss.backward()
-        optimiser.step()
+for net in range(spec["nets"]):
+    torch.manual_seed(net)
+    mlp = torch.nn.Sequential(torch.nn.Linear(len(mean), spec["hidden"]), torch.nn.Tanh(),
+                              torch.nn.Linear(spec["hidden"], n_out)).to(dtype)
+    optimiser = torch.optim.AdamW(mlp.parameters(), lr=spec["learning_rate"],
+                                  weight_decay=spec["weight_decay"])
+    generator = torch.Generator().manual_seed(net)
+    for epoch in range(spec["epochs"]):
+        for idx in torch.randperm(len(x), generator=generator).split(spec["batch_size"]):
+            optimiser.zero_grad()
+            loss = ((increment(mlp, x[idx], v[idx]) - step[idx]) ** 2).sum(dim=1).mean()
+            loss.backward()
+            optimiser.step()
 done = time.process_time()
 print(json.dumps({"load": os.getloadavg()[0], "cold": done - start, "epochs": done - ready,
                   "final_loss": float(loss)}))
 """
 
+#: What the bare loop does, stated in the figures beside its times.
+BARE_LOOP = ("as many plain torch.nn.Sequential MLPs as the default has initialisations, trained one after "
+             "another, each of the default net's size and structure (its features, input correction and "
+             "gains), on the default's training pairs (the first 80 % of the run's pairs and their mirror "
+             "images), in its batches and precision, with torch.optim.AdamW at its rate and weight decay, "
+             "for its epochs each, on the one-step RK4 loss; no validation, weight average, likelihood or "
+             "early stop")
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--rounds", type=int, default=3, help="fresh processes of each kind, alternating")
-    parser.add_argument("--sweep", action="store_true", help="also time learnest reproduce table1 --jobs 2")
-    parser.add_argument("--sweep-out", type=Path, default=None, help="the sweep's results directory")
 
 
 def _run(code: str, *args: str) -> dict:
@@ -148,10 +177,9 @@ def measure_training(rounds: int) -> dict:
 
     first_round = {"refine": 0}
     d = DEFAULT_TRAINING
-    spec = {"precision": d.precision, "validation_fraction": d.validation_fraction,
-            "hidden": d.network.hidden,
-            "learning_rate": d.learning_rate, "weight_decay": d.weight_decay, "epochs": d.epochs,
-            "batch_size": d.batch_size}
+    spec = {"nets": d.restarts, "precision": d.precision, "validation_fraction": d.validation_fraction,
+            "hidden": d.network.hidden, "learning_rate": d.learning_rate, "weight_decay": d.weight_decay,
+            "epochs": d.epochs, "batch_size": d.batch_size}
     runs: dict[str, list] = {"train": [], "bare": [], "whole": []}
     with tempfile.TemporaryDirectory() as tmp:
         data = str(Path(tmp) / "states.npz")
@@ -164,33 +192,17 @@ def measure_training(rounds: int) -> dict:
         runs["whole"].append(_run(_TRAIN, json.dumps({})))
     train, bare = _best(runs["train"], "cold"), _best(runs["bare"], "cold")
     warm, bare_epochs = _best(runs["train"], "warm"), _best(runs["bare"], "epochs")
-    return {"settings_timed": {**DEFAULT_TRAINING.to_json(), "refine": 0}, "bare_loop": spec,
+    return {"settings_timed": {**DEFAULT_TRAINING.to_json(), "refine": 0},
+            "epochs_run": train["epochs_run"], "bare_loop": {**spec, "what": BARE_LOOP},
             "cold_cpu_seconds": train["cold"], "warm_cpu_seconds": warm["warm"],
             "bare_cold_cpu_seconds": bare["cold"], "bare_epochs_cpu_seconds": bare_epochs["epochs"],
-            "ratio_cold": train["cold"] / bare["cold"], "ratio_warm": warm["warm"] / bare_epochs["epochs"],
+            "ratio_cold_to_bare_epochs": train["cold"] / bare_epochs["epochs"],
+            "ratio_warm_to_bare_epochs": warm["warm"] / bare_epochs["epochs"],
+            "ratio_cold_to_bare_cold": train["cold"] / bare["cold"],
             "whole_default": {"settings": DEFAULT_TRAINING.to_json(),
                               "cold_cpu_seconds": runs["whole"][0]["cold"],
                               "warm_cpu_seconds": runs["whole"][0]["warm"]},
             "loads": [r["load"] for kind in ("train", "bare") for r in runs[kind]], "runs": runs}
-
-
-def _children_cpu() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
-
-
-def measure_sweep(out_dir: Path) -> dict:
-    """``learnest reproduce table1 --jobs 2 --force`` in a subprocess: wall and CPU seconds
-    (children included), the load, and the table's cells against the paper."""
-    cmd = [sys.executable, "-m", "learnest_codegen.cli", "reproduce", "table1", "--jobs", "2",
-           "--out", str(out_dir), "--force"]
-    load, cpu0, wall = os.getloadavg(), _children_cpu(), time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, cwd=ROOT,
-                   env={**os.environ, "PYTHONPATH": str(ROOT)})
-    summary = json.loads((out_dir / "summary.json").read_text())
-    return {"command": "learnest reproduce table1 --jobs 2 --force",
-            "wall_seconds": time.perf_counter() - wall, "cpu_seconds": _children_cpu() - cpu0,
-            "load_at_start": list(load), "load_at_end": list(os.getloadavg()), "summary": summary}
 
 
 def measure(args) -> tuple[dict, dict]:
@@ -198,28 +210,26 @@ def measure(args) -> tuple[dict, dict]:
                               run="cartpole seed 0, 10 s at 500 Hz (the demo's training run)",
                               settings="fresh processes, one torch thread, alternating; "
                                        "shortest CPU time kept")
-    figs = {"training": measure_training(args.rounds)}
-    if args.sweep:
-        with tempfile.TemporaryDirectory() as tmp:
-            figs["table1"] = measure_sweep(args.sweep_out or Path(tmp) / "table1")
-    return figs, cond
+    return {"training": measure_training(args.rounds)}, cond
 
 
 def render_cost(data: dict) -> str:
     t = data["figures"]["training"]
     m = data["conditions"]["machine"]
-    loads = t["loads"]
+    loads, b, bare = t["loads"], t["bare_loop"], t["bare_epochs_cpu_seconds"]
     return "\n".join([
         "| CPU seconds | `ln.train` (observer + one round) | bare torch loop | ratio |", "|---|---|---|---|",
-        f"| cold (fresh process) | {t['cold_cpu_seconds']:.2f} | {t['bare_cold_cpu_seconds']:.2f} | "
-        f"{t['ratio_cold']:.2f} |",
-        f"| warm (second call) / the loop's epochs | {t['warm_cpu_seconds']:.2f} | "
-        f"{t['bare_epochs_cpu_seconds']:.2f} | {t['ratio_warm']:.2f} |",
-        f"| cold call / the loop's epochs | {t['cold_cpu_seconds']:.2f} | "
-        f"{t['bare_epochs_cpu_seconds']:.2f} | {t['cold_cpu_seconds'] / t['bare_epochs_cpu_seconds']:.2f} |",
+        f"| cold call / the loop's epochs | {t['cold_cpu_seconds']:.2f} | {bare:.2f} | "
+        f"{t['ratio_cold_to_bare_epochs']:.2f} |",
+        f"| warm call / the loop's epochs | {t['warm_cpu_seconds']:.2f} | {bare:.2f} | "
+        f"{t['ratio_warm_to_bare_epochs']:.2f} |",
+        f"| cold call / cold loop (imports included) | {t['cold_cpu_seconds']:.2f} | "
+        f"{t['bare_cold_cpu_seconds']:.2f} | {t['ratio_cold_to_bare_cold']:.2f} |",
         "",
-        "`ln.train` trains three initialisations (stacked) and scores each by the likelihood, and a round "
-        "stops 50 epochs after its best; the bare loop trains one net for 250 epochs.",
+        f"`ln.train` ran {t['epochs_run']} epochs of {b['nets']} initialisations stacked (its patience "
+        f"stopped the round), scored each by the likelihood and kept one; the bare loop trains {b['nets']} "
+        f"nets one after another for {b['epochs']} epochs each in batches of {b['batch_size']}, and does "
+        "nothing else.",
         "",
         f"The whole default (every round): {t['whole_default']['cold_cpu_seconds']:.2f} s cold, "
         f"{t['whole_default']['warm_cpu_seconds']:.2f} s warm. {m['cpu']}, {m['cores']} cores, load "

@@ -17,6 +17,7 @@ import torch
 
 from learnest_codegen import config
 from learnest_codegen.errors import SettingsError, UnknownNameError
+from learnest_codegen.integrators import rk4_step
 from learnest_codegen.learning.training import load_model, make_net, one_step_loss
 from learnest_codegen.observers import _discrete_with_jacobian, _ekf_passes, _rts_backward
 from learnest_codegen.simulation import simulate
@@ -72,9 +73,37 @@ def test_stacked_restarts_follow_the_sequential_paths(cartpole, cartpole_run):
             np.testing.assert_allclose(model.net.state_dict()[name], value, rtol=0, atol=1e-12)
 
 
+def _rk4_step_and_ad_jacobian(system, residual, dt):
+    """One RK4 step of ``f_prior + residual`` and its Jacobian by CasADi's AD of the whole step."""
+    x, u = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
+    xn = rk4_step(lambda s, v: system.f(s, v) + (residual(s, v) if residual else 0), x, u, dt)
+    return cs.Function("F", [x, u], [xn]), cs.Function("A", [x, u], [cs.jacobian(xn, x)])
+
+
+@pytest.mark.parametrize("name", ["cartpole", "ground_robot"])
+def test_the_observers_step_and_jacobian_equal_the_rk4_step_and_its_ad(name):
+    """The EKF's step and state Jacobian (the chain rule through the RK4 stages, shared
+    subexpressions) equal the RK4 step and CasADi's AD of it at states along a run, to the
+    rounding of a few thousand operations (1e-12 of the largest entry)."""
+    from learnest_codegen.systems import get_system
+
+    system = get_system(name)
+    run = simulate(system, 0, duration=0.2)
+    residual = load_model(OLD_MODEL, system).net.casadi if name == "cartpole" else None
+    stage = _discrete_with_jacobian(system, residual, run.dt)
+    F, A = _rk4_step_and_ad_jacobian(system, residual, run.dt)
+    for k in range(0, len(run), 10):
+        x, u = run.x[k], run.u[k]
+        got_F, got_A = (v.full() for v in stage(x, u))
+        ref_F, ref_A = F(x, u).full(), A(x, u).full()
+        np.testing.assert_allclose(got_F, ref_F, rtol=0, atol=1e-12 * np.abs(ref_F).max())
+        np.testing.assert_allclose(got_A, ref_A, rtol=0, atol=1e-12 * np.abs(ref_A).max())
+
+
 def _numpy_ekf_rts(run, system, residual, q_scale):
-    """The EKF and RTS passes step by step in numpy (the implementation before the CasADi one)."""
-    F, A = _discrete_with_jacobian(system, residual, run.dt)
+    """The EKF and RTS passes step by step in numpy (the implementation before the CasADi one),
+    on the RK4 step and CasADi's AD of the whole step (not the chain rule of the observers)."""
+    F, A = _rk4_step_and_ad_jacobian(system, residual, run.dt)
     xs_, us_ = cs.SX.sym("x", system.nx), cs.SX.sym("u", system.nu)
     H = cs.Function("H", [xs_, us_], [cs.jacobian(system.h(xs_, us_), xs_)])
     R = np.diag(np.square(system.noise.measurement_std))
@@ -122,9 +151,11 @@ def test_casadi_ekf_rts_equals_the_step_by_step_numpy_passes(name, missing):
     residual = None
     if name == "cartpole":
         residual = load_model(OLD_MODEL, system).net.casadi
-    passes, A = _ekf_passes(run, system, residual, (3.0,))
+    passes, stage = _ekf_passes(run, system, residual, (3.0,))
     xs, Ps, xps, Pps, loglik = passes[3.0]
-    zeta, covs = _rts_backward(xs, Ps, xps, Pps, A, run.u)
+    zeta, covs = _rts_backward(xs, Ps, xps, Pps, stage, run.u)
+    likelihood_alone, _ = _ekf_passes(run, system, residual, (3.0,), states=False)
+    assert likelihood_alone[3.0][-1] == loglik  # the same recursion, folded
     ref_xs, ref_Ps, ref_loglik, ref_zeta, ref_covs = _numpy_ekf_rts(run, system, residual, 3.0)
     np.testing.assert_allclose(xs, ref_xs, rtol=0, atol=1e-9)
     np.testing.assert_allclose(Ps, ref_Ps, rtol=0, atol=1e-9 * np.abs(ref_Ps).max())

@@ -327,13 +327,14 @@ class _Tanh(torch.autograd.Function):
 class StackedMLP(torch.nn.Module):
     """``R`` MLPs of the same architecture with stacked weights, evaluated together.
 
-    Layer ``l`` holds ``weights[l] (R, out, in)`` and ``biases[l] (R, 1, out)``; an input
-    ``(B, in)`` shared by all members or ``(R, B, in)`` gives ``(R, B, out)``, one batched
-    matrix product per layer. Training ``R`` initialisations this way costs about what one
-    costs (the step is dominated by per-operation overhead). Every optimiser in use (Adam,
-    AdamW, the weight average) acts element by element, so the members train independently,
-    exactly as they would one after another (in float32 to its rounding: the batched
-    products of ``R`` members and of one may round differently).
+    Layer ``l`` holds ``weights[l] (R, out, in)`` and ``biases[l] (R, out, 1)`` (training's
+    features-first layout, :meth:`forward_t`); an input ``(B, in)`` shared by all members or
+    ``(R, B, in)`` gives ``(R, B, out)``, one batched matrix product per layer. Training ``R``
+    initialisations this way costs about what one costs (the step is dominated by
+    per-operation overhead). Every optimiser in use (Adam, AdamW, the weight average) acts
+    element by element, so the members train independently, exactly as they would one after
+    another (in float32 to its rounding: the batched products of ``R`` members and of one may
+    round differently).
     """
 
     def __init__(self, mlps: list):
@@ -343,17 +344,28 @@ class StackedMLP(torch.nn.Module):
             torch.nn.Parameter(torch.stack([ls[i].weight.detach() for ls in layers]).clone())
             for i in range(len(layers[0])))
         self.biases = torch.nn.ParameterList(
-            torch.nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])[:, None, :].clone())
+            torch.nn.Parameter(torch.stack([ls[i].bias.detach() for ls in layers])[:, :, None].clone())
             for i in range(len(layers[0])))
         self.act = mlps[0].act
         # training's activation: tanh through the sigmoid, within 4e-16 of torch.tanh
         self._act_t = _Tanh.apply if isinstance(self.act, torch.nn.Tanh) else self.act
+        self._layers = self._pairs()
+
+    def _pairs(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """``(weights[l], biases[l])`` of every layer, listed once: iterating the parameter
+        lists at every evaluation costs more than a small layer's product."""
+        return list(zip(self.weights, self.biases))
+
+    def _apply(self, fn, *args, **kwargs):
+        out = super()._apply(fn, *args, **kwargs)
+        self._layers = self._pairs()  # a conversion may have replaced the parameters
+        return out
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        last = len(self.weights) - 1
+        last = len(self._layers) - 1
         z = z.expand(len(self.weights[0]), *z.shape[-2:])
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            z = torch.baddbmm(b, z, w.transpose(1, 2))  # one fused product and bias per layer
+        for i, (w, b) in enumerate(self._layers):
+            z = torch.baddbmm(b.transpose(1, 2), z, w.transpose(1, 2))  # one fused product and bias
             if i < last:
                 z = self.act(z)
         return z
@@ -362,9 +374,9 @@ class StackedMLP(torch.nn.Module):
         """The members on features-first inputs: ``z (R, in, B)`` -> ``(R, out, B)`` (the layout
         of :meth:`ResidualNet.derivative_t`); the same products as :meth:`forward`, transposed,
         and a tanh activation evaluated as :class:`_Tanh` (within 4e-16 of :meth:`forward`'s)."""
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            z = torch.baddbmm(b.transpose(1, 2), w, z)
+        last = len(self._layers) - 1
+        for i, (w, b) in enumerate(self._layers):
+            z = torch.baddbmm(b, w, z)
             if i < last:
                 z = self._act_t(z)
         return z
@@ -376,5 +388,5 @@ class StackedMLP(torch.nn.Module):
         out = {}
         for name, w, b in zip(names, self.weights, self.biases):
             out[f"mlp.{name}.weight"] = w[r].detach().clone()
-            out[f"mlp.{name}.bias"] = b[r, 0].detach().clone()
+            out[f"mlp.{name}.bias"] = b[r, :, 0].detach().clone()
         return out

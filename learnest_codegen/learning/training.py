@@ -300,7 +300,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     valid_start = _start(net_t, len(members), *valid_set)
     start, history, valid_history = time.perf_counter(), [], []
     best_loss = torch.full((len(members),), math.inf, dtype=torch.float64)
-    best_state = [p.detach().clone() for p in kept.parameters()]
+    kept_params = list(kept.parameters())
+    best_state = [p.detach().clone() for p in kept_params]
     best_epoch = torch.zeros(len(members), dtype=torch.long)
 
     def validate(epoch: int, loss: torch.Tensor) -> bool:
@@ -312,8 +313,8 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
         if better.any():
             best_loss = torch.where(better, loss, best_loss)
             best_epoch[better] = epoch
-            for saved, p in zip(best_state, kept.parameters()):
-                saved[better] = p[better]
+            for saved, p in zip(best_state, kept_params):
+                saved.copy_(torch.where(better.view(-1, *[1] * (p.dim() - 1)), p, saved))
         return settings.patience is not None and epoch - int(best_epoch.max()) >= settings.patience
 
     # quiet unless it draws on a terminal: redirected to a log, a bar writes a line per refresh
@@ -323,11 +324,13 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
     for epoch in bar:
         if full_batch:
             batches = [None]
-        else:  # every member its own order, as when trained alone
-            orders = torch.stack([torch.randperm(n_train, generator=g) for g in generators])
-            batches = orders.split(settings.batch_size, dim=1)
+        else:  # every member its own order, as when trained alone; gathered once per epoch
+            orders = torch.cat([torch.randperm(n_train, generator=g) for g in generators])
+            shuffled = [a.index_select(1, orders).view(len(a), len(members), n_train) for a in train_set]
+            batches = [[a[..., k:k + settings.batch_size] for a in shuffled]
+                       for k in range(0, n_train, settings.batch_size)]
         epoch_loss = torch.zeros(len(members), dtype=torch.float64)
-        for idx in batches:
+        for batch in batches:
             optimiser.zero_grad()
             if joint:
                 errors = _pair_errors(net_t, mlp, dt, *train_start)
@@ -337,14 +340,14 @@ def _train_stacked(system: System, zeta: np.ndarray, u: np.ndarray, dt: float,
                         stopped = validate(epoch - 1, errors[:, n_train:].mean(dim=-1))
                     if stopped:
                         break  # no restart improved for `patience` epochs: no further step
-            elif idx is None:
+            elif batch is None:
                 loss = _loss_of(net_t, mlp, dt, *train_start)
             else:
-                loss = _stacked_loss(system, net_t, mlp, *[a[:, idx] for a in train_set], dt)
+                loss = _stacked_loss(system, net_t, mlp, *batch, dt)
             loss.sum().backward()
             optimiser.step()
             with torch.no_grad():
-                epoch_loss += loss.detach() * (n_train if idx is None else idx.shape[1])
+                epoch_loss += loss.detach() * (n_train if batch is None else batch[0].shape[-1])
                 if means:
                     torch._foreach_lerp_(means, weights, 1.0 - settings.weight_average)
         if stopped:
