@@ -16,9 +16,13 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
 * **large against what is left**: the held-out gain exceeds ``min_gain`` of the remaining gap and
   ``gap_noise`` standard deviations of a pure-noise sum of squares (``sqrt(2 n)`` for ``n``
   weighted rows);
-* **large against the prior's gap**: the gain exceeds ``min_share`` of the prior's held-out gap
-  (with noise-free states the remaining gap after the right effects is a mismatch of form, such
-  as a Coulomb friction's smoothing; a cascade of small terms fitting it is not a finding);
+* **large against the prior's gap**, while what remains is far above the floor (more than the
+  floor itself): the gain exceeds ``min_share`` of the prior's held-out gap (with noise-free
+  states the remaining gap after the right effects is a mismatch of form, such as a Coulomb
+  friction's smoothing; a cascade of small terms fitting it is not a finding). Once the rest is
+  within the floor's own size, the noise tests decide alone: a weak effect (a sub-sample input
+  delay through an observer) is judged against the noise, not against a prior that was off by a
+  factor of three;
 * **above the noise**: its term's RMS exceeds ``min_size`` and ``spurious_factor`` times what the
   same feature explains of pure observer error;
 * **causal** (a delay or a lag): it must fit significantly better than its time mirror (the same
@@ -122,10 +126,16 @@ class Search:
         self.rejected: dict | None = None
         self.seen = {frozenset()}
         self.restarted: set = set()
+        self.rephrased: set = set()
 
     # -- scoring --------------------------------------------------------------------------------
     def _noise(self, data: FitData) -> float:
         return self.settings.gap_noise * float(np.sqrt(2.0 * data.R.size))
+
+    def _share(self, remaining: float, data: FitData) -> float:
+        """The share of the prior's gap a move must explain while ``remaining`` (above the floor)
+        is larger than the floor itself; none once it is within it (see the module docstring)."""
+        return self.settings.min_share * self.first.gap if remaining > data.floor else 0.0
 
     def _trial(self, G, b, c, base_cols: list[int], j: int, data: FitData,
                mirror: bool = False) -> tuple[np.ndarray, float, FitData | None]:
@@ -175,7 +185,7 @@ class Search:
             size = float(np.sqrt(np.mean((P[:, k:] @ th[k:]) ** 2)))
         need = max(s.min_size, s.spurious_factor * float(max(data.spurious[c] for c in cols)))
         gain = float(gains.sum())
-        need_gain = max(s.min_gain * remaining, self._noise(data), s.min_share * self.first.gap)
+        need_gain = max(s.min_gain * remaining, self._noise(data), self._share(remaining, data))
         step = {"index": j, "t": t_stat, "gain": gain / remaining if remaining > 0 else None,
                 "gain_abs": gain, "gain_needed": need_gain, "remaining_gap": remaining,
                 "share_of_prior_gap": gain / self.first.gap,
@@ -327,7 +337,7 @@ class Search:
                 loss = self._drop_loss([j])
                 remaining = max(float((full + loss).sum()) - data.floor, 0.0)
                 need = max(self.settings.min_gain * remaining, self._noise(data),
-                           self.settings.min_share * self.first.gap)
+                           self._share(remaining, data))
                 costs[j] = (float(loss.sum()), need, _t(_rel(loss, full + loss)))
             if not costs:
                 break
@@ -420,3 +430,94 @@ class Search:
         self.exchanged.append({"removed": j, "added": [cand], "sse": float(trial.sum()),
                                "sse_before": float(full.sum()), "why": "significantly better held out"})
         return True
+
+    def rephrase(self) -> bool:
+        """Re-test the chosen set against its neighbours that say the same in other words: one
+        chosen effect replaced by one or two prior parameters (an actuator gain by the inertia and
+        the gravity torque it scales together), or two chosen effects by one candidate.
+
+        Scored held out (by run when there are several, else by fold), with the data relinearised
+        without the removed effects (a lag is far from linear in its time constant). A neighbour
+        is taken when it fits significantly better (the exchange's test), or when it reads more
+        plainly (:func:`_plainness`: more of the prior's own parameters, a delay for a lag) and
+        fits at least as well: within the noise of the sums, losing at most a tenth of what the
+        removed effects explained. The user's model then carries the finding, and a gain that
+        aliases two parameters gives way to them. A move is tried once per set, so the rounds
+        cannot cycle."""
+        data = self.data
+        labels, k = held_out_groups(data, self.settings)
+        G, b, c = grams(data, labels, k)
+        full = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+        current = float(full.sum())
+        need = max(self.settings.min_gain * max(current - data.floor, 0.0), self._noise(data))
+        singles = [j for j in self.chosen if len(self.groups[j]) == 1]
+        free = [j for j in self.pool if j not in self.chosen and len(self.groups[j]) == 1]
+        params = [j for j in free if _physical(self.effects[j]) and _plainness(self.effects[j])]
+        moves = [([j], [a]) for j in singles for a in free]
+        moves += [([j], [a, o]) for j in singles if not _physical(self.effects[j])
+                  for n, a in enumerate(params) for o in params[n + 1:]]
+        moves += [([j, o], [a]) for n, j in enumerate(singles) for o in singles[n + 1:] for a in free]
+        best, grams_without = None, {}
+        for removed, added in moves:
+            key = (frozenset(self.chosen), frozenset(removed), frozenset(added))
+            if key in self.rephrased:
+                continue
+            if tuple(removed) not in grams_without:  # relinearised without them: a lag is far from linear
+                theta = self.theta.copy()
+                theta[removed] = 0.0
+                without = self._data(theta)
+                grams_without[tuple(removed)] = (without, *grams(without, labels, k))
+            without, Gw, bw, cw = grams_without[tuple(removed)]
+            rest = [i for i in self.chosen if i not in removed]
+            trial = cv_sse(Gw, bw, cw, rest + added, without.lo, without.hi)
+            if len(added) == 2 and min(cv_sse(Gw, bw, cw, rest + [a], without.lo, without.hi).sum()
+                                       for a in added) <= trial.sum() + self._noise(data):
+                continue  # one of the two alone says as much: the pair is not the reading
+            gain = full - trial
+            better = gain.sum() > need and (k < 3 or _t(_rel(gain, full)) > self.settings.t_min)
+            plainer = (sum(_plainness(self.effects[i]) for i in added)
+                       - sum(_plainness(self.effects[i]) for i in removed))
+            # "as good": within the noise of the sums, and never losing more than a tenth of what
+            # the removed effects explained (a weak effect is not replaced by one explaining nothing)
+            worth = float(cv_sse(Gw, bw, cw, rest, without.lo, without.hi).sum()) - current
+            tol = min(self._noise(data), 0.1 * max(worth, 0.0))
+            if not (better or (plainer > 0 and trial.sum() <= current + tol)):
+                continue
+            rank = (1, -float(trial.sum())) if better else (0, plainer, -len(added), -float(trial.sum()))
+            if best is None or rank > best[0]:
+                best = (rank, removed, added, float(trial.sum()), key)
+        if best is None:
+            return False
+        rank, removed, added, score, key = best
+        self.rephrased.add(key)
+        theta = self.theta.copy()
+        theta[removed] = 0.0
+        self._apply([i for i in self.chosen if i not in removed] + added, theta, new=False)
+        self.exchanged.append({"removed": removed[0] if len(removed) == 1 else removed, "added": added,
+                               "sse": score, "sse_before": current,
+                               "why": "significantly better held out" if rank[0] else
+                               "the prior's own parameters, as good held out"})
+        return True
+
+
+def _physical(effect) -> bool:
+    """A parameter of the system's own prior (``param:<p>``): the user's model names it."""
+    return effect.channel.startswith("param:")
+
+
+def _plainness(effect) -> int:
+    """How plainly an effect reads, for choosing between readings that fit as well: a parameter
+    of the prior (the user's model names it) with a sign to keep (the ground robot's ``C_D = 0``
+    stays an alias of a quadratic drag >= 0), and an input delay rather than a first-order lag
+    (shorter than a sample or two the two are the same to first order, and through a smoothing
+    observer they are not told apart; a late command is the plainer reading)."""
+    kept = np.isfinite(effect.lower) or np.isfinite(effect.upper)  # a prior's 0 has no sign to keep
+    return int((_physical(effect) and kept) or effect.kind == "input_delay")
+
+
+def held_out_groups(data: FitData, settings: FitSettings) -> tuple[np.ndarray, int]:
+    """Rows grouped for held-out scoring: by run when there are two or more, else the folds."""
+    if data.runs is not None and len(np.unique(data.runs)) >= 2:
+        runs = np.unique(data.runs)
+        return np.searchsorted(runs, data.runs), len(runs)
+    return data.folds(settings.folds)
