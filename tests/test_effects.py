@@ -293,10 +293,10 @@ def test_an_effect_that_differs_between_runs_is_not_consistent():
     for label, per_run in (("differs", [1.0, 1.0, -0.5]), ("same", [1.0, 1.1, 0.9])):
         R = np.take(per_run, runs)[:, None] * phi[:, :, 0] + 0.01 * rng.normal(size=(900, 1))
         data = FitData(R, phi, np.ones(1), np.zeros(1), runs=runs)
-        got = per_run_values(data, [0], np.zeros(1))[:, 0]
+        got, se = (a[:, 0] for a in per_run_values(data, [0], np.zeros(1)))
         np.testing.assert_allclose(got, per_run, atol=0.01)
         pooled = float(np.linalg.lstsq(phi[:, 0, :], R[:, 0], rcond=None)[0][0])
-        values[label] = consistent(got, pooled)
+        values[label] = consistent(got, pooled, se)
     assert not values["differs"]["consistent"] and values["differs"]["sign_agreement"] == pytest.approx(2 / 3)
     assert values["same"]["consistent"]
     report = {"system": "s", "verdict": "partly explained", "verdict_reason": "r", "source": "truth",

@@ -145,7 +145,7 @@ def run_blur(system: System, T: int, dt: float, method: str, info: dict) -> tupl
     for chain, measured in chain_groups(system, kinematic_chains(system)):
         last = chain.states[-1]
         entry = info.get(chain.output)
-        if last not in system.residual_state_names or not entry or len(chain.states) < 2:
+        if last not in system.residual_state_names or not entry:
             continue
         rows = tuple(k for _, k in measured)
         r = np.square(std[[o for o, _ in measured]])

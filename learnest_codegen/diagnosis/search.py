@@ -32,8 +32,10 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
   better than the best single one, two candidates enter together, each passing the tests
   against the other alone;
 * **the same on every run** (two runs or more): fitted with the others on each run alone, every
-  parameter has the sign of the pooled fit on every run and a robust spread (1.4826 MAD) below
-  half the median's size. A candidate failing only this is *blocked*, and the report says so.
+  parameter's per-run intervals (the value +- 3 standard errors of that run's fit, a sandwich
+  over stretches of the run, widened by a quarter of the pooled value) share a value of the
+  pooled sign (:func:`consistent`): a poorly excited run has a wide interval and cannot block an
+  effect that the others fix. A candidate failing only this is *blocked*, and the report says so.
 
 Every parameter stays in its physical range throughout (the bounds of the effects), so no move
 can select a friction with the wrong sign. An effect nonlinear in its parameter (a delay) is also
@@ -50,7 +52,7 @@ from typing import Callable
 
 import numpy as np
 
-from .cv import FitData, box_solve, cv_sse, grams, term_size
+from .cv import FitData, _fold_labels, box_solve, cv_sse, grams, term_size
 from .fit import FitSettings
 
 
@@ -85,24 +87,51 @@ def cv_detail(G, b, c, idx, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return held, train
 
 
-def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray) -> np.ndarray:
-    """(runs, len(cols)) parameters of ``cols`` fitted on each run alone (bounded, linearised)."""
+def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray,
+                   blocks: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, se)``, each ``(runs, len(cols))``: the parameters of ``cols`` fitted on each run
+    alone (bounded, linearised) and their standard errors from that fit.
+
+    The errors are a sandwich over ``blocks`` contiguous stretches of the run (``G^-1 (sum_b s_b
+    s_b') G^-1``, ``s_b`` the stretch's score ``Phi_b' e_b``): the one-step residual is correlated
+    in time, and a run that barely excites an effect (a swing-up that never stops, for a static
+    friction) gets the wide interval it has, not a value as sure as the others'."""
     runs = np.unique(data.runs)
-    G, b, _ = grams(data, np.searchsorted(runs, data.runs), len(runs))
-    out = np.empty((len(runs), len(cols)))
-    for r in range(len(runs)):
-        out[r] = theta_cols + box_solve(G[r][np.ix_(cols, cols)], b[r][cols], data.lo[cols], data.hi[cols])
-    return out
+    values, se = np.empty((len(runs), len(cols))), np.empty((len(runs), len(cols)))
+    for r, run in enumerate(runs):
+        rows = np.flatnonzero(data.runs == run)
+        P, R = data.Phi[rows][:, :, cols], data.R[rows]
+        G = np.einsum("ksi,ksj->ij", P, P)
+        step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[cols], data.hi[cols])
+        e = R - np.einsum("ksi,i->ks", P, step)
+        label = _fold_labels(len(rows), min(blocks, len(rows)))
+        scores = np.stack([np.einsum("ksi,ks->i", P[label == b], e[label == b]) for b in np.unique(label)])
+        n_b = len(scores)
+        inv = np.linalg.pinv(G)
+        cov = inv @ (scores.T @ scores) @ inv * n_b / max(n_b - 1, 1)
+        values[r] = theta_cols + step
+        se[r] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return values, se
 
 
-def consistent(values: np.ndarray, pooled: float) -> dict:
-    """Per-run values of one parameter against the pooled one (see the module docstring)."""
+def consistent(values: np.ndarray, pooled: float, se: np.ndarray | None = None, z: float = 3.0,
+               relative: float = 0.25) -> dict:
+    """Whether one parameter is the same on every run: each run's interval, its value +- ``z``
+    standard errors widened by ``relative`` of the pooled value's size, must share a common value
+    of the pooled value's sign. A run whose data hardly fix the parameter has a wide interval and
+    cannot block it; runs that each fix it well and disagree do (a steering map that differs
+    between recordings). ``se`` ``None``: the values alone (no interval beyond ``relative``)."""
+    values = np.asarray(values, float)
+    se = np.zeros_like(values) if se is None else np.asarray(se, float)
+    width = z * se + relative * abs(pooled)
+    lo, hi = float(np.max(values - width)), float(np.min(values + width))
+    same_sign = (hi > 0) if pooled > 0 else (lo < 0) if pooled < 0 else False
     median = float(np.median(values))
-    spread = float(1.4826 * np.median(np.abs(values - median)))
     tiny = 1e-6 * max(abs(pooled), 1e-300)
     agree = float(np.mean(values * np.sign(pooled) > tiny)) if pooled != 0 else 0.0
-    return {"per_run": [float(v) for v in values], "median": median, "spread": spread,
-            "sign_agreement": agree, "consistent": bool(agree == 1.0 and spread < 0.5 * abs(median))}
+    return {"per_run": [float(v) for v in values], "se": [float(v) for v in se], "median": median,
+            "spread": float(1.4826 * np.median(np.abs(values - median))), "sign_agreement": agree,
+            "common": [lo, hi], "consistent": bool(lo <= hi and same_sign)}
 
 
 class Search:
@@ -206,8 +235,8 @@ class Search:
                                         else self.theta[cols]])
             P = src.Phi[:, :, idx].reshape(-1, len(idx))
             pooled = theta_idx + box_solve(P.T @ P, P.T @ src.R.ravel(), src.lo[idx], src.hi[idx])
-            values = per_run_values(src, idx, theta_idx)
-            checks = [consistent(values[:, k + i], pooled[k + i]) for i in range(len(idx) - k)]
+            values, se = per_run_values(src, idx, theta_idx)
+            checks = [consistent(values[:, k + i], pooled[k + i], se[:, k + i]) for i in range(len(idx) - k)]
             step["per_run"] = [c["per_run"] for c in checks]
             if not all(c["consistent"] for c in checks):
                 reasons.append("not the same on every run")
@@ -438,12 +467,12 @@ class Search:
 
         Scored held out (by run when there are several, else by fold), with the data relinearised
         without the removed effects (a lag is far from linear in its time constant). A neighbour
-        is taken when it fits significantly better (the exchange's test), or when it reads more
-        plainly (:func:`_plainness`: more of the prior's own parameters, a delay for a lag) and
-        fits at least as well: within the noise of the sums, losing at most a tenth of what the
-        removed effects explained. The user's model then carries the finding, and a gain that
-        aliases two parameters gives way to them. A move is tried once per set, so the rounds
-        cannot cycle."""
+        is taken when it fits significantly better (the exchange's test: a gain that aliases an
+        inertia and a gravity torque scaled in nearly the same ratio gives way to the two), or,
+        with no more parameters than before, when it reads more plainly (:func:`_plainness`: a
+        parameter of the prior for a generic effect, a delay for a lag) and fits at least as well:
+        within the noise of the sums, losing at most a tenth of what the removed effects
+        explained. A move is tried once per set, so the rounds cannot cycle."""
         data = self.data
         labels, k = held_out_groups(data, self.settings)
         G, b, c = grams(data, labels, k)
@@ -481,7 +510,10 @@ class Search:
             # the removed effects explained (a weak effect is not replaced by one explaining nothing)
             worth = float(cv_sse(Gw, bw, cw, rest, without.lo, without.hi).sum()) - current
             tol = min(self._noise(data), 0.1 * max(worth, 0.0))
-            if not (better or (plainer > 0 and trial.sum() <= current + tol)):
+            # one effect for two must earn the second parameter: significantly better, as an entry
+            # (a force gain of -20 % is exactly both cart masses 25 % heavier: the gain stays)
+            as_good = plainer > 0 and trial.sum() <= current + tol and len(added) <= len(removed)
+            if not (better or as_good):
                 continue
             rank = (1, -float(trial.sum())) if better else (0, plainer, -len(added), -float(trial.sum()))
             if best is None or rank > best[0]:
