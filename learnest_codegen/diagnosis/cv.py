@@ -238,6 +238,8 @@ def aliases(data: FitData, j: int, candidates: Sequence[int], settings: FitSetti
     """Candidates whose weighted feature is nearly collinear with feature ``j`` on these data."""
     Phi = data.Phi.reshape(-1, data.Phi.shape[2])
     norm = np.linalg.norm(Phi, axis=0)
+    if not norm[j] > 0:
+        return []
     return [i for i in candidates if i != j and norm[i] > 0 and
             abs(Phi[:, i] @ Phi[:, j]) / (norm[i] * norm[j]) > settings.alias_cos]
 

@@ -233,6 +233,13 @@ def run_case(case: Case, settings: DiagnosisSettings, seed: int = 1, extra_toler
             "verdict": report["verdict"],
             "estimators": ", ".join(f"{n}: {v}" for n, v in per_estimator.items()) or "-",
             "estimator_verdicts": dict(per_estimator),
+            "estimator_errors": {n: {k: report["shrink"][n].get(k) for k in
+                                     ("before", "after", "supported", "above_supported", "supported_by")}
+                                 for n in per_estimator if n in report["shrink"]},
+            "found_params": [{"name": e["name"], "params": e["params"], "derived": e.get("derived", {}),
+                              "equivalent": {n: q["value"] for n, q in e.get("equivalent", {}).items()}}
+                             for e in effects],
+            "verdict_reason": report["verdict_reason"],
             "param_error": max(errors) if errors else None,
             "gap_closed": one.get("closed"), "at_floor": one["after"],
             "explained_in_sample": report["explained_in_sample"], "physical": physical,
@@ -263,14 +270,22 @@ def select_cases(names: Sequence[str] | None = None, systems: Sequence[str] | No
 
 def table(rows: Sequence[dict]) -> str:
     """The self-test table: effect injected, effect found, parameter error, verdict overall and per
-    estimator (a column per estimator that ran, ``-`` where it did not), gap closed."""
+    estimator (a column per estimator that ran, ``-`` where it did not, with its corrected held-out
+    MSE relative to the level the data support), gap closed."""
     names = sorted({n for r in rows for n in r.get("estimator_verdicts", {})})
     shown = [{**r, "param_error": None if r["param_error"] is None else 100 * r["param_error"],
               "gap_closed": None if r["gap_closed"] is None else 100 * r["gap_closed"],
               "pass": "yes" if r["pass"] else "NO",
-              **{f"est:{n}": r.get("estimator_verdicts", {}).get(n) for n in names}} for r in rows]
+              **{f"est:{n}": _against_supported(r, n) for n in names}} for r in rows]
     cols = [("case", "system: effect injected", "s"), ("truth", "truth", "s"), ("found", "effect found", "s"),
             ("verdict", "verdict", "s"), *((f"est:{n}", n.upper(), "s") for n in names),
             ("expect", "expected", "s"), ("match", "match", "s"), ("param_error", "param err %", ".2f"),
             ("gap_closed", "gap closed %", ".1f"), ("pass", "pass", "s"), ("seconds", "s", ".1f")]
     return format_table(shown, cols)
+
+
+def _against_supported(row: dict, name: str) -> str | None:
+    """An estimator's verdict, with its corrected held-out MSE against the level the data support."""
+    verdict = row.get("estimator_verdicts", {}).get(name)
+    above = row.get("estimator_errors", {}).get(name, {}).get("above_supported")
+    return verdict if verdict is None or above is None else f"{verdict} ({above:+.0%})"

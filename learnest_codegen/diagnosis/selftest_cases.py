@@ -21,6 +21,10 @@ from .selftest_systems import (
     SMALL_FRICTION,
     SWINGUP_FRICTION,
     SWINGUP_TRUE,
+    WHEEL_BEARING,
+    WHEEL_GAIN,
+    WHEEL_PIVOT,
+    WHEEL_PRIOR,
 )
 
 
@@ -228,6 +232,16 @@ def _rig(delay_ms: float, runs: int) -> Case:
 
 
 CASES += tuple(_rig(d, n) for d in (0.0, 2.0, 3.0, 5.0) for n in (2, 3))
+
+# An inertia-wheel pendulum as a new user writes it (selftest_systems.inertia_wheel), through the
+# observer: the motor 20 % weaker, Coulomb friction in the wheel's bearing (a torque where the
+# motor's acts: 4 mN m = 0.08 V at 0.05 N m/V) and viscous damping at the pivot (0.002 N m s on
+# J_p 0.02 kg m^2: 0.1 1/s on qdot'). All three within 20 %, nothing else.
+CASES += (Case("inertia_wheel", "motor -20 %, bearing Coulomb 4 mN m, pivot damping (observer)",
+               builtin_truth=True, source="observer", tolerance=0.2, only=True,
+               expect_names=(("actuator_gain(qdot via V)", WHEEL_GAIN),
+                             ("coulomb_friction(w via V)", WHEEL_BEARING / WHEEL_PRIOR["k_m"]),
+                             ("viscous_friction(qdot)", WHEEL_PIVOT / WHEEL_PRIOR["J_p"]))),)
 
 # The default test suite runs this one: the situation of a real pendulum (two parameters of a
 # user's system file wrong by large factors plus a friction, through the observer). The others run

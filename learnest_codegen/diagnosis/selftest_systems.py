@@ -214,10 +214,10 @@ def _rig_swingup(system: System, delay: float):
     return excitation
 
 
-def pendulum_rig(delay: float = 0.0) -> System:
+def pendulum_rig(delay: float = 0.0, encoder: float = RIG_ENCODER) -> System:
     """The twin of a torque-limited lab pendulum (:data:`RIG_TRUE`, :data:`RIG_FRICTION`, torque
-    limit :data:`RIG_TORQUE`, sampled every :data:`RIG_DT`, encoder :data:`RIG_ENCODER`), swung up
-    with its torque applied ``delay`` [s] late (:func:`_rig_swingup`). The prior is
+    limit :data:`RIG_TORQUE`, sampled every :data:`RIG_DT`, angle noise ``encoder`` [rad]), swung
+    up with its torque applied ``delay`` [s] late (:func:`_rig_swingup`). The prior is
     :data:`RIG_PRIOR`, without friction; runs of 15 s from 0.1 rad. A delay is not a function of
     ``(x, u)``: the self-test integrates the truth with :func:`late_step`."""
     import dataclasses
@@ -227,9 +227,59 @@ def pendulum_rig(delay: float = 0.0) -> System:
 
     base = dataclasses.replace(pendulum(), name="pendulum_rig", params=RIG_PRIOR, true_params=RIG_TRUE,
                                true_dynamics=true_dynamics, dt=RIG_DT, duration=15.0, x0=(0.1, 0.0),
-                               noise=dataclasses.replace(pendulum().noise, measurement_std=(RIG_ENCODER,)))
+                               noise=dataclasses.replace(pendulum().noise, measurement_std=(encoder,)))
     return dataclasses.replace(base, excitation=_rig_swingup(base, delay))
 
 
 SYSTEMS.update({"pendulum_swingup": swingup_pendulum, "cart": cart, "rc_car_damped": rc_car_damped,
                 "pendulum_rig": pendulum_rig})
+
+
+# -- an inertia-wheel pendulum driven by a DC motor, as a new user writes it ------------------------
+WHEEL_PRIOR = {"J_p": 0.02, "mgl": 0.3, "J_w": 5e-4, "k_m": 0.05, "b_m": 1e-3}
+WHEEL_GAIN = -0.2  # the motor's torque per volt is 20 % below the datasheet's
+WHEEL_BEARING = 0.004  # Coulomb friction of the wheel's bearing [N m], tanh(w / 0.5 rad/s)
+WHEEL_PIVOT = 0.002  # viscous damping at the pendulum's pivot [N m s]
+
+
+def _wheel_dynamics(ops, x, u, p):
+    """``tau = k_m V - b_m w`` (a DC motor with its back-EMF), the pendulum taking the reaction,
+    ``w`` the wheel's speed relative to it: ``J_p q'' = -mgl sin q - tau``, ``w' = tau / J_w - q''``."""
+    q, qdot, phi, w = x
+    tau = p["k_m"] * u[0] - p["b_m"] * w
+    qddot = (-p["mgl"] * ops.sin(q) - tau) / p["J_p"]
+    return [qdot, qddot, w, tau / p["J_w"] - qddot]
+
+
+def _wheel_truth(ops, x, u, p):
+    q, qdot, phi, w = x
+    tau = (1 + WHEEL_GAIN) * p["k_m"] * u[0] - p["b_m"] * w - WHEEL_BEARING * ops.tanh(w / 0.5)
+    qddot = (-p["mgl"] * ops.sin(q) - WHEEL_PIVOT * qdot - tau) / p["J_p"]
+    return [qdot, qddot, w, tau / p["J_w"] - qddot]
+
+
+def _wheel_excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    freqs = np.array([0.15, 0.55, 0.9, 1.7]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
+    amps = np.array([2.5, 2.0, 1.5, 0.8])  # [V]
+    phases = rng.uniform(0, 2 * np.pi, 4)
+    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+
+
+def inertia_wheel() -> System:
+    """A pendulum swung by the reaction of a motor-driven wheel, both angles measured by encoders
+    (1 mrad), the voltage known. Its truth has the motor 20 % weaker, Coulomb friction in the
+    wheel's bearing and viscous damping at the pivot, none of which the prior has."""
+    return System(
+        name="inertia_wheel",
+        states=(Signal("q", "rad"), Signal("qdot", "rad/s"), Signal("phi", "rad"), Signal("w", "rad/s")),
+        inputs=(Signal("V", "V"),), outputs=(Signal("q", "rad"), Signal("phi", "rad")),
+        params=WHEEL_PRIOR, true_params=WHEEL_PRIOR, dynamics=_wheel_dynamics, true_dynamics=_wheel_truth,
+        measurement=lambda ops, x, u, p: [x[0], x[2]],
+        noise=NoiseModel(measurement_std=(1e-3, 1e-3), state_std=(1e-3, 0.02, 1e-3, 0.5),
+                         process_std=(1e-3, 0.1, 1e-3, 2.0), initial_std=(0.05, 0.2, 0.05, 2.0)),
+        dt=0.005, duration=20.0, x0=(0.3, 0.0, 0.0, 0.0), excitation=_wheel_excitation,
+        kinematic_chains=(KinematicChain("q", ("q", "qdot")), KinematicChain("phi", ("phi", "w"))),
+        diagnosis=DiagnosisHints(mass_params=("J_p", "J_w")))
+
+
+SYSTEMS["inertia_wheel"] = inertia_wheel
