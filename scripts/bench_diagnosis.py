@@ -33,7 +33,7 @@ LIMIT_KINDS = (("mass(pdot via m_c)", 0.5), ("viscous_friction(pdot via F)", 2.0
                ("coulomb_friction(pdot via F)", 1.0), ("quadratic_drag(pdot via F)", 1.0),
                ("viscous_friction(alphadot)", 0.2), ("actuator_gain(pdot via F)", -0.2),
                ("actuator_offset(pdot via F)", 0.3), ("dead_zone(pdot via F)", 1.0),
-               ("input_delay(pdot via F)", 0.008), ("actuator_lag(pdot via F)", 0.02))
+               ("input_delay(pdot via F)", 0.032), ("actuator_lag(pdot via F)", 0.04))
 FACTORS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 PAIRS = ((-0.2, 0.3), (-0.1, 0.15), (-0.05, 0.075), (-0.025, 0.0375))  # force gain, offset [N]
 RIG_DELAYS_MS = (0.5, 1.0, 1.5, 2.0, 3.0, 5.0)
@@ -326,3 +326,11 @@ def render_limits(data: dict) -> str:
     lines.append(f"\n{m['date']}, commit {m['commit']}, {m['wall_seconds'] / 60:.0f} min at load "
                  f"{m['load_1min']}-{m['load_1min_at_end']}.")
     return "\n".join(lines)
+
+
+def render_honest(data: dict) -> str:
+    part = data["figures"]["selftest"]
+    breaches = part["explained_above_supported"]
+    return (f"{part['right']} of {part['cases']} cases right; {part['explained']} \"explained\", "
+            f"{len(breaches)} of them with an estimator's corrected held-out error more than 20 % above "
+            f"what the data support" + (": " + "; ".join(breaches) if breaches else "."))

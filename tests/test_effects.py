@@ -396,4 +396,6 @@ def test_a_poorly_excited_run_cannot_block_an_effect():
     assert abs(values[2] - 1.0) > 0.2 and se[2] > 10 * se[0]
     check = consistent(values, 1.0, se)
     assert check["consistent"] and check["common"][0] <= 1.0 <= check["common"][1]
-    assert not consistent(np.array([1.0, 1.0, 0.3]), 1.0, np.full(3, 0.01))["consistent"]
+    # runs that each fix it well and disagree by more than half the pooled value each way do block it
+    assert not consistent(np.array([1.0, 1.1, 2.4]), 1.2, np.full(3, 0.01))["consistent"]
+    assert consistent(np.array([1.0, 1.1, 1.6]), 1.2, np.full(3, 0.01))["consistent"]

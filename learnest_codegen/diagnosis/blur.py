@@ -6,8 +6,8 @@ samples. The plain one-step residual compares that blurred increment ``z_{k+1} -
 model's sharp prediction, so every step of the input leaves a residual that no effect of the
 library can explain, and an input delay and an input advance of half a sample fit it equally
 well (the smoother's blur is symmetric in time): a sub-sample delay is lost in the blur, and a
-blur is fitted as a delay. On a swing-up sampled at 6 ms through an encoder of 2 mrad the
-blur's residual is five times the residual of the true model seen the same way.
+blur is fitted as a delay. On a torque-limited swing-up sampled at 6 ms the blur's residual is
+several times the residual of the true model seen the same way.
 
 The smoother is linear in its measurements once its intensity is fixed (the one the observer
 chose on the run), so the model's predicted increments can be passed through the same filter:

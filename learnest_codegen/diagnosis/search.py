@@ -33,7 +33,7 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
   against the other alone;
 * **the same on every run** (two runs or more): fitted with the others on each run alone, every
   parameter's per-run intervals (the value +- 3 standard errors of that run's fit, a sandwich
-  over stretches of the run, widened by a quarter of the pooled value) share a value of the
+  over stretches of the run, widened by half the pooled value) share a value of the
   pooled sign (:func:`consistent`): a poorly excited run has a wide interval and cannot block an
   effect that the others fix. A candidate failing only this is *blocked*, and the report says so.
 
@@ -115,12 +115,13 @@ def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray,
 
 
 def consistent(values: np.ndarray, pooled: float, se: np.ndarray | None = None, z: float = 3.0,
-               relative: float = 0.25) -> dict:
+               relative: float = 0.5) -> dict:
     """Whether one parameter is the same on every run: each run's interval, its value +- ``z``
-    standard errors widened by ``relative`` of the pooled value's size, must share a common value
-    of the pooled value's sign. A run whose data hardly fix the parameter has a wide interval and
-    cannot block it; runs that each fix it well and disagree do (a steering map that differs
-    between recordings). ``se`` ``None``: the values alone (no interval beyond ``relative``)."""
+    standard errors widened by ``relative`` of the pooled value's size (runs of a real robot
+    differ by a battery or a surface), must share a common value of the pooled value's sign. A
+    run whose data hardly fix the parameter has a wide interval and cannot block it; runs that
+    each fix it well and disagree do (a steering map that differs between recordings). ``se``
+    ``None``: the values alone (no interval beyond ``relative``)."""
     values = np.asarray(values, float)
     se = np.zeros_like(values) if se is None else np.asarray(se, float)
     width = z * se + relative * abs(pooled)
@@ -470,9 +471,10 @@ class Search:
         is taken when it fits significantly better (the exchange's test: a gain that aliases an
         inertia and a gravity torque scaled in nearly the same ratio gives way to the two), or,
         with no more parameters than before, when it reads more plainly (:func:`_plainness`: a
-        parameter of the prior for a generic effect, a delay for a lag) and fits at least as well:
-        within the noise of the sums, losing at most a tenth of what the removed effects
-        explained. A move is tried once per set, so the rounds cannot cycle."""
+        parameter of the prior for a generic effect, a delay for a lag), says the same
+        (:func:`_covered`: its features recover at least half of the removed ones) and fits at
+        least as well: within the noise of the sums, losing at most a tenth of what the removed
+        effects explained. A move is tried once per set, so the rounds cannot cycle."""
         data = self.data
         labels, k = held_out_groups(data, self.settings)
         G, b, c = grams(data, labels, k)
@@ -512,7 +514,8 @@ class Search:
             tol = min(self._noise(data), 0.1 * max(worth, 0.0))
             # one effect for two must earn the second parameter: significantly better, as an entry
             # (a force gain of -20 % is exactly both cart masses 25 % heavier: the gain stays)
-            as_good = plainer > 0 and trial.sum() <= current + tol and len(added) <= len(removed)
+            as_good = plainer > 0 and trial.sum() <= current + tol and len(added) <= len(removed) \
+                and _covered(without, removed, added)
             if not (better or as_good):
                 continue
             rank = (1, -float(trial.sum())) if better else (0, plainer, -len(added), -float(trial.sum()))
@@ -530,6 +533,20 @@ class Search:
                                "why": "significantly better held out" if rank[0] else
                                "the prior's own parameters, as good held out"})
         return True
+
+
+def _covered(data: FitData, removed: list[int], added: list[int], share: float = 0.5) -> bool:
+    """Whether the ``added`` columns say what the ``removed`` ones said: least squares on the added
+    features recovers at least ``share`` of each removed feature (a rephrasing, not a different
+    effect on another state that happens to fit as well)."""
+    P = data.Phi.reshape(-1, data.Phi.shape[2])
+    A = P[:, added]
+    for j in removed:
+        col = P[:, j]
+        fit = A @ np.linalg.lstsq(A, col, rcond=None)[0]
+        if not col @ col > 0 or fit @ fit < share * (col @ col):
+            return False
+    return True
 
 
 def _physical(effect) -> bool:

@@ -123,9 +123,9 @@ def cut_segment(seg: Segment, lo: int, hi: int) -> Segment:
 
 
 def _cut_blur(chain, lo: int, hi: int):
-    """A chain's smoother over samples ``lo:hi`` only: the same gains (the stretch is smoothed as
-    part of the whole run; its start state is the run's, which a linear map of increments leaves
-    out)."""
+    """A chain's smoother over samples ``lo:hi`` only, with the gains the whole run's smoother has
+    there. The data were smoothed as one run: within about the smoother's width of the cut the map
+    misses the increments beyond it, a small residual at the stretch's two ends."""
     import dataclasses
 
     return dataclasses.replace(chain, gain=chain.gain[lo:hi],

@@ -248,12 +248,24 @@ def run_case(case: Case, settings: DiagnosisSettings, seed: int = 1, extra_toler
 
 def run_selftest(cases: Sequence[Case] = CASES, *, settings: DiagnosisSettings | None = None,
                  progress: bool = True, seed: int = 1) -> list[dict]:
-    """Run ``cases`` (default: all) and return their rows (see :func:`run_case`)."""
+    """Run ``cases`` (default: all) and return their rows (see :func:`run_case`). With
+    ``progress``: a bar on a terminal, else one line per case on stderr."""
+    import sys
+
     from tqdm.auto import tqdm
 
     settings = settings or DiagnosisSettings(estimators=())
-    bar = tqdm(cases, desc="diagnosis self-test", disable=None if progress else True)
-    return [run_case(c, settings, seed) for c in bar]
+    cases = list(cases)
+    if not progress or sys.stderr.isatty():
+        return [run_case(c, settings, seed) for c in tqdm(cases, desc="diagnosis self-test",
+                                                           disable=None if progress else True)]
+    rows = []
+    for i, c in enumerate(cases):
+        rows.append(run_case(c, settings, seed))
+        print(f"diagnosis self-test {i + 1}/{len(cases)}: {case_key(c)}: {rows[-1]['verdict']}, "
+              f"{'right' if rows[-1]['pass'] else 'WRONG'} ({rows[-1]['seconds']:.0f} s)",
+              file=sys.stderr, flush=True)
+    return rows
 
 
 def select_cases(names: Sequence[str] | None = None, systems: Sequence[str] | None = None) -> list[Case]:

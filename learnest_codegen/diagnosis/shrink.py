@@ -178,6 +178,10 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
                           if "true" in scores else (float(np.mean(own)), _OWN)
                           if own and np.all(np.isfinite(own))
                           else (None, "not measured (the corrected model's own run failed)"))
+        if "true" not in scores and supported is not None and supported > scores["prior"]:
+            supported, how = None, (f"not measured: the corrected model's own run ({supported:.4g}) is worse "
+                                    f"than the prior's estimator on the data, so it is no level the data "
+                                    f"support (run open loop, it leaves the data's range)")
         entry = {"metric": "MSE against " + (reference or ("the truth" if truth else
                                                            "the observer's state observations")),
                  **scores, "before": scores["prior"], "after": scores["corrected"],
