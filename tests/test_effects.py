@@ -293,10 +293,10 @@ def test_an_effect_that_differs_between_runs_is_not_consistent():
     for label, per_run in (("differs", [1.0, 1.0, -0.5]), ("same", [1.0, 1.1, 0.9])):
         R = np.take(per_run, runs)[:, None] * phi[:, :, 0] + 0.01 * rng.normal(size=(900, 1))
         data = FitData(R, phi, np.ones(1), np.zeros(1), runs=runs)
-        got = per_run_values(data, [0], np.zeros(1))[:, 0]
+        got, se = (a[:, 0] for a in per_run_values(data, [0], np.zeros(1)))
         np.testing.assert_allclose(got, per_run, atol=0.01)
         pooled = float(np.linalg.lstsq(phi[:, 0, :], R[:, 0], rcond=None)[0][0])
-        values[label] = consistent(got, pooled)
+        values[label] = consistent(got, pooled, se)
     assert not values["differs"]["consistent"] and values["differs"]["sign_agreement"] == pytest.approx(2 / 3)
     assert values["same"]["consistent"]
     report = {"system": "s", "verdict": "partly explained", "verdict_reason": "r", "source": "truth",
@@ -309,3 +309,93 @@ def test_an_effect_that_differs_between_runs_is_not_consistent():
     text = summary(report)
     assert "gain (g): NOT the same on every run" in text and "sign agrees on 67%" in text
     assert "lag: not entered, its parameter differs between runs" in text
+
+
+def test_bounded_solves_keep_columns_of_very_different_scales():
+    """A delay in seconds next to an inertia in kg m^2: columns whose norms differ by 1e8. The
+    solve is the least-squares optimum to working precision (numpy's lstsq on the column-scaled
+    problem), bounded or not; unscaled, the small column was lost to the large one's rounding."""
+    rng = np.random.default_rng(11)
+    A = rng.normal(size=(500, 3)) * np.array([1e8, 1.0, 1e-2])
+    truth = np.array([2e-9, 0.7, 30.0])
+    y = A @ truth + 1e-3 * rng.normal(size=500)
+    scale = np.linalg.norm(A, axis=0)
+    ref = np.linalg.lstsq(A / scale, y, rcond=None)[0] / scale
+    np.testing.assert_allclose(box_solve(A.T @ A, A.T @ y), ref, rtol=1e-8)
+    lo, hi = np.array([0.0, 0.0, -np.inf]), np.array([np.inf, 0.5, np.inf])
+    from scipy.optimize import lsq_linear
+    bounded = lsq_linear(A / scale, y, bounds=(lo * scale, hi * scale)).x / scale
+    np.testing.assert_allclose(box_solve(A.T @ A, A.T @ y, lo, hi), bounded, rtol=1e-6)
+
+
+def test_saturation_at_cut_zero_leaves_the_input_slope_alone():
+    """At cut 0 the saturation term is zero with zero slope in the input even where the command
+    sits exactly at its largest value (a torque limit): the input-filter features there (a delay)
+    are not halved, so they stay the derivative of the residual."""
+    from learnest_codegen.diagnosis.effects import default_context
+
+    system = get_system("rc_car")
+    T = 40
+    rng = np.random.default_rng(2)
+    z = np.column_stack([rng.normal(size=T), rng.normal(size=T), rng.uniform(1, 3, T), rng.normal(size=T)])
+    u = np.column_stack([np.where(np.arange(T) % 7 < 4, 0.5, -0.5), np.full(T, 0.2)])  # at +-max
+    lib = {e.name: e for e in library(system, default_context(system, input_max={"throttle": 0.5,
+                                                                                 "steering": 0.2}))}
+    effects = [lib["saturation(v via throttle)"], lib["input_delay(v via throttle)"]]
+    pairs = Pairs.from_states([(np.arange(T) * 0.01, z, u)])
+    theta = np.zeros(2)
+    r0, J = one_step(system, effects, theta, pairs)
+    r_alone, J_alone = one_step(system, effects[1:], theta[1:], pairs)
+    np.testing.assert_allclose(r0, r_alone, atol=1e-12)
+    np.testing.assert_allclose(J[:, :, 1], J_alone[:, :, 0], rtol=1e-12, atol=1e-12)
+    step = 0.3 * 0.01  # a delay of 0.3 samples: the feature predicts the change (halved, it would not)
+    r1 = one_step(system, effects, np.array([0.0, step]), pairs, False)[0]
+    change = np.abs(r1 - r0).max()
+    assert change > 0 and np.abs(r1 - (r0 - J[:, :, 1] * step)).max() < 1e-3 * change
+
+
+def test_blur_is_the_observers_smoother_applied_to_the_chain():
+    """The smoothed-increment map of a kinematic chain (blur.ChainBlur) equals the observer's own
+    filter and RTS pass (observers.kinematic.chain_passes, rts_smoother) run on the chain that the
+    increments build, integrated exactly: a different computation (fixed-gain linear filters
+    after the gains settle) of the same linear map, to rounding."""
+    from learnest_codegen.diagnosis.blur import chain_blur
+    from learnest_codegen.observers.kalman import rts_smoother
+    from learnest_codegen.observers.kinematic import chain_passes
+
+    T, dt, q, r = 700, 0.006, 316.0, np.array([2.5e-7])
+    rng = np.random.default_rng(3)
+    increments = rng.normal(size=(T - 1, 3)) * 0.05
+    for smooth in (True, False):
+        blur = chain_blur(1, T, dt, 2, (0,), q, r, smooth)
+        got = blur.apply(increments)
+        for b in range(3):  # the angle of a chain whose rate moves by the increments, ramped in each step
+            v = np.r_[0.0, np.cumsum(increments[:, b])]
+            angle = np.r_[0.0, np.cumsum(dt * (v[:-1] + 0.5 * increments[:, b]))]
+            passes, model = chain_passes(angle, dt, 3, [q], r, (0,))
+            means = rts_smoother(model.F, passes)[0] if smooth else passes.means
+            np.testing.assert_allclose(got[:, b], np.diff(means[:, 0, 1]), rtol=0,
+                                       atol=1e-9 * np.abs(got).max())
+
+
+def test_a_poorly_excited_run_cannot_block_an_effect():
+    """Per-run intervals from each run's own fit: a run that barely excites a coefficient (feature
+    100 times weaker, same noise) gives a far-off value with a wide interval, and the coefficient
+    stays consistent; on white noise the sandwich standard error is the least-squares one
+    (sigma / |phi|) to within its sampling error (8 blocks: about 25 %)."""
+    from learnest_codegen.diagnosis.search import consistent, per_run_values
+
+    rng = np.random.default_rng(9)
+    runs = np.repeat([0, 1, 2], 800)
+    phi = rng.normal(size=(2400, 1, 1)) * np.where(runs == 2, 0.01, 1.0)[:, None, None]
+    R = 1.0 * phi[:, :, 0] + 0.1 * rng.normal(size=(2400, 1))
+    data = FitData(R, phi, np.ones(1), np.zeros(1), runs=runs)
+    values, se = (a[:, 0] for a in per_run_values(data, [0], np.zeros(1)))
+    ols = np.array([0.1 / np.linalg.norm(phi[runs == k]) for k in range(3)])
+    np.testing.assert_allclose(se, ols, rtol=0.5)
+    assert abs(values[2] - 1.0) > 0.2 and se[2] > 10 * se[0]
+    check = consistent(values, 1.0, se)
+    assert check["consistent"] and check["common"][0] <= 1.0 <= check["common"][1]
+    # runs that each fix it well and disagree by more than half the pooled value each way do block it
+    assert not consistent(np.array([1.0, 1.1, 2.4]), 1.2, np.full(3, 0.01))["consistent"]
+    assert consistent(np.array([1.0, 1.1, 1.6]), 1.2, np.full(3, 0.01))["consistent"]

@@ -59,9 +59,13 @@ def _saturation(system: System, ctx: LibraryContext) -> list:
     out = []
     for j, n in _driving_inputs(system):
         umax = ctx.input_max.get(n, 1.0)
+        # the clip's edge just above the largest command: at cut 0 the term is then zero with zero
+        # slope in u even where a torque-limited command sits exactly at its limit (at the edge
+        # itself |u - L| has no slope, and every input-filter feature there would be halved)
+        edge = umax * (1.0 + 1e-9)
 
-        def term(ops, x, u, th, j=j, umax=umax):
-            return _clip(ops, u[j], umax * (1.0 - th)) - u[j]
+        def term(ops, x, u, th, j=j, edge=edge):
+            return _clip(ops, u[j], edge * (1.0 - th)) - u[j]
 
         out.append(Effect("saturation", _primary_state(system, n), f"input:{n}", "cut", "1", term,
                           f"input {n} saturates at (1 - cut) times its largest value ({umax:.4g})",

@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data import Run
-from ..errors import DataError
+from ..errors import DataError, ModelMismatchError
 from ..systems import System
 from .cv import fold_labels
 from .effects import Effect, default_context, library
@@ -80,7 +80,9 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
     system : the system (its prior is diagnosed).
     runs : recorded or simulated runs of it, or :class:`~learnest_codegen.diagnosis.loading.Recordings`
         (runs with their own references, start states and the recordings skipped).
-    model : an optional :class:`~learnest_codegen.learning.training.TrainedModel` to compare with.
+    model : an optional KNODE model to compare with: a
+        :class:`~learnest_codegen.learning.training.TrainedModel`, or the path (``str`` or
+        ``Path``) of a trained model directory, loaded for ``system``.
     settings : :class:`~learnest_codegen.diagnosis.settings.DiagnosisSettings`.
     work_dir : where compiled estimators go (C backend); a temporary folder by default.
     progress : show a progress bar.
@@ -94,6 +96,7 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
     from tqdm.auto import tqdm
 
     start = time.perf_counter()
+    model = _model(system, model)
     found = runs if isinstance(runs, Recordings) else \
         Recordings(list(runs), [f"run {i}" for i in range(len(runs))])
     if not found.runs:
@@ -138,7 +141,8 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
     bar.update()
     bar.close()
     gap_present = bool(fit.chosen) or any(s["gap"] for s in where_part["states"])
-    overall, reason = verdict_and_reason(gap_present, bool(chosen), fit.refit, result, settings)
+    tried = list(dict.fromkeys(e.kind for e in effects))
+    overall, reason = verdict_and_reason(gap_present, bool(chosen), fit.refit, result, settings, tried)
     entries = effects_json(system, effects, fit)
     per_estimator = by_estimator([e["name"] for e in entries], result, settings.estimators)
     for e in entries:
@@ -179,3 +183,18 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
         "seconds": time.perf_counter() - start,
     }
     return Diagnosis(system, report, fit_pairs, held_pairs, r0, sigma, held_res, effects, fit, estimates)
+
+
+def _model(system: System, model):
+    """``model`` as a trained model: loaded from its directory when given a path."""
+    if model is None or hasattr(model, "net"):
+        return model
+    if not isinstance(model, (str, Path)):
+        raise ModelMismatchError(f"diagnose: model must be a TrainedModel or the path of a trained model "
+                                 f"directory, got {type(model).__name__}")
+    from ..learning.training import load_model
+
+    if not ((Path(model) / "model.json").is_file() and (Path(model) / "weights.pt").is_file()):
+        raise ModelMismatchError(f"diagnose: {model} is not a trained model directory (it needs model.json "
+                                 f"and weights.pt); give the folder `learnest train --out` wrote")
+    return load_model(model, system)

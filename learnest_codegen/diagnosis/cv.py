@@ -132,7 +132,20 @@ def box_solve(A: np.ndarray, rhs: np.ndarray, lo: np.ndarray | None = None,
     """``argmin theta' A theta - 2 rhs' theta`` over ``lo <= theta <= hi`` (``A`` symmetric PSD).
 
     The unconstrained solution when it lies in the box, else bounded least squares on the
-    Cholesky factor ``A = L L'``: ``|| L' theta - L^-1 rhs ||^2`` is the same objective."""
+    Cholesky factor ``A = L L'``: ``|| L' theta - L^-1 rhs ||^2`` is the same objective. Solved
+    in units where every column has unit norm (``A``'s diagonal scaled to 1): a delay in seconds
+    and an inertia change in kg m^2 differ in scale by 1e8, and a solve in raw units would lose
+    the small columns to the large one's rounding."""
+    scale = np.sqrt(np.clip(np.diag(np.asarray(A, float)), 0.0, None))
+    scale[~(scale > 0)] = 1.0
+    A = np.asarray(A, float) / scale[:, None] / scale[None, :]
+    rhs = np.asarray(rhs, float) / scale
+    if lo is not None:
+        lo, hi = np.asarray(lo, float) * scale, np.asarray(hi, float) * scale
+    return _box_solve(A, rhs, lo, hi) / scale
+
+
+def _box_solve(A: np.ndarray, rhs: np.ndarray, lo: np.ndarray | None, hi: np.ndarray | None) -> np.ndarray:
     n = len(rhs)
     ridge = 1e-12 * max(float(np.trace(A)) / max(n, 1), 1e-300)
     theta = np.linalg.lstsq(A + ridge * np.eye(n), rhs, rcond=None)[0]
@@ -225,6 +238,8 @@ def aliases(data: FitData, j: int, candidates: Sequence[int], settings: FitSetti
     """Candidates whose weighted feature is nearly collinear with feature ``j`` on these data."""
     Phi = data.Phi.reshape(-1, data.Phi.shape[2])
     norm = np.linalg.norm(Phi, axis=0)
+    if not norm[j] > 0:
+        return []
     return [i for i in candidates if i != j and norm[i] > 0 and
             abs(Phi[:, i] @ Phi[:, j]) / (norm[i] * norm[j]) > settings.alias_cos]
 

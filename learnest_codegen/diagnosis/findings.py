@@ -104,5 +104,7 @@ def summary(report: dict) -> str:
             s = report["shrink"][name]
             lines.append(f"  {name.upper()} held-out MSE {s['before']:.4g} -> {s['after']:.4g}"
                          + (f" (closed {s['closed']:.0%})" if s.get("closed") is not None else "")
+                         + (f", the data support {s['supported']:.4g} ({s['above_supported']:+.0%})"
+                            if s.get("supported") else "")
                          + f": {s['verdict']}")
     return "\n".join(lines)

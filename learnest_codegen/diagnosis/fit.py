@@ -26,6 +26,7 @@ from ..errors import ShapeError
 from ..integrators import rk4_step
 from ..systems import System
 from ..systems.backends import CasadiOps
+from .blur import matched
 from .effects import Effect, corrected_dynamics, filter_inputs
 
 
@@ -44,7 +45,7 @@ class FitSettings:
     duplicate_cos: float = 0.99999  # ... above which the later one is dropped as a duplicate
     scan: int = 8  # candidates tested per step, best held-out SSE first
     pair_pool: int = 6  # when none passes alone, pairs of the best this many are tested together
-    gap_noise: float = 2.0  # entry also needs a gain above this many stds of a pure-noise SSE
+    gap_noise: float = 1.0  # entry also needs a gain above this many stds of a pure-noise SSE
     min_share: float = 0.002  # ... and above this share of the prior's held-out gap
     rounds: int = 4  # re-test rounds once the forward selection stops (drop, retry, exchange)
     swap_tol: float = 1e-6  # relative SSE change within which two effect sets are equivalent
@@ -79,6 +80,8 @@ class Pairs:
     k : (N,) index of ``x`` within its run.
     inputs : per run, its whole ``(T, nu)`` input sequence (what ``filter:<u>`` effects filter).
     run_dt : per run, its sample period [s].
+    blur : per run, the chains its observer smoothed (:mod:`~learnest_codegen.diagnosis.blur`;
+        ``()``: the plain one-step residual).
     """
 
     x: np.ndarray
@@ -90,16 +93,18 @@ class Pairs:
     k: np.ndarray | None = None
     inputs: tuple = ()
     run_dt: tuple = ()
+    blur: tuple = ()
 
     def __len__(self) -> int:
         return self.x.shape[0]
 
     @classmethod
-    def from_states(cls, segments: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> "Pairs":
-        """From ``(t (T,), z (T, nx), u (T, nu))`` per run. A pair with a non-finite state or input
-        (a missing sample) is left out; a run without any complete pair is an error."""
-        parts, inputs, run_dt = [], [], []
-        for i, (t, z, u) in enumerate(segments):
+    def from_states(cls, segments: Sequence[tuple]) -> "Pairs":
+        """From ``(t (T,), z (T, nx), u (T, nu))`` per run, optionally with the run's smoothed chains
+        as a fourth element. A pair with a non-finite state or input (a missing sample) is left
+        out; a run without any complete pair is an error."""
+        parts, inputs, run_dt, blur = [], [], [], []
+        for i, (t, z, u, *chains) in enumerate(segments):
             t, z, u = np.asarray(t, float), np.asarray(z, float), np.asarray(u, float)
             if z.ndim != 2 or u.ndim != 2 or len(t) != len(z) or len(u) != len(z) or len(z) < 2:
                 raise ShapeError(f"run {i}: expected t (T,), z (T, nx), u (T, nu) with T >= 2, "
@@ -112,11 +117,14 @@ class Pairs:
             parts.append((z[k], u[k], z[k + 1], t[k + 1] - t[k], t[k] - t[0], np.full(len(k), i), k))
             inputs.append(_held(u))
             run_dt.append(float(np.median(np.diff(t))))
-        return cls(*(np.concatenate(a) for a in zip(*parts)), inputs=tuple(inputs), run_dt=tuple(run_dt))
+            blur.append(tuple(chains[0]) if chains and chains[0] else ())
+        return cls(*(np.concatenate(a) for a in zip(*parts)), inputs=tuple(inputs), run_dt=tuple(run_dt),
+                   blur=tuple(blur))
 
     def subset(self, mask: np.ndarray) -> "Pairs":
         return Pairs(self.x[mask], self.u[mask], self.x_next[mask], self.dt[mask], self.t[mask],
-                     self.segment[mask], None if self.k is None else self.k[mask], self.inputs, self.run_dt)
+                     self.segment[mask], None if self.k is None else self.k[mask], self.inputs, self.run_dt,
+                     self.blur)
 
     def filtered(self, system: System, effects: Sequence[Effect], thetas: Sequence[float],
                  derivatives: bool = False) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -210,7 +218,7 @@ def one_step(system: System, effects: Sequence[Effect], theta: Sequence[float], 
         diff[:, i] = np.angle(np.exp(1j * diff[:, i]))
     r = diff / pairs.dt[:, None]
     if not with_features:
-        return r, np.zeros((N, nx, 0))
+        return matched(pairs, r)[0], np.zeros((N, nx, 0))
     J = np.zeros((N, nx, m))
     J[:, :, dyn] = np.asarray(res[1]).T.reshape(N, len(dyn), nx).transpose(0, 2, 1)  # column-major
     if flt:
@@ -218,4 +226,4 @@ def one_step(system: System, effects: Sequence[Effect], theta: Sequence[float], 
         for q, i in enumerate(flt):
             j = system.input_names.index(effects[i].channel.split(":", 1)[1])
             J[:, :, i] = Ju[:, :, j] * du[q][:, None]
-    return r, J / pairs.dt[:, None, None]
+    return matched(pairs, r, J / pairs.dt[:, None, None])

@@ -28,6 +28,7 @@ import numpy as np
 from ..data import Run
 from ..errors import DataError
 from ..systems import System
+from .blur import run_blur
 from .effects import Effect
 from .fit import Pairs, one_step
 from .segments import Segment
@@ -54,11 +55,15 @@ def calibration(system: System, effects: Sequence[Effect], segments: Sequence[Se
         y = np.asarray(system.h(seg.z, run.u))
         y = y + rng.normal(size=y.shape) * np.asarray(system.noise.measurement_std)
         synthetic = Run(run.t, run.u, y, seg.z, run.system)
-        z_cal = observe(synthetic, system, settings.observer).zeta
+        seen = observe(synthetic, system, settings.observer)
+        chains = run_blur(system, len(run), float(np.median(np.diff(run.t))), seen.method, seen.info)
         on_truth = Pairs.from_states([(run.t, seg.z, run.u)])
-        on_observed = Pairs.from_states([(run.t, z_cal, run.u)])
+        on_observed = Pairs.from_states([(run.t, seen.zeta, run.u, chains)])
         known, _ = one_step(system, effects, np.zeros(len(effects)), on_truth, with_features=False)
         r, J = one_step(system, effects, np.zeros(len(effects)), on_observed)
+        if len(on_truth) == len(run) - 1:  # the known correction as the observer sees it
+            for c in chains:
+                known[:, c.state] = c.apply((known[:, c.state] * on_truth.dt)[:, None])[:, 0] / on_truth.dt
         diff = r - known
         for name in system.periodic_states:  # residuals are rates; wrap their step-sized parts
             i = system.state_names.index(name)

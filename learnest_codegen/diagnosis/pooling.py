@@ -8,10 +8,12 @@ does not answer by itself:
   the selected effects are refitted on the others (:func:`leave_one_out`); the shrink step scores
   every run with the correction that did not see it.
 * **Is each effect the same on every run?** Each run is fitted on its own
-  (:func:`consistency`): per parameter its value on every run, the median, the robust spread
-  (1.4826 MAD) and the share of runs agreeing in sign with the pooled value. An effect is
-  *consistent* when every run agrees in sign and the spread is below half the median's size;
-  an inconsistent one (a steering map that differs between recordings) is flagged in the report.
+  (:func:`consistency`): per parameter its value on every run with its standard error, the
+  median, the robust spread (1.4826 MAD) and the share of runs agreeing in sign with the pooled
+  value. An effect is *consistent* when the runs' intervals share a value of the pooled sign
+  (:func:`~learnest_codegen.diagnosis.search.consistent`: a run that hardly excites it has a wide
+  interval); an inconsistent one (a steering map that differs between recordings) is flagged in
+  the report.
 """
 
 from __future__ import annotations
@@ -21,8 +23,11 @@ from typing import Sequence
 import numpy as np
 
 from ..systems import System
+from .cv import weighted
 from .effects import Effect
-from .fit import FitSettings
+from .fit import FitSettings, one_step
+from .refine import bounds
+from .search import consistent, per_run_values
 from .segments import Segment, pairs_of
 from .selection import refit
 from .shrink import HeldOut
@@ -53,19 +58,24 @@ def consistency(system: System, chosen: Sequence[Effect], theta: np.ndarray, seg
     if not chosen or len(segments) < 2:
         return []
     values = np.full((len(segments), len(chosen)), np.nan)
+    se = np.full((len(segments), len(chosen)), np.nan)
+    lo, hi = bounds(system, chosen, settings.bound)
     for k, seg in enumerate(segments):
-        res = refit(system, chosen, theta, pairs_of([seg]), rows, sigma, settings, iterations)
-        if res.ok:
-            values[k] = res.theta
+        pairs = pairs_of([seg])
+        res = refit(system, chosen, theta, pairs, rows, sigma, settings, iterations)
+        if not res.ok:
+            continue
+        r, J = one_step(system, chosen, res.theta, pairs)
+        data = weighted(r, J, rows, sigma, lo=lo - res.theta, hi=hi - res.theta,
+                        runs=np.zeros(len(pairs), dtype=int))
+        values[k], se[k] = (a[0] for a in per_run_values(data, list(range(len(chosen))), res.theta))
     out = []
     for i, e in enumerate(chosen):
-        v = values[:, i]
-        ok = v[np.isfinite(v)]
-        median = float(np.median(ok)) if len(ok) else float("nan")
-        spread = float(1.4826 * np.median(np.abs(ok - median))) if len(ok) else float("nan")
-        agree = float(np.mean(np.sign(ok) == np.sign(theta[i]))) if len(ok) else 0.0
+        v, ok = values[:, i], np.isfinite(values[:, i])
+        check = consistent(v[ok], float(theta[i]), se[ok, i]) if ok.any() else {"consistent": False}
         out.append({"effect": e.name, "param": e.param, "pooled": float(theta[i]),
+                    **{k: check.get(k) for k in ("median", "spread", "sign_agreement", "common")},
                     "per_run": [None if not np.isfinite(x) else float(x) for x in v],
-                    "median": median, "spread": spread, "sign_agreement": agree,
-                    "consistent": bool(len(ok) == len(v) and agree == 1.0 and spread < 0.5 * abs(median))})
+                    "se": [None if not np.isfinite(x) else float(x) for x in se[:, i]],
+                    "consistent": bool(ok.all() and check["consistent"])})
     return out

@@ -16,9 +16,13 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
 * **large against what is left**: the held-out gain exceeds ``min_gain`` of the remaining gap and
   ``gap_noise`` standard deviations of a pure-noise sum of squares (``sqrt(2 n)`` for ``n``
   weighted rows);
-* **large against the prior's gap**: the gain exceeds ``min_share`` of the prior's held-out gap
-  (with noise-free states the remaining gap after the right effects is a mismatch of form, such
-  as a Coulomb friction's smoothing; a cascade of small terms fitting it is not a finding);
+* **large against the prior's gap**, while what remains is far above the floor (more than the
+  floor itself): the gain exceeds ``min_share`` of the prior's held-out gap (with noise-free
+  states the remaining gap after the right effects is a mismatch of form, such as a Coulomb
+  friction's smoothing; a cascade of small terms fitting it is not a finding). Once the rest is
+  within the floor's own size, the noise tests decide alone: a weak effect (a sub-sample input
+  delay through an observer) is judged against the noise, not against a prior that was off by a
+  factor of three;
 * **above the noise**: its term's RMS exceeds ``min_size`` and ``spurious_factor`` times what the
   same feature explains of pure observer error;
 * **causal** (a delay or a lag): it must fit significantly better than its time mirror (the same
@@ -28,8 +32,10 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
   better than the best single one, two candidates enter together, each passing the tests
   against the other alone;
 * **the same on every run** (two runs or more): fitted with the others on each run alone, every
-  parameter has the sign of the pooled fit on every run and a robust spread (1.4826 MAD) below
-  half the median's size. A candidate failing only this is *blocked*, and the report says so.
+  parameter's per-run intervals (the value +- 3 standard errors of that run's fit, a sandwich
+  over stretches of the run, widened by half the pooled value) share a value of the
+  pooled sign (:func:`consistent`): a poorly excited run has a wide interval and cannot block an
+  effect that the others fix. A candidate failing only this is *blocked*, and the report says so.
 
 Every parameter stays in its physical range throughout (the bounds of the effects), so no move
 can select a friction with the wrong sign. An effect nonlinear in its parameter (a delay) is also
@@ -46,7 +52,7 @@ from typing import Callable
 
 import numpy as np
 
-from .cv import FitData, box_solve, cv_sse, grams, term_size
+from .cv import FitData, _fold_labels, box_solve, cv_sse, grams, term_size
 from .fit import FitSettings
 
 
@@ -81,24 +87,52 @@ def cv_detail(G, b, c, idx, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return held, train
 
 
-def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray) -> np.ndarray:
-    """(runs, len(cols)) parameters of ``cols`` fitted on each run alone (bounded, linearised)."""
+def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray,
+                   blocks: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, se)``, each ``(runs, len(cols))``: the parameters of ``cols`` fitted on each run
+    alone (bounded, linearised) and their standard errors from that fit.
+
+    The errors are a sandwich over ``blocks`` contiguous stretches of the run (``G^-1 (sum_b s_b
+    s_b') G^-1``, ``s_b`` the stretch's score ``Phi_b' e_b``): the one-step residual is correlated
+    in time, and a run that barely excites an effect (a swing-up that never stops, for a static
+    friction) gets the wide interval it has, not a value as sure as the others'."""
     runs = np.unique(data.runs)
-    G, b, _ = grams(data, np.searchsorted(runs, data.runs), len(runs))
-    out = np.empty((len(runs), len(cols)))
-    for r in range(len(runs)):
-        out[r] = theta_cols + box_solve(G[r][np.ix_(cols, cols)], b[r][cols], data.lo[cols], data.hi[cols])
-    return out
+    values, se = np.empty((len(runs), len(cols))), np.empty((len(runs), len(cols)))
+    for r, run in enumerate(runs):
+        rows = np.flatnonzero(data.runs == run)
+        P, R = data.Phi[rows][:, :, cols], data.R[rows]
+        G = np.einsum("ksi,ksj->ij", P, P)
+        step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[cols], data.hi[cols])
+        e = R - np.einsum("ksi,i->ks", P, step)
+        label = _fold_labels(len(rows), min(blocks, len(rows)))
+        scores = np.stack([np.einsum("ksi,ks->i", P[label == b], e[label == b]) for b in np.unique(label)])
+        n_b = len(scores)
+        inv = np.linalg.pinv(G)
+        cov = inv @ (scores.T @ scores) @ inv * n_b / max(n_b - 1, 1)
+        values[r] = theta_cols + step
+        se[r] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return values, se
 
 
-def consistent(values: np.ndarray, pooled: float) -> dict:
-    """Per-run values of one parameter against the pooled one (see the module docstring)."""
+def consistent(values: np.ndarray, pooled: float, se: np.ndarray | None = None, z: float = 3.0,
+               relative: float = 0.5) -> dict:
+    """Whether one parameter is the same on every run: each run's interval, its value +- ``z``
+    standard errors widened by ``relative`` of the pooled value's size (runs of a real robot
+    differ by a battery or a surface), must share a common value of the pooled value's sign. A
+    run whose data hardly fix the parameter has a wide interval and cannot block it; runs that
+    each fix it well and disagree do (a steering map that differs between recordings). ``se``
+    ``None``: the values alone (no interval beyond ``relative``)."""
+    values = np.asarray(values, float)
+    se = np.zeros_like(values) if se is None else np.asarray(se, float)
+    width = z * se + relative * abs(pooled)
+    lo, hi = float(np.max(values - width)), float(np.min(values + width))
+    same_sign = (hi > 0) if pooled > 0 else (lo < 0) if pooled < 0 else False
     median = float(np.median(values))
-    spread = float(1.4826 * np.median(np.abs(values - median)))
     tiny = 1e-6 * max(abs(pooled), 1e-300)
     agree = float(np.mean(values * np.sign(pooled) > tiny)) if pooled != 0 else 0.0
-    return {"per_run": [float(v) for v in values], "median": median, "spread": spread,
-            "sign_agreement": agree, "consistent": bool(agree == 1.0 and spread < 0.5 * abs(median))}
+    return {"per_run": [float(v) for v in values], "se": [float(v) for v in se], "median": median,
+            "spread": float(1.4826 * np.median(np.abs(values - median))), "sign_agreement": agree,
+            "common": [lo, hi], "consistent": bool(lo <= hi and same_sign)}
 
 
 class Search:
@@ -122,10 +156,16 @@ class Search:
         self.rejected: dict | None = None
         self.seen = {frozenset()}
         self.restarted: set = set()
+        self.rephrased: set = set()
 
     # -- scoring --------------------------------------------------------------------------------
     def _noise(self, data: FitData) -> float:
         return self.settings.gap_noise * float(np.sqrt(2.0 * data.R.size))
+
+    def _share(self, remaining: float, data: FitData) -> float:
+        """The share of the prior's gap a move must explain while ``remaining`` (above the floor)
+        is larger than the floor itself; none once it is within it (see the module docstring)."""
+        return self.settings.min_share * self.first.gap if remaining > data.floor else 0.0
 
     def _trial(self, G, b, c, base_cols: list[int], j: int, data: FitData,
                mirror: bool = False) -> tuple[np.ndarray, float, FitData | None]:
@@ -175,7 +215,7 @@ class Search:
             size = float(np.sqrt(np.mean((P[:, k:] @ th[k:]) ** 2)))
         need = max(s.min_size, s.spurious_factor * float(max(data.spurious[c] for c in cols)))
         gain = float(gains.sum())
-        need_gain = max(s.min_gain * remaining, self._noise(data), s.min_share * self.first.gap)
+        need_gain = max(s.min_gain * remaining, self._noise(data), self._share(remaining, data))
         step = {"index": j, "t": t_stat, "gain": gain / remaining if remaining > 0 else None,
                 "gain_abs": gain, "gain_needed": need_gain, "remaining_gap": remaining,
                 "share_of_prior_gap": gain / self.first.gap,
@@ -196,8 +236,8 @@ class Search:
                                         else self.theta[cols]])
             P = src.Phi[:, :, idx].reshape(-1, len(idx))
             pooled = theta_idx + box_solve(P.T @ P, P.T @ src.R.ravel(), src.lo[idx], src.hi[idx])
-            values = per_run_values(src, idx, theta_idx)
-            checks = [consistent(values[:, k + i], pooled[k + i]) for i in range(len(idx) - k)]
+            values, se = per_run_values(src, idx, theta_idx)
+            checks = [consistent(values[:, k + i], pooled[k + i], se[:, k + i]) for i in range(len(idx) - k)]
             step["per_run"] = [c["per_run"] for c in checks]
             if not all(c["consistent"] for c in checks):
                 reasons.append("not the same on every run")
@@ -327,7 +367,7 @@ class Search:
                 loss = self._drop_loss([j])
                 remaining = max(float((full + loss).sum()) - data.floor, 0.0)
                 need = max(self.settings.min_gain * remaining, self._noise(data),
-                           self.settings.min_share * self.first.gap)
+                           self._share(remaining, data))
                 costs[j] = (float(loss.sum()), need, _t(_rel(loss, full + loss)))
             if not costs:
                 break
@@ -420,3 +460,113 @@ class Search:
         self.exchanged.append({"removed": j, "added": [cand], "sse": float(trial.sum()),
                                "sse_before": float(full.sum()), "why": "significantly better held out"})
         return True
+
+    def rephrase(self) -> bool:
+        """Re-test the chosen set against its neighbours that say the same in other words: one
+        chosen effect replaced by one or two prior parameters (an actuator gain by the inertia and
+        the gravity torque it scales together), or two chosen effects by one candidate.
+
+        Scored held out (by run when there are several, else by fold), with the data relinearised
+        without the removed effects (a lag is far from linear in its time constant). A neighbour
+        is taken when it fits significantly better (the exchange's test: a gain that aliases an
+        inertia and a gravity torque scaled in nearly the same ratio gives way to the two), or,
+        with no more parameters than before, when it reads more plainly (:func:`_plainness`: a
+        parameter of the prior for a generic effect, a delay for a lag), says the same
+        (:func:`_covered`: its features recover at least half of the removed ones) and fits at
+        least as well: within the noise of the sums, losing at most a tenth of what the removed
+        effects explained. A move is tried once per set, so the rounds cannot cycle."""
+        data = self.data
+        labels, k = held_out_groups(data, self.settings)
+        G, b, c = grams(data, labels, k)
+        full = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
+        current = float(full.sum())
+        need = max(self.settings.min_gain * max(current - data.floor, 0.0), self._noise(data))
+        singles = [j for j in self.chosen if len(self.groups[j]) == 1]
+        free = [j for j in self.pool if j not in self.chosen and len(self.groups[j]) == 1]
+        params = [j for j in free if _physical(self.effects[j]) and _plainness(self.effects[j])]
+        moves = [([j], [a]) for j in singles for a in free]
+        moves += [([j], [a, o]) for j in singles if not _physical(self.effects[j])
+                  for n, a in enumerate(params) for o in params[n + 1:]]
+        moves += [([j, o], [a]) for n, j in enumerate(singles) for o in singles[n + 1:] for a in free]
+        best, grams_without = None, {}
+        for removed, added in moves:
+            key = (frozenset(self.chosen), frozenset(removed), frozenset(added))
+            if key in self.rephrased:
+                continue
+            if tuple(removed) not in grams_without:  # relinearised without them: a lag is far from linear
+                theta = self.theta.copy()
+                theta[removed] = 0.0
+                without = self._data(theta)
+                grams_without[tuple(removed)] = (without, *grams(without, labels, k))
+            without, Gw, bw, cw = grams_without[tuple(removed)]
+            rest = [i for i in self.chosen if i not in removed]
+            trial = cv_sse(Gw, bw, cw, rest + added, without.lo, without.hi)
+            if len(added) == 2 and min(cv_sse(Gw, bw, cw, rest + [a], without.lo, without.hi).sum()
+                                       for a in added) <= trial.sum() + self._noise(data):
+                continue  # one of the two alone says as much: the pair is not the reading
+            gain = full - trial
+            better = gain.sum() > need and (k < 3 or _t(_rel(gain, full)) > self.settings.t_min)
+            plainer = (sum(_plainness(self.effects[i]) for i in added)
+                       - sum(_plainness(self.effects[i]) for i in removed))
+            # "as good": within the noise of the sums, and never losing more than a tenth of what
+            # the removed effects explained (a weak effect is not replaced by one explaining nothing)
+            worth = float(cv_sse(Gw, bw, cw, rest, without.lo, without.hi).sum()) - current
+            tol = min(self._noise(data), 0.1 * max(worth, 0.0))
+            # one effect for two must earn the second parameter: significantly better, as an entry
+            # (a force gain of -20 % is exactly both cart masses 25 % heavier: the gain stays)
+            as_good = plainer > 0 and trial.sum() <= current + tol and len(added) <= len(removed) \
+                and _covered(without, removed, added)
+            if not (better or as_good):
+                continue
+            rank = (1, -float(trial.sum())) if better else (0, plainer, -len(added), -float(trial.sum()))
+            if best is None or rank > best[0]:
+                best = (rank, removed, added, float(trial.sum()), key)
+        if best is None:
+            return False
+        rank, removed, added, score, key = best
+        self.rephrased.add(key)
+        theta = self.theta.copy()
+        theta[removed] = 0.0
+        self._apply([i for i in self.chosen if i not in removed] + added, theta, new=False)
+        self.exchanged.append({"removed": removed[0] if len(removed) == 1 else removed, "added": added,
+                               "sse": score, "sse_before": current,
+                               "why": "significantly better held out" if rank[0] else
+                               "the prior's own parameters, as good held out"})
+        return True
+
+
+def _covered(data: FitData, removed: list[int], added: list[int], share: float = 0.5) -> bool:
+    """Whether the ``added`` columns say what the ``removed`` ones said: least squares on the added
+    features recovers at least ``share`` of each removed feature (a rephrasing, not a different
+    effect on another state that happens to fit as well)."""
+    P = data.Phi.reshape(-1, data.Phi.shape[2])
+    A = P[:, added]
+    for j in removed:
+        col = P[:, j]
+        fit = A @ np.linalg.lstsq(A, col, rcond=None)[0]
+        if not col @ col > 0 or fit @ fit < share * (col @ col):
+            return False
+    return True
+
+
+def _physical(effect) -> bool:
+    """A parameter of the system's own prior (``param:<p>``): the user's model names it."""
+    return effect.channel.startswith("param:")
+
+
+def _plainness(effect) -> int:
+    """How plainly an effect reads, for choosing between readings that fit as well: a parameter
+    of the prior (the user's model names it) with a sign to keep (the ground robot's ``C_D = 0``
+    stays an alias of a quadratic drag >= 0), and an input delay rather than a first-order lag
+    (shorter than a sample or two the two are the same to first order, and through a smoothing
+    observer they are not told apart; a late command is the plainer reading)."""
+    kept = np.isfinite(effect.lower) or np.isfinite(effect.upper)  # a prior's 0 has no sign to keep
+    return int((_physical(effect) and kept) or effect.kind == "input_delay")
+
+
+def held_out_groups(data: FitData, settings: FitSettings) -> tuple[np.ndarray, int]:
+    """Rows grouped for held-out scoring: by run when there are two or more, else the folds."""
+    if data.runs is not None and len(np.unique(data.runs)) >= 2:
+        runs = np.unique(data.runs)
+        return np.searchsorted(runs, data.runs), len(runs)
+    return data.folds(settings.folds)

@@ -16,6 +16,7 @@ import numpy as np
 from ..data import Run
 from ..errors import DataError
 from ..systems import System
+from .blur import run_blur
 from .fit import Pairs
 from .settings import DiagnosisSettings
 
@@ -33,6 +34,7 @@ class Segment:
     var: np.ndarray | None
     reference: np.ndarray
     start: np.ndarray | None = None
+    blur: tuple = ()  # the chains the observer smoothed (see blur.py)
 
     @property
     def x0(self) -> np.ndarray:
@@ -98,14 +100,16 @@ def observations(system: System, runs: Sequence[Run], settings: DiagnosisSetting
     segments = []
     for i, raw in enumerate(runs):
         run = complete(raw, f"run {i}")
+        blur = ()
         if source == "truth":
             z, var = run.x, None
         else:
             obs = observe(run, system, settings.observer)
             z, var = obs.zeta, obs.variance
+            blur = run_blur(system, len(run), float(np.median(np.diff(run.t))), obs.method, obs.info)
         ref = references[i] if references is not None else run.x if run.x is not None else z
         segments.append(Segment(run, z, var, np.asarray(ref, float),
-                                None if starts is None else np.asarray(starts[i], float)))
+                                None if starts is None else np.asarray(starts[i], float), blur))
     return source, segments
 
 
@@ -113,8 +117,19 @@ def cut_segment(seg: Segment, lo: int, hi: int) -> Segment:
     r = seg.run
     run = Run(r.t[lo:hi], r.u[lo:hi], r.y[lo:hi], None if r.x is None else r.x[lo:hi], r.system)
     start = seg.start if lo == 0 else None
+    blur = tuple(_cut_blur(c, lo, hi) for c in seg.blur)
     return Segment(run, seg.z[lo:hi], None if seg.var is None else seg.var[lo:hi], seg.reference[lo:hi],
-                   start)
+                   start, blur)
+
+
+def _cut_blur(chain, lo: int, hi: int):
+    """A chain's smoother over samples ``lo:hi`` only, with the gains the whole run's smoother has
+    there. The data were smoothed as one run: within about the smoother's width of the cut the map
+    misses the increments beyond it, a small residual at the stretch's two ends."""
+    import dataclasses
+
+    return dataclasses.replace(chain, gain=chain.gain[lo:hi],
+                               back=None if chain.back is None else chain.back[lo:hi - 1])
 
 
 def split(segments: list[Segment], holdout: float) -> tuple[list[Segment], list[Segment]]:
@@ -130,4 +145,4 @@ def split(segments: list[Segment], holdout: float) -> tuple[list[Segment], list[
 
 def pairs_of(segments: Sequence[Segment]) -> Pairs:
     """Consecutive state pairs of the segments (pairs never cross runs)."""
-    return Pairs.from_states([(s.run.t, s.z, s.run.u) for s in segments])
+    return Pairs.from_states([(s.run.t, s.z, s.run.u, s.blur) for s in segments])

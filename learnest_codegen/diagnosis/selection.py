@@ -180,6 +180,7 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
         moved |= search.backward()
         moved |= search.forward()
         moved |= search.exchange()
+        moved |= search.rephrase()
         moved |= search.restart()
         if not moved:
             break
@@ -205,7 +206,8 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
                      first.duplicates, search.status,
                      [{**d, "effect": name(d["index"])} for d in search.dropped], swapped,
                      [_equivalents(data, j, theta[j], first.duplicates) for j in chosen],
-                     [{**e, "removed": name(e["removed"]), "added": [name(a) for a in e["added"]]}
+                     [{**e, "removed": [name(r) for r in e["removed"]] if isinstance(e["removed"], list)
+                       else name(e["removed"]), "added": [name(a) for a in e["added"]]}
                       for e in search.exchanged],
                      [{**st, "effect": name(j)} for j, st in search.blocked.items() if j not in chosen],
                      cv_share)

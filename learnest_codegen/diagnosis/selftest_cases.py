@@ -16,9 +16,15 @@ from .selftest_systems import (
     PENDULUM_FRICTION,
     PENDULUM_PRIOR,
     PENDULUM_TRUE,
+    RIG_FRICTION,
+    RIG_TRUE,
     SMALL_FRICTION,
     SWINGUP_FRICTION,
     SWINGUP_TRUE,
+    WHEEL_BEARING,
+    WHEEL_GAIN,
+    WHEEL_PIVOT,
+    WHEEL_PRIOR,
 )
 
 
@@ -48,6 +54,11 @@ class Case:
         N, or a prior parameter's value rather than its change.
     only : nothing but the expected effects may be selected (default: others may explain up to
         the self-test's ``extra_tolerance`` of the in-sample gap).
+    input_delay : the truth applies every command this late [s], within the sample (the system's
+        builder takes it as ``delay``; the runs are integrated with
+        :func:`~learnest_codegen.diagnosis.selftest_systems.late_step`).
+    absolute : per expected effect, an absolute tolerance that passes it instead of ``tolerance``
+        (``None``: the relative one), e.g. a delay within 1 ms.
     """
 
     system: str
@@ -65,6 +76,8 @@ class Case:
     tolerance: float | None = None
     only: bool = False
     expect_derived: tuple[str, ...] = ()
+    input_delay: float = 0.0
+    absolute: tuple[float | None, ...] = ()
 
     @property
     def accepted(self) -> tuple[str, ...]:
@@ -202,6 +215,33 @@ CASES: tuple[Case, ...] = (
                        ("coulomb_friction(qdot via tau)", SWINGUP_FRICTION)), expect_derived=("J", "mgl", ""),
          source="observer", runs=3, tolerance=0.2, only=True),
 )
+
+# The twin of a torque-limited lab pendulum (selftest_systems.pendulum_rig): a user's prior with J
+# and mgl 3.6-3.7x too small in nearly the same ratio (an actuator gain aliases both), Coulomb
+# friction, the torque at its limit through most of a swing-up, sampled every 6 ms, the angle
+# alone measured, the torque applied 0, 2, 3 or 5 ms late; two and three runs pooled. Right is J
+# and mgl and the friction within 20 %, the delay within 1 ms from 2 ms on, and nothing else.
+def _rig(delay_ms: float, runs: int) -> Case:
+    expected = (("mass(qdot via J)", RIG_TRUE["J"]), ("parameter(qdot via mgl)", RIG_TRUE["mgl"]),
+                ("coulomb_friction(qdot via tau)", RIG_FRICTION))
+    late = (("input_delay(qdot via tau)", delay_ms * 1e-3),) if delay_ms else ()
+    return Case("pendulum_rig", f"J x3.7, mgl x3.6, Coulomb 0.195 N m, torque {delay_ms:g} ms late, "
+                f"{runs} swing-ups (observer)", builtin_truth=True, expect_names=expected + late,
+                expect_derived=("J", "mgl", "", ""), source="observer", runs=runs, tolerance=0.2,
+                only=True, input_delay=delay_ms * 1e-3, absolute=(None, None, None, 1e-3))
+
+
+CASES += tuple(_rig(d, n) for d in (0.0, 2.0, 3.0, 5.0) for n in (2, 3))
+
+# An inertia-wheel pendulum as a new user writes it (selftest_systems.inertia_wheel), through the
+# observer: the motor 20 % weaker, Coulomb friction in the wheel's bearing (a torque where the
+# motor's acts: 4 mN m = 0.08 V at 0.05 N m/V) and viscous damping at the pivot (0.002 N m s on
+# J_p 0.02 kg m^2: 0.1 1/s on qdot'). All three within 20 %, nothing else.
+CASES += (Case("inertia_wheel", "motor -20 %, bearing Coulomb 4 mN m, pivot damping (observer)",
+               builtin_truth=True, source="observer", tolerance=0.2, only=True,
+               expect_names=(("actuator_gain(qdot via V)", WHEEL_GAIN),
+                             ("coulomb_friction(w via V)", WHEEL_BEARING / WHEEL_PRIOR["k_m"]),
+                             ("viscous_friction(qdot)", WHEEL_PIVOT / WHEEL_PRIOR["J_p"]))),)
 
 # The default test suite runs this one: the situation of a real pendulum (two parameters of a
 # user's system file wrong by large factors plus a friction, through the observer). The others run

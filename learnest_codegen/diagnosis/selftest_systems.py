@@ -1,8 +1,9 @@
 """Systems the self-test diagnoses besides the built-in ones, written as a user would write them.
 
-``pendulum_swingup``, ``cart`` and ``rc_car_damped`` follow at the end: a torque-limited
-swing-up (the situation of a real pendulum), a cart with sharp Coulomb friction, and the DART car
-with a known rolling drag (for actuator dynamics on held commands).
+``pendulum_swingup``, ``cart``, ``rc_car_damped`` and ``pendulum_rig`` follow at the end: a
+torque-limited swing-up (the situation of a real pendulum), a cart with sharp Coulomb friction,
+the DART car with a known rolling drag (for actuator dynamics on held commands), and the twin of
+a lab pendulum whose torque may be applied a few milliseconds late.
 
 ``pendulum``: a torque-driven physical pendulum, ``J q'' = tau - mgl sin q``, with the inertia
 ``J`` [kg m^2] and the gravity torque ``mgl`` [N m] as separate parameters (as a user's system
@@ -170,4 +171,115 @@ def rc_car_damped() -> System:
                                dynamics=_car_dynamics, true_dynamics=_car_dynamics)
 
 
-SYSTEMS.update({"pendulum_swingup": swingup_pendulum, "cart": cart, "rc_car_damped": rc_car_damped})
+# -- the twin of a torque-limited lab pendulum, its torque applied late ---------------------------
+RIG_TRUE = {"J": 0.187, "mgl": 3.60}  # [kg m^2], [N m]: a plain regression on the rig's swing-ups
+RIG_PRIOR = PENDULUM_PRIOR  # a user's first guess: both 3.6-3.7x too small, in nearly the same ratio
+RIG_FRICTION = 0.195  # Coulomb friction [N m]; no viscous friction
+RIG_TORQUE = 1.5  # the motor's torque limit [N m], 0.42 of the gravity torque: it must pump
+RIG_DT = 0.006  # [s]
+RIG_ENCODER = 5e-4  # angle noise [rad]: about a 4096-count encoder's quantisation (1.53 mrad / sqrt 12)
+
+
+def late_step(system: System, x: np.ndarray, before, now, dt: float, delay: float, t: float = 0.0):
+    """One sample of the true pendulum whose command ``now`` takes effect ``delay`` [s] late: the
+    previous command ``before`` acts for the first ``delay`` of the step (``0 <= delay < dt``)."""
+    from ..simulation import integrate_interval
+
+    if delay > 0:
+        x = integrate_interval(system, "true", x, before, delay, t)
+    return integrate_interval(system, "true", x, now, dt - delay, t + delay)
+
+
+def _rig_swingup(system: System, delay: float):
+    """The rig's energy-pumping swing-up, closed on the true pendulum with the torque ``delay`` late:
+    ``tau = clip(k (E_ref - E) qdot + d(t), +-1.5 N m)``, the energy target moving every 3 s
+    between 50 % and 95 % of the energy at the top, ``k`` drawn per run (10-20), a 0.1 N m
+    multisine ``d`` dithering it. The torque sits at its limit through most of the pumping."""
+    def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        dt = float(t[1] - t[0])
+        k = rng.uniform(10.0, 20.0)
+        top = 2.0 * RIG_TRUE["mgl"]
+        targets = rng.uniform(0.5, 0.95, size=int(t[-1] / 3.0) + 2) * top
+        freqs, phases = np.array([0.3, 0.8, 1.7]) * rng.uniform(0.9, 1.1, 3), rng.uniform(0, 2 * np.pi, 3)
+        dither = 0.1 * np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)
+        x, u = np.array(system.x0, dtype=float), np.zeros((len(t), 1))
+        for i in range(len(t)):
+            energy = 0.5 * RIG_TRUE["J"] * x[1] ** 2 + RIG_TRUE["mgl"] * (1.0 - np.cos(x[0]))
+            u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + dither[i],
+                              -RIG_TORQUE, RIG_TORQUE)
+            if i < len(t) - 1:
+                x = late_step(system, x, u[max(i - 1, 0)], u[i], dt, delay, t[i])
+        return u
+
+    return excitation
+
+
+def pendulum_rig(delay: float = 0.0, encoder: float = RIG_ENCODER) -> System:
+    """The twin of a torque-limited lab pendulum (:data:`RIG_TRUE`, :data:`RIG_FRICTION`, torque
+    limit :data:`RIG_TORQUE`, sampled every :data:`RIG_DT`, angle noise ``encoder`` [rad]), swung
+    up with its torque applied ``delay`` [s] late (:func:`_rig_swingup`). The prior is
+    :data:`RIG_PRIOR`, without friction; runs of 15 s from 0.1 rad. A delay is not a function of
+    ``(x, u)``: the self-test integrates the truth with :func:`late_step`."""
+    import dataclasses
+
+    def true_dynamics(ops, x, u, p):
+        return _dynamics(ops, x, [u[0] - RIG_FRICTION * ops.tanh(x[1] / FRICTION_SPEED)], p)
+
+    base = dataclasses.replace(pendulum(), name="pendulum_rig", params=RIG_PRIOR, true_params=RIG_TRUE,
+                               true_dynamics=true_dynamics, dt=RIG_DT, duration=15.0, x0=(0.1, 0.0),
+                               noise=dataclasses.replace(pendulum().noise, measurement_std=(encoder,)))
+    return dataclasses.replace(base, excitation=_rig_swingup(base, delay))
+
+
+SYSTEMS.update({"pendulum_swingup": swingup_pendulum, "cart": cart, "rc_car_damped": rc_car_damped,
+                "pendulum_rig": pendulum_rig})
+
+
+# -- an inertia-wheel pendulum driven by a DC motor, as a new user writes it ------------------------
+WHEEL_PRIOR = {"J_p": 0.02, "mgl": 0.3, "J_w": 5e-4, "k_m": 0.05, "b_m": 1e-3}
+WHEEL_GAIN = -0.2  # the motor's torque per volt is 20 % below the datasheet's
+WHEEL_BEARING = 0.004  # Coulomb friction of the wheel's bearing [N m], tanh(w / 0.5 rad/s)
+WHEEL_PIVOT = 0.002  # viscous damping at the pendulum's pivot [N m s]
+
+
+def _wheel_dynamics(ops, x, u, p):
+    """``tau = k_m V - b_m w`` (a DC motor with its back-EMF), the pendulum taking the reaction,
+    ``w`` the wheel's speed relative to it: ``J_p q'' = -mgl sin q - tau``, ``w' = tau / J_w - q''``."""
+    q, qdot, phi, w = x
+    tau = p["k_m"] * u[0] - p["b_m"] * w
+    qddot = (-p["mgl"] * ops.sin(q) - tau) / p["J_p"]
+    return [qdot, qddot, w, tau / p["J_w"] - qddot]
+
+
+def _wheel_truth(ops, x, u, p):
+    q, qdot, phi, w = x
+    tau = (1 + WHEEL_GAIN) * p["k_m"] * u[0] - p["b_m"] * w - WHEEL_BEARING * ops.tanh(w / 0.5)
+    qddot = (-p["mgl"] * ops.sin(q) - WHEEL_PIVOT * qdot - tau) / p["J_p"]
+    return [qdot, qddot, w, tau / p["J_w"] - qddot]
+
+
+def _wheel_excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    freqs = np.array([0.15, 0.55, 0.9, 1.7]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
+    amps = np.array([2.5, 2.0, 1.5, 0.8])  # [V]
+    phases = rng.uniform(0, 2 * np.pi, 4)
+    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+
+
+def inertia_wheel() -> System:
+    """A pendulum swung by the reaction of a motor-driven wheel, both angles measured by encoders
+    (1 mrad), the voltage known. Its truth has the motor 20 % weaker, Coulomb friction in the
+    wheel's bearing and viscous damping at the pivot, none of which the prior has."""
+    return System(
+        name="inertia_wheel",
+        states=(Signal("q", "rad"), Signal("qdot", "rad/s"), Signal("phi", "rad"), Signal("w", "rad/s")),
+        inputs=(Signal("V", "V"),), outputs=(Signal("q", "rad"), Signal("phi", "rad")),
+        params=WHEEL_PRIOR, true_params=WHEEL_PRIOR, dynamics=_wheel_dynamics, true_dynamics=_wheel_truth,
+        measurement=lambda ops, x, u, p: [x[0], x[2]],
+        noise=NoiseModel(measurement_std=(1e-3, 1e-3), state_std=(1e-3, 0.02, 1e-3, 0.5),
+                         process_std=(1e-3, 0.1, 1e-3, 2.0), initial_std=(0.05, 0.2, 0.05, 2.0)),
+        dt=0.005, duration=20.0, x0=(0.3, 0.0, 0.0, 0.0), excitation=_wheel_excitation,
+        kinematic_chains=(KinematicChain("q", ("q", "qdot")), KinematicChain("phi", ("phi", "w"))),
+        diagnosis=DiagnosisHints(mass_params=("J_p", "J_w")))
+
+
+SYSTEMS["inertia_wheel"] = inertia_wheel

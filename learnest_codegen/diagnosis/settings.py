@@ -25,6 +25,8 @@ class DiagnosisSettings:
         last ones), each with the correction fitted without it.
     explained_gap : "explained" needs the corrected prior's held-out residual within the floor:
         its mean square above the floor at most this (noise units^2; 0.25: RMS within 12 %).
+    explained_estimator : ... and every estimator's corrected held-out MSE at most this fraction
+        above the level the data support (see :mod:`~learnest_codegen.diagnosis.shrink`).
     worse_tolerance : an estimator whose held-out MSE rises by more than this fraction with the
         correction rejects it (and one that falls by more counts as improved).
     relative_floor : floor of a state's noise level, relative to the RMS of its prior derivative.
@@ -41,6 +43,7 @@ class DiagnosisSettings:
     holdout: float = 0.3
     estimator_runs: int = 2
     explained_gap: float = 0.25
+    explained_estimator: float = 0.2
     worse_tolerance: float = 0.01
     relative_floor: float = 1e-3
     calibrate: bool = True
@@ -59,10 +62,11 @@ class DiagnosisSettings:
         if self.backend not in ("c", "python"):
             raise UnknownNameError(f"unknown backend {self.backend!r}; choose from ['c', 'python']")
         if not 0.05 <= self.holdout <= 0.8 or not self.relative_floor > 0 or self.regime_bins < 2 \
-                or self.estimator_runs < 1 or not self.explained_gap > 0 or not self.worse_tolerance >= 0:
+                or self.estimator_runs < 1 or not self.explained_gap > 0 or not self.worse_tolerance >= 0 \
+                or not self.explained_estimator >= 0:
             raise ValueError(f"DiagnosisSettings: need 0.05 <= holdout <= 0.8, relative_floor > 0, "
                              f"regime_bins >= 2, estimator_runs >= 1, explained_gap > 0, "
-                             f"worse_tolerance >= 0; got {self}")
+                             f"worse_tolerance >= 0, explained_estimator >= 0; got {self}")
         object.__setattr__(self, "estimators", tuple(self.estimators))
 
     def to_json(self) -> dict:

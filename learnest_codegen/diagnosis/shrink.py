@@ -16,10 +16,14 @@ than ``worse_tolerance``). Overall:
 * ``rejected`` - the correction makes the held-out one-step residual worse, or every estimator
   run worse: its effects are reported under ``rejected_effects``, not as findings;
 * ``explained`` - the corrected prior's held-out residual is within the floor (mean square above
-  the floor at most ``explained_gap``, or within that of the true dynamics in simulation) and no
-  estimator rejects it;
+  the floor at most ``explained_gap``, or within that of the true dynamics in simulation), no
+  estimator rejects it, and every estimator's corrected held-out MSE is within
+  ``explained_estimator`` (20 %) of the level the data support: the true dynamics' estimator on
+  the same data in simulation, else the corrected estimator on a run its own model generated
+  with the held-out inputs and the system's measurement noise (:func:`_own_level`);
 * ``partly explained`` - it closes at least a quarter of the held-out gap but is not at the floor,
-  or an estimator rejects it;
+  an estimator rejects it, or an estimator stays above the supported level (the reason says
+  which, by how much, and which kinds the library tried);
 * ``unexplained`` - nothing selected, or less than a quarter closed.
 
 The verdict follows the held-out figures only (the held-out gap closed, the corrected residual
@@ -146,6 +150,7 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
         errors: dict[str, list[float]] = {k: [] for k in labels}
         x_hats: dict[str, list[np.ndarray]] = {k: [] for k in errors}
         built = {label: build(d, h, label) for label, (d, h) in fixed.items()}
+        own: list[float] = []  # the corrected estimator on data its own model generated
         for h in held:
             key = _key(chosen, h.theta)
             estimators = {**built, "corrected": build(prior_model(corrected_system(system, chosen, h.theta)),
@@ -164,19 +169,70 @@ def _estimators(system, chosen, model, held: Sequence[HeldOut], simulated, setti
                     out.setdefault("failures", []).append(f"{name}:{label}: {exc}")
                 errors[label].append(value)
                 x_hats[label].append(x_hat)
+            if not simulated:
+                own.append(_own_level(system, chosen, h, estimators["corrected"], settings, reference, name))
         scores = {k: float(np.mean(v)) for k, v in errors.items()}
         estimates[name] = {k: np.concatenate(v) for k, v in x_hats.items()}
         truth = simulated or held[0].segment.run.x is not None
+        supported, how = ((scores["true"], "the true dynamics' estimator on the same data")
+                          if "true" in scores else (float(np.mean(own)), _OWN)
+                          if own and np.all(np.isfinite(own))
+                          else (None, "not measured (the corrected model's own run failed)"))
+        if "true" not in scores and supported is not None and supported > scores["prior"]:
+            supported, how = None, (f"not measured: the corrected model's own run ({supported:.4g}) is worse "
+                                    f"than the prior's estimator on the data, so it is no level the data "
+                                    f"support (run open loop, it leaves the data's range)")
         entry = {"metric": "MSE against " + (reference or ("the truth" if truth else
                                                            "the observer's state observations")),
                  **scores, "before": scores["prior"], "after": scores["corrected"],
                  "closed": closed(scores["prior"], scores["corrected"], scores.get("true")),
+                 "supported": supported, "supported_by": how,
+                 "above_supported": None if not supported else scores["corrected"] / supported - 1.0,
                  "per_segment": {k: [float(x) for x in v] for k, v in errors.items()},
                  "verdict": estimator_verdict(scores["prior"], scores["corrected"], settings.worse_tolerance)}
         if "knode" in scores:
             entry["closed_knode"] = closed(scores["prior"], scores["knode"], scores.get("true"))
         out[name] = entry
     return out, estimates
+
+
+_OWN = ("the corrected estimator on a run its own model generated (the held-out inputs, the "
+        "system's measurement noise), scored the same way")
+
+
+def _own_level(system: System, chosen, h: HeldOut, estimator, settings: DiagnosisSettings,
+               reference: str | None, name: str) -> float:
+    """The held-out MSE the data could support if the corrected model were exact: its own run.
+
+    The corrected model (filters included) is driven by the held-out segment's inputs from its
+    start state, measured through the system's outputs with its measurement noise (seeded), and
+    the corrected estimator runs on that; it is scored as the real segment is: against the truth
+    when the segment's reference is the truth or a recording's own, else against the same
+    observer's states of the synthetic run. ``inf`` when the model cannot be simulated."""
+    from ..data import Run
+    from ..evaluation import run_estimator
+    from ..observers import observe
+    from ..simulation import integrate_interval
+
+    seg, run = h.segment, h.segment.run
+    model = corrected_system(system, chosen, h.theta)
+    dt = float(np.median(np.diff(run.t)))
+    seen = filter_inputs(system, chosen, h.theta, run.u, dt)
+    try:
+        x = np.empty((len(run), system.nx))
+        x[0] = seg.x0
+        for k in range(len(run) - 1):
+            x[k + 1] = integrate_interval(model, "prior", x[k], seen[k], run.t[k + 1] - run.t[k], run.t[k])
+        rng = np.random.default_rng(settings.seed + 4_242)
+        y = np.asarray(system.h(x, run.u))
+        y = y + rng.normal(size=y.shape) * np.asarray(system.noise.measurement_std)
+        synthetic = Run(run.t, run.u, y, x, run.system)
+        target = x if reference is not None or run.x is not None else \
+            observe(synthetic, system, settings.observer).zeta
+        res = run_estimator(estimator, dataclasses.replace(synthetic, u=seen), seg.x0, f"{name}:own")
+        return _mse(res.x_hat, target)
+    except Exception:  # noqa: BLE001 - an unstable corrected model has no level to offer
+        return float("inf")
 
 
 def _mse(x_hat: np.ndarray, reference: np.ndarray) -> float:
@@ -215,9 +271,10 @@ def verdict(gap_present: bool, chosen: bool, refit: str, result: dict, settings:
 
 
 def verdict_and_reason(gap_present: bool, chosen: bool, refit: str, result: dict,
-                       settings: DiagnosisSettings) -> tuple[str, str]:
+                       settings: DiagnosisSettings, tried: Sequence[str] = ()) -> tuple[str, str]:
     """The overall verdict (see the module docstring) and the sentence that states why, in terms
-    of the held-out figures only."""
+    of the held-out figures only; short of "explained", it says what is left and (``tried``)
+    which kinds of effect the library offered."""
     if not gap_present:
         return "no gap", "no residual state is above the noise floor and no effect passes the tests"
     if refit.startswith("failed"):
@@ -233,12 +290,38 @@ def verdict_and_reason(gap_present: bool, chosen: bool, refit: str, result: dict
     against = [n.upper() for n, v in ests.items() if v == "rejected"]
     floor = settings.explained_gap + (one["true"] if "true" in one else 0.0)
     share = one["closed"] if one["closed"] is not None else 0.0
-    if one["after"] <= floor and not against:
+    short = _short_of_supported(result, settings)
+    kinds = f"; kinds tried: {', '.join(tried)}" if tried else ""
+    if one["after"] <= floor and not against and not short:
+        ran = [n.upper() for n in ests]
         return "explained", (f"the corrected prior's held-out residual is within the noise floor "
-                             f"({one['after']:.3g} noise units^2 above it, at most {floor:.3g} allowed)")
+                             f"({one['after']:.3g} noise units^2 above it, at most {floor:.3g} allowed)"
+                             + (f" and the {' and the '.join(ran)} reach the error the data support "
+                                f"(within {settings.explained_estimator:.0%})" if ran else
+                                "; the estimators were not run, so their error is not checked"))
     if share >= 0.25:
         why = (f"the {' and the '.join(against)} held-out MSE gets worse with the correction" if against else
                f"the corrected residual stays above the noise floor ({one['after']:.3g} noise units^2 above "
-               f"it; 'explained' needs at most {floor:.3g})")
-        return "partly explained", f"it closes {share:.1%} of the held-out gap (at least 25 %), but {why}"
-    return "unexplained", f"the correction closes only {share:.1%} of the held-out gap (less than 25 %)"
+               f"it; 'explained' needs at most {floor:.3g})" if one["after"] > floor else short)
+        return "partly explained", (f"it closes {share:.1%} of the held-out gap (at least 25 %), "
+                                    f"but {why}{kinds}")
+    return "unexplained", (f"the correction closes only {share:.1%} of the held-out gap (less than 25 %)"
+                           f"{kinds}")
+
+
+def _short_of_supported(result: dict, settings: DiagnosisSettings) -> str:
+    """What keeps the estimators from "explained": each one whose corrected held-out MSE is more
+    than ``explained_estimator`` above the level the data support (or whose level could not be
+    measured), in words; ``""`` when none."""
+    words = []
+    for n in settings.estimators:
+        entry = result.get(n)
+        if entry is None:
+            continue
+        if entry.get("supported") is None:
+            words.append(f"the {n.upper()}'s supported error could not be measured")
+        elif entry["above_supported"] > settings.explained_estimator:
+            words.append(f"the {n.upper()}'s held-out error stays {entry['above_supported']:.0%} above "
+                         f"what the data support ({entry['after']:.4g} against {entry['supported']:.4g}, "
+                         f"{entry['supported_by']})")
+    return "; ".join(words)

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..integrators import rk4_step
 from ..systems import System
+from .blur import matched
 from .fit import Pairs
 from .settings import DiagnosisSettings
 
@@ -96,7 +97,7 @@ def model_residual(system: System, xdot, pairs: Pairs) -> np.ndarray:
     for name in system.periodic_states:
         i = system.state_names.index(name)
         diff[:, i] = np.angle(np.exp(1j * diff[:, i]))
-    return diff / pairs.dt[:, None]
+    return matched(pairs, diff / pairs.dt[:, None])[0]
 
 
 def gap_size(r: np.ndarray, sigma: np.ndarray, rows: Sequence[int]) -> float:
