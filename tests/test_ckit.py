@@ -208,7 +208,7 @@ def test_gate_equals_the_python_gate(libraries, cc):
     k = libraries("kit_core", cc, "double")
     settings = GateSettings(threshold=9.0, recover_after=3, inflation=2.0)
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
-    k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e12, restype=None)
+    k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e4, restype=None)
     py = GateState(settings, 2)
     rng = np.random.default_rng(2)
     rho, streaks, episodes = ctypes.c_double(), np.zeros(2, dtype=np.intc), 0
@@ -258,7 +258,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
     assert k("kt_mhe_reset", m, k.a(x0), k.a(P0), k.a(Q), k.a(R)) == 0
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
     gate = settings.gate
-    k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e12, restype=None)
+    k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e4, restype=None)
     n1, restarts, rejections, carried_steps = N + 1, 0, 0, 0
     for step in range(300):
         u = rng.normal(size=1)

@@ -184,6 +184,24 @@ LEARNEST_KIT int learnest_covariance_in(const learnest_real* A, int n, learnest_
   return LEARNEST_OK;
 }
 
+/* Scale row and column i of the symmetric n x n A (either order) by sqrt(ceiling_i / A_ii)
+ * where A_ii exceeds ceiling_i: the variances are then at most the ceiling and the
+ * correlations stay (A stays positive semidefinite); s holds n. Returns 1 when a variance
+ * was capped. */
+LEARNEST_KIT int learnest_cap_variances(learnest_real* A, int n, const learnest_real* ceiling,
+                                        learnest_real* s) {
+  int i, j, capped = 0;
+  for (i = 0; i < n; ++i) {
+    s[i] = A[i * n + i] > ceiling[i] ? LEARNEST_SQRT(ceiling[i] / A[i * n + i]) : 1;
+    capped |= s[i] != 1;
+  }
+  if (!capped) return 0;
+  for (i = 0; i < n; ++i) {
+    for (j = 0; j < n; ++j) A[i * n + j] *= s[i] * s[j];
+  }
+  return 1;
+}
+
 /* A <- (A + A^T) / 2 for the n x n A. */
 LEARNEST_KIT void learnest_symmetrise(learnest_real* A, int n) {
   int i, j;

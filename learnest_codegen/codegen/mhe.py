@@ -128,7 +128,11 @@ def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
                     "covariance in force).",
         "recovery_doc": "rho is multiplied by it; the first step that then\n"
                         " *   accepts its outputs restarts the window (emptied, its prior the "
-                        "Kalman update of\n *   xpred by the sample), and rho shrinks again "
-                        "per clean step. A step that fails\n *   makes the next step restart "
-                        "the window the same way.",
+                        "Kalman update of\n *   xpred by the sample from the variances "
+                        "min(rho P0_ii, ceiling_i), the ceiling being\n *   "
+                        "the cap times the running arrival covariance's), and rho shrinks "
+                        "again per clean step.\n *   A step that fails makes the next step "
+                        "restart the window the same way.",
+        "reseed_doc": "the window restarts from the Kalman update of xpred by every\n"
+                      " *   valid output with the ceiling's variances.",
     }

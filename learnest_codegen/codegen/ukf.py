@@ -235,5 +235,9 @@ def header_doc(settings: UKFSettings) -> dict[str, str]:
         "gate_doc": "each step computes, per valid output j, d2_j = (y_j - zp_j)^2 / S_jj with\n"
                     " *   zp and S = P_zz + R the predicted output and its covariance.",
         "recovery_doc": "the variances (the diagonal of P; the covariances\n"
-                        " *   stay, so stale correlations fade) are multiplied by it.",
+                        " *   stay, so stale correlations fade) are multiplied by it. No variance "
+                        "of P exceeds\n *   its ceiling, the cap times the initial variance "
+                        "(the default P0's diagonal).",
+        "reseed_doc": "the update is redone from the prior covariance\n"
+                      " *   diag(ceiling) with every valid output.",
     }

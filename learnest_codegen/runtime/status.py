@@ -36,6 +36,14 @@ STATUSES = (
            "MEASUREMENT_REJECTED; get_input_rejected says which)",
            "not an error; keep stepping (a long run of it means the actuator, its command log "
            "or the declared range is wrong)"),
+    Status(4, "UNRELIABLE",
+           "the estimate is not backed by the measurements: no output has been accepted for as "
+           "many steps as the gate needs to open fully (recover_after plus the widenings up to "
+           "its cap), after a long run of predictions or a lost track (a bit: OR-ed with the "
+           "others); the next step whose gate rejects a valid output re-seeds the estimate from "
+           "the measurements, and the next accepted output clears it",
+           "not an error; do not act on the estimate until it clears (a long run of it means "
+           "the sensors are off or the measurements stopped)"),
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
            "call <prefix>_init on the workspace first"),
     Status(-2, "BAD_ARGUMENT",

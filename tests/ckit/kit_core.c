@@ -12,6 +12,7 @@
 #define LEARNEST_NU 1
 #define LEARNEST_NY 2
 #define LEARNEST_N 5
+#define LEARNEST_MAX_INFLATION 1e4
 #include "learnest_kit.h"
 
 struct learnest_model {
