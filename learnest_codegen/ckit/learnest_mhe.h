@@ -4,11 +4,12 @@
  * carried forward, estimators/arrival.py), the innovation gate of a new sample and the
  * recovery's restart and re-seed (estimators/mhe.py is the Python reference, line by line).
  *
- * Ceiling: the covariances that become arrival weights (a restart's prior, a carried one) keep
- * their variances at most LEARNEST_MAX_INFLATION times the running arrival covariance's: the
- * arrival weight then stays within that factor of the running one, which the normal equations
- * resolve in float32 (at 1e5 the float32 mhe_gn failed every step after a restart with
- * NOT_POSITIVE_DEFINITE; docs/reports/reliability.md).
+ * Ceilings: a restart's prior variances are at most LEARNEST_MAX_INFLATION times the running
+ * arrival covariance's, and the covariances that become arrival weights (the restart prior's
+ * posterior, a carried one) at most LEARNEST_ARRIVAL_CEILING (100) times: the arrival weight
+ * then stays within that factor of the running one, which the Gauss-Newton normal equations
+ * resolve in float32 (with 1e3 the float32 mhe_gn failed with MAX_ITERATIONS after a gap of
+ * 10,000 samples, with 1e5 at every step after a restart; docs/reports/reliability.md).
  *
  * Include after learnest_kit.h with LEARNEST_NX, LEARNEST_NU, LEARNEST_NY, LEARNEST_N and
  * LEARNEST_MAX_INFLATION.
@@ -100,13 +101,15 @@ LEARNEST_KIT int learnest_mhe_tune(struct learnest_mhe_tuning* t, const learnest
   return LEARNEST_OK;
 }
 
-/* The ceiling of an arrival covariance's variances (NX): LEARNEST_MAX_INFLATION times the
- * running arrival covariance's. */
-LEARNEST_KIT void learnest_mhe_ceiling(const struct learnest_mhe* m, learnest_real* ceiling) {
+/* The largest variance of a covariance that becomes an arrival weight, relative to the running
+ * arrival covariance's (estimators/arrival.py ARRIVAL_CEILING). */
+#define LEARNEST_ARRIVAL_CEILING 100
+
+/* factor times the running arrival covariance's variances (NX). */
+LEARNEST_KIT void learnest_mhe_ceiling(const struct learnest_mhe* m, learnest_real factor,
+                                       learnest_real* ceiling) {
   int i;
-  for (i = 0; i < LEARNEST_NX; ++i) {
-    ceiling[i] = (learnest_real)LEARNEST_MAX_INFLATION * m->P_cov[i * LEARNEST_NX + i];
-  }
+  for (i = 0; i < LEARNEST_NX; ++i) ceiling[i] = factor * m->P_cov[i * LEARNEST_NX + i];
 }
 
 /* 1 when the covariance A (NX x NX, symmetric) is no larger than the running arrival
@@ -240,7 +243,7 @@ LEARNEST_KIT int learnest_mhe_carries(const struct learnest_mhe* m, int has_prev
  * taken before (has_previous) and opens the new sample's stage with input u. When the window
  * was full the arrival moves on: its weight becomes W, or, while a covariance is carried
  * (learnest_mhe_carries: H and A given, else NULL), the inverse of the carried one (its
- * variances capped at the ceiling) until it has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
+ * variances capped at the arrival ceiling) until it has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
  * (when has_previous). */
 LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
                                        const learnest_real* u, const learnest_real* H,
@@ -254,7 +257,7 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
       if (m->carried_next && H && A) {
         learnest_real ceiling[LEARNEST_NX], work[LEARNEST_NX];
         learnest_mhe_carry(m, H, A, m->Cn);
-        learnest_mhe_ceiling(m, ceiling);
+        learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
         (void)learnest_cap_variances(m->Cn, LEARNEST_NX, ceiling, work);
         if (learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
       } else {
@@ -323,8 +326,9 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
  * any, else the running P_cov. A restart (after a failed step, on the step that ends a
  * recovery episode, learnest_gate_ends_episode, or on a re-seed, learnest_gate_reseeds, which
  * takes every valid output) empties the window around learnest_restart_prior from the variances
- * min(rho P_arr_ii, ceiling_i) (a re-seed: the ceiling's), folds the sample into it and
- * carries the prior's covariance (its inverse is the arrival weight). Weighs the sample's
+ * min(rho P_arr_ii, cap P_cov_ii) (a re-seed: cap P_cov_ii), folds the sample into it and
+ * carries the prior's covariance, capped at the arrival ceiling (its inverse is the arrival
+ * weight). Weighs the sample's
  * outputs (G); sets rejected (NY) and *restarted; returns 1 when an output was rejected. */
 LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest_gate* g,
                                    int has_previous, const learnest_real* u,
@@ -332,7 +336,7 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
                                    const learnest_real* h, const learnest_real* C, int* rejected,
                                    int* restarted) {
   learnest_real d2[LEARNEST_NY], nu[LEARNEST_NY], xbar[LEARNEST_NX], cov[LEARNEST_NXX];
-  learnest_real pd[LEARNEST_NX];
+  learnest_real pd[LEARNEST_NX], ceiling[LEARNEST_NX];
   const learnest_real* P_arr = m->carried_next ? m->Cn : m->P_cov;
   int i, j, k, any, reseed, keep[LEARNEST_NY];
   for (i = 0; i < LEARNEST_NY; ++i) {
@@ -351,12 +355,14 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
   *restarted = has_previous && (m->restart || reseed || learnest_gate_ends_episode(g, rejected, valid));
   if (*restarted) {
-    learnest_mhe_ceiling(m, pd);
+    learnest_mhe_ceiling(m, (learnest_real)LEARNEST_MAX_INFLATION, pd);
     for (i = 0; i < LEARNEST_NX && !reseed; ++i) {
       learnest_real v = g->rho * P_arr[i * LEARNEST_NX + i];
       pd[i] = v < pd[i] ? v : pd[i];
     }
     learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, pd, m->R_cov, nu, keep, xbar, cov);
+    learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
+    (void)learnest_cap_variances(cov, LEARNEST_NX, ceiling, pd);
     learnest_window_reset(&m->next.w, xbar);
     learnest_window_open(&m->next.w, u);
     learnest_window_fill(m->Xn, xbar);

@@ -39,21 +39,22 @@ Recovery: ``rho`` is 1 normally and multiplied by ``inflation`` at each rejectin
 ``recover_after``-th consecutive one on, so the gate widens until the new measurements pass.
 The first step that then rejects nothing (and has an output) ends the episode and restarts the
 window: it is emptied, its prior ``xbar`` is the Kalman update of the prediction ``xpred ~ (.,
-diag(min(rho P_arr_ii, ceiling_i)))`` by the sample (:func:`restart_prior`), the sample itself
-is folded into that prior (gate weight 0), and the prior's weight is the inverse of that
-update's covariance until the window is full again. The ceiling (:attr:`MHE.ceiling`,
-:mod:`.gate`) is :data:`~.gate.MAX_INFLATION` times the running arrival covariance; a lost
-estimate (:mod:`.gate`) re-seeds the same way from the ceiling's variances with every valid
-output of the sample, and a carried arrival covariance keeps its variances below the ceiling. A
-lost track means the whole state is in doubt: with the running weight instead, states the
-outputs do not see (the cartpole's rates after a few samples of a wrong input) stayed pinned to
-their wrong values, each restart was followed by new rejections, and the MHE rejected 73 % of
-the clean samples for good (measured, ``docs/reports/reliability.md``). ``rho`` then shrinks by
-``inflation`` per step without rejection, so the gate stays wide while the window re-learns
-(resetting ``rho`` to 1 at the restart made a wrap of the whole cartpole state lose the track
-again for 1,500 samples). A step the solver fails on also restarts the window at the next step
-(the estimate stays as it was; the prior is updated by the outputs the gate keeps), so a window
-the solver cannot solve is not retried forever.
+diag(min(rho P_arr_ii, cap P_run_ii)))`` by the sample (:func:`restart_prior`; ``cap`` is
+:data:`~.gate.MAX_INFLATION`, ``P_run`` the running arrival covariance), the sample itself is
+folded into that prior (gate weight 0), and the prior's weight is the inverse of that update's
+covariance, its variances capped at :attr:`MHE.ceiling` (:data:`~.arrival.ARRIVAL_CEILING`
+times the running ones), until the window is full again. A lost estimate (:mod:`.gate`) re-
+seeds the same way from the variances ``cap P_run_ii`` with every valid output of the sample,
+and a carried arrival covariance keeps its variances below the ceiling. A lost track means the
+whole state is in doubt: with the running weight instead, states the outputs do not see (the
+cartpole's rates after a few samples of a wrong input) stayed pinned to their wrong values,
+each restart was followed by new rejections, and the MHE rejected 73 % of the clean samples for
+good (measured, ``docs/reports/reliability.md``). ``rho`` then shrinks by ``inflation`` per
+step without rejection, so the gate stays wide while the window re-learns (resetting ``rho`` to
+1 at the restart made a wrap of the whole cartpole state lose the track again for 1,500
+samples). A step the solver fails on also restarts the window at the next step (the estimate
+stays as it was; the prior is updated by the outputs the gate keeps), so a window the solver
+cannot solve is not retried forever.
 
 Why a restart and not a relaxed arrival weight on the old window (the first design): a window
 that keeps its old samples must explain a real jump by one huge process-noise step, and an
@@ -282,9 +283,10 @@ class MHE(GateReport):
             rejected = np.zeros_like(rejected)
         keep = valid & ~rejected
         if has_previous and (self._restart or reseed or self._gate.ends_episode(rejected, valid)):
-            ceiling = self.ceiling
-            pd = ceiling if reseed else np.minimum(rho * np.diag(cov), ceiling)
+            widest = MAX_INFLATION * np.diag(self._P_run_cov)
+            pd = widest if reseed else np.minimum(rho * np.diag(cov), widest)
             xbar, arrival_cov = restart_prior(guess[-1], C, np.diag(pd), self._R_cov, innovation, ~keep)
+            arrival_cov = cap_variances(arrival_cov, self.ceiling)
             P = _inverse(arrival_cov)
             window = Window.empty(self.layout, xbar)
             window.open(u)
@@ -320,10 +322,10 @@ class MHE(GateReport):
 
     @property
     def ceiling(self) -> np.ndarray:
-        """(nx,) the largest variance a restart prior or a carried arrival covariance may hold:
-        :data:`~.gate.MAX_INFLATION` times the running arrival covariance's (the C's
-        ``learnest_mhe_ceiling``)."""
-        return MAX_INFLATION * np.diag(self._P_run_cov)
+        """(nx,) the largest variance a covariance that becomes the arrival weight (a restart
+        prior's posterior, a carried one) may hold: :data:`~.arrival.ARRIVAL_CEILING` times the
+        running arrival covariance's (the C's ``LEARNEST_ARRIVAL_CEILING``)."""
+        return arrival.ARRIVAL_CEILING * np.diag(self._P_run_cov)
 
     def _started(self) -> np.ndarray:
         if self._window is None:
