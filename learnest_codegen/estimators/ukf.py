@@ -25,7 +25,7 @@ from ..runtime.limits import check_option
 from ..systems import System
 from . import validation
 from .gate import MAX_INFLATION, GateReport, GateSettings, GateState, cap_variances
-from .inputs import InputCheck, check_limits
+from .inputs import InputCheck, check_limits, plausible_inputs
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -44,7 +44,8 @@ class UKFSettings:
         Every std is in ``[1e-100, 1e100]`` (``runtime/limits.py``).
     gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
     input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
-        (:mod:`.inputs`); ``None``: only finiteness is checked.
+        (:mod:`.inputs`; ``from_system`` takes :func:`~.inputs.plausible_inputs`); ``None``:
+        only finiteness is checked.
     """
 
     alpha: float = 0.1
@@ -77,12 +78,13 @@ class UKFSettings:
 
     @classmethod
     def from_system(cls, system: System, **overrides) -> "UKFSettings":
-        """Settings with the noise stds of ``system.noise``, any field overridden by keyword."""
+        """Settings with the noise stds of ``system.noise`` and the system's plausible inputs
+        (:func:`~.inputs.plausible_inputs`), any field overridden by keyword."""
         unknown = set(overrides) - {f.name for f in fields(cls)}
         if unknown:
             raise TypeError(f"UKFSettings has no field(s) {sorted(unknown)}")
         noise = {name: getattr(system.noise, name) for name in _STD_FIELDS}
-        return cls(**{**noise, "input_limits": system.input_limits, **overrides})
+        return cls(**{**noise, "input_limits": plausible_inputs(system), **overrides})
 
     def validate_for(self, model: DiscreteModel) -> None:
         """Raise :class:`ShapeError` unless the std lengths match ``model.nx`` and ``model.ny``."""

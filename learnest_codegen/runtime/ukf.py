@@ -13,7 +13,7 @@ import numpy as np
 
 from ..estimators import validation
 from ..estimators.ukf import UKFSettings
-from .base import HANDLE, INT, CompiledEstimator
+from .base import HANDLE, INT, CompiledEstimator, _locked
 from .manifest import check_manifest
 
 
@@ -67,6 +67,7 @@ class CompiledUKF(CompiledEstimator):
         return P0, self.settings.Q(), self.settings.R()
 
     @property
+    @_locked
     def P(self) -> np.ndarray:
         """Current covariance ``(nx, nx)``."""
         P = np.empty((self.nx, self.nx), dtype=self.dtype)
