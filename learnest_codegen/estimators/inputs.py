@@ -16,9 +16,10 @@ is used at once. What a wrong but plausible input does to the state is the innov
 recovery to repair (:mod:`.gate`, and the MHE's window restart in :mod:`.mhe`). Rule and
 measurements: ``docs/reports/reliability.md``.
 
-Status of a step (``last_status``), a bit set so that both can be reported at once:
+Status of a step (``last_status``), a bit set so that several can be reported at once:
 ``0`` OK, ``MEASUREMENT_REJECTED`` (1) the innovation gate left an output out,
-``INPUT_REJECTED`` (2) a component of ``u`` was replaced. None of them is an error.
+``INPUT_REJECTED`` (2) a component of ``u`` was replaced, ``UNRELIABLE`` (4) the estimate is
+lost (:mod:`.gate`). None of them is an error.
 """
 
 from __future__ import annotations

@@ -144,9 +144,9 @@ class MHESettings:
     @classmethod
     def from_system(cls, system: "System", **overrides) -> "MHESettings":
         """Settings from ``system.noise`` (arrival std = ``initial_std``) and the system's
-        plausible inputs (:func:`~.inputs.plausible_inputs`), with ``overrides``. The steady-state
-        arrival covariance needs the model: it is
-        filled in when an estimator is built (:func:`mhe_settings`)."""
+        plausible inputs (:func:`~.inputs.plausible_inputs`), with ``overrides``. The
+        steady-state arrival covariance needs the model: it is filled in when an estimator is
+        built (:func:`mhe_settings`)."""
         noise = system.noise
         defaults = {"process_std": noise.process_std, "measurement_std": noise.measurement_std,
                     "arrival_std": noise.initial_std, "input_limits": plausible_inputs(system)}
