@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.errors import DataError
 from learnest_codegen.runtime.status import STATUS_NAMES
 from learnest_codegen.toolchain import casadi_dirs
 
@@ -283,22 +284,38 @@ def _run_checking_P(est, R, target):
     return np.array(X)
 
 
-@pytest.mark.parametrize("R_scale", [0.0, 1e-10, "rank-1"])
-def test_ukf_covariance_stays_positive_definite_with_exact_measurements(
-        cartpole_targets, float32_builds, R_scale):
-    """An exact (R = 0), nearly exact (1e-10 I: below float32's resolution of the variances)
-    or rank-deficient R makes P - K S K^T singular: in float32 its smallest eigenvalues came
-    out at -1e-8 relative, the next prediction's Cholesky failed, and every later step
-    returned NONFINITE_RESULT (399 of 400; float64 too for R = 0). The guard loads the
-    diagonal by a few epsilons: every step succeeds with a positive definite P, and with the
-    gate off the float32 estimate tracks the truth as well as FilterPy (the Python reference)
-    with the same R, at its own float64 precision."""
+@pytest.mark.parametrize("R_scale", [0.0, "rank-1"])
+def test_ukf_refuses_an_exact_measurement_covariance(cartpole_targets, float32_builds, R_scale):
+    """R = 0 or a rank-deficient R is not a measurement covariance the update can invert:
+    set_noise refuses it as the MHEs do (accepted, R = 0 drifted the UKF to an error of 9-12)
+    and the C refuses it too (NOT_POSITIVE_DEFINITE), the estimator unchanged."""
+    R = np.ones((2, 2)) * 1e-4 if R_scale == "rank-1" else R_scale * np.eye(2)
+    for target in (by_estimator(cartpole_targets)["ukf"], by_estimator(float32_builds)["ukf"]):
+        est, _ = _ukf_with_R(target.directory, R, False)
+        est.reset(target.x0)
+        with pytest.raises(DataError, match="positive definite"):
+            est.set_noise(R=R)
+        raw = _RawC(target)
+        memory = np.zeros(est._memory.nbytes, dtype=np.uint8)
+        code, handle = raw.init(memory, memory.nbytes, target.x0, est.settings.P0(),
+                                est.settings.Q(), R)
+        assert (code, handle) == (CODES["NOT_POSITIVE_DEFINITE"], None)
+
+
+def test_ukf_covariance_stays_positive_definite_with_nearly_exact_measurements(
+        cartpole_targets, float32_builds):
+    """A nearly exact R (1e-10 I: below float32's resolution of the variances) makes
+    P - K S K^T singular: in float32 its smallest eigenvalues came out at -1e-8 relative, the
+    next prediction's Cholesky failed, and every later step returned NONFINITE_RESULT (399 of
+    400). The guard loads the diagonal by a few epsilons: every step succeeds with a positive
+    definite P, and with the gate off the float32 estimate tracks the truth as well as FilterPy
+    (the Python reference) with the same R, at its own float64 precision."""
     from learnest_codegen.estimators.ukf import UKF
 
     float64 = by_estimator(cartpole_targets)["ukf"]
     float32 = by_estimator(float32_builds)["ukf"]
-    R = np.ones((2, 2)) * 1e-4 if R_scale == "rank-1" else R_scale * np.eye(2)
-    gate_off = R_scale == 1e-10
+    R = 1e-10 * np.eye(2)
+    gate_off = True
     X = {}
     for target in (float64, float32):
         est, _ = _ukf_with_R(target.directory, R, gate_off)

@@ -173,6 +173,23 @@ LEARNEST_KIT void learnest_mat_mul_t(const learnest_real* A, const learnest_real
   }
 }
 
+/* 1 when every variance (diagonal entry) of the n x n A is in the precision's range
+ * (learnest_status.h LEARNEST_VARIANCE_MIN/_MAX, a float build LEARNEST_VARIANCE_FLOAT32_*),
+ * or is 0 where definite is 0: a variance beyond it has an inverse or a square the estimator
+ * cannot carry (runtime/limits.py). */
+LEARNEST_KIT int learnest_variances_ok(const learnest_real* A, int n, int definite) {
+  const learnest_real lo = LEARNEST_IS_FLOAT ? (learnest_real)LEARNEST_VARIANCE_FLOAT32_MIN
+                                             : (learnest_real)LEARNEST_VARIANCE_MIN;
+  const learnest_real hi = LEARNEST_IS_FLOAT ? (learnest_real)LEARNEST_VARIANCE_FLOAT32_MAX
+                                             : (learnest_real)LEARNEST_VARIANCE_MAX;
+  int i;
+  for (i = 0; i < n; ++i) {
+    const learnest_real v = A[i * n + i];
+    if (!((v >= lo && v <= hi) || (!definite && v == 0))) return 0;
+  }
+  return 1;
+}
+
 /* A covariance as an API call gives it (n x n, row-major) checked: finite (else
  * LEARNEST_NONFINITE_INPUT), symmetric and positive semidefinite to rounding (else
  * LEARNEST_NOT_POSITIVE_DEFINITE); dst = its column-major copy; work holds n * n. */

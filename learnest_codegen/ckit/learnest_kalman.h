@@ -45,9 +45,10 @@ LEARNEST_KIT int learnest_kalman_variances_ok(const learnest_real* A, int n) {
   return 1;
 }
 
-/* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; positive
- * semidefinite is enough, no variance below zero); nothing is written unless every given one is
- * valid. */
+/* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; P0 and Q
+ * positive semidefinite, no variance below zero; R positive definite, as the update inverts
+ * it), every variance in the precision's range (P0's and Q's may be 0; else
+ * LEARNEST_BAD_ARGUMENT); nothing is written unless every given one is valid. */
 LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
                                    const learnest_real* Q, const learnest_real* R) {
   learnest_real w[LEARNEST_KF_NMAX * LEARNEST_KF_NMAX];
@@ -60,6 +61,15 @@ LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
       (Q && !learnest_kalman_variances_ok(Q, LEARNEST_NX)) ||
       (R && !learnest_kalman_variances_ok(R, LEARNEST_NY))) {
     return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
+  if (R) {  /* R positive definite: its Cholesky factor exists */
+    memcpy(w, c.R, sizeof c.R);
+    if (!learnest_cholesky(w, LEARNEST_NY)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
+  if ((P0 && !learnest_variances_ok(P0, LEARNEST_NX, 0)) ||
+      (Q && !learnest_variances_ok(Q, LEARNEST_NX, 0)) ||
+      (R && !learnest_variances_ok(R, LEARNEST_NY, 1))) {
+    return LEARNEST_BAD_ARGUMENT;
   }
   if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
   if (Q) memcpy(t->Q, c.Q, sizeof c.Q);

@@ -60,12 +60,14 @@ struct learnest_mhe {
 };
 
 /* One covariance A (n x n, row-major) checked and inverted: finite (else
- * LEARNEST_NONFINITE_INPUT), symmetric and positive definite (else
+ * LEARNEST_NONFINITE_INPUT), its variances in the precision's range (else
+ * LEARNEST_BAD_ARGUMENT), symmetric and positive definite (else
  * LEARNEST_NOT_POSITIVE_DEFINITE); cov = A symmetrised, weight = its inverse (symmetrised). */
 LEARNEST_KIT int learnest_mhe_covariance(const learnest_real* A, int n, learnest_real* cov,
                                          learnest_real* weight) {
   learnest_real work[LEARNEST_NMAX * LEARNEST_NMAX];
   if (!learnest_all_finite(A, n * n)) return LEARNEST_NONFINITE_INPUT;
+  if (!learnest_variances_ok(A, n, 1)) return LEARNEST_BAD_ARGUMENT;
   if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   memcpy(cov, A, (size_t)(n * n) * sizeof(learnest_real));
   learnest_symmetrise(cov, n);

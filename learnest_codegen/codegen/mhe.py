@@ -116,7 +116,9 @@ def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
         "threads": ("\n *   The Ipopt MHE: use one library from one thread at a time (each solve "
                     "checks a\n *   memory out of CasADi's static pool)." if solver == "Ipopt" else ""),
         "covariance_rule": "each must be symmetric positive definite (the cost weighs by their "
-                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE. P0 is the\n * "
+                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE,\n * with every "
+                           "variance in the precision's range (LEARNEST_VARIANCE_MIN/_MAX), else "
+                           "LEARNEST_BAD_ARGUMENT. P0 is the\n * "
                            "covariance of the first prior x0: larger than the running arrival "
                            "covariance\n * (the build's default, set_arrival), it is carried "
                            "forward with the window until it\n * is no larger (after a recovery "

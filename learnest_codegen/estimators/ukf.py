@@ -217,7 +217,7 @@ class UKF(GateReport):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
         try:  # the compiled filter's PSD guard (P - K S K^T can lose definiteness in rounding)
-            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx)
+            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx, precision=None)
         except DataError as exc:
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc

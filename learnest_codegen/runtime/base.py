@@ -89,6 +89,8 @@ class CompiledEstimator:
     SERIALISE = False
 
     ESTIMATORS: tuple[str, ...] = ()
+    #: Whether P0 and Q must be positive definite (the MHEs weigh by their inverses); R must be.
+    DEFINITE = True
 
     def __init__(self, directory: Path, expect: Mapping[str, Any] | None, settings: Any = None):
         self._lock = threading.RLock()  # this instance's handle: one call at a time
@@ -109,6 +111,7 @@ class CompiledEstimator:
         if precision not in C_DTYPES:
             raise ModelMismatchError(f"{self.where}: manifest precision {precision!r} is not one of "
                                      f"{list(C_DTYPES)}; recompile the estimator")
+        self.precision = precision
         self.dtype, self.c_real = C_DTYPES[precision]
         self.real_pointer = np.ctypeslib.ndpointer(dtype=self.dtype, flags="C_CONTIGUOUS")
         library = self.directory / m["library"]
@@ -307,9 +310,11 @@ class CompiledEstimator:
             raise SettingsError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
                              f"this estimator has no arrival cost")
         Q = None if Q is None else self.real_array(
-            validation.covariance(f"{name}.set_noise: Q", Q, self.nx), exact=True)
+            validation.covariance(f"{name}.set_noise: Q", Q, self.nx, definite=self.DEFINITE,
+                                  precision=self.precision), exact=True)
         R = None if R is None else self.real_array(
-            validation.covariance(f"{name}.set_noise: R", R, self.ny), exact=True)
+            validation.covariance(f"{name}.set_noise: R", R, self.ny, definite=True,
+                                  precision=self.precision), exact=True)
         self.check_status("set_noise", self._c["set_noise"](
             self._started("set_noise"), None if Q is None else Q.ctypes.data,
             None if R is None else R.ctypes.data))

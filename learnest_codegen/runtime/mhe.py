@@ -78,7 +78,8 @@ class CompiledMHE(CompiledEstimator):
     def _covariances(self, P0):
         Q, R, P = self.settings.covariances()
         if P0 is not None:
-            P = validation.covariance(f"{type(self).__name__}.reset: P0", P0, self.nx, definite=True)
+            P = validation.covariance(f"{type(self).__name__}.reset: P0", P0, self.nx, definite=True,
+                                      precision=self.precision)
         return P, Q, R
 
     @property
@@ -119,7 +120,8 @@ class CompiledMHE(CompiledEstimator):
         ``set_arrival``)."""
         if P_arrival is not None:
             P = self.real_array(validation.covariance(f"{type(self).__name__}.set_noise: P_arrival",
-                                                      P_arrival, self.nx, definite=True),
+                                                      P_arrival, self.nx, definite=True,
+                                                      precision=self.precision),
                                 exact=True)
             self.check_status("set_noise", self._c["set_arrival"](self._started("set_noise"), P))
         if Q is not None or R is not None:

@@ -47,8 +47,8 @@ STATUSES = (
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
            "call <prefix>_init on the workspace first"),
     Status(-2, "BAD_ARGUMENT",
-           "a NULL pointer, a size, a validity flag other than 0 or 1, or an option outside its "
-           "documented range (LEARNEST_*_MIN/_MAX below)",
+           "a NULL pointer, a size, a validity flag other than 0 or 1, or an option or a "
+           "covariance's variance outside its documented range (LEARNEST_*_MIN/_MAX below)",
            "fix the call; nothing was changed"),
     Status(-3, "NONFINITE_INPUT",
            "a valid output of y, x0 or a covariance is NaN or infinite (a non-finite u is "
