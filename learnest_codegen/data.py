@@ -249,6 +249,30 @@ def _is_complex(cell: str) -> bool:
     return True
 
 
+def unmeasured_outputs(run: Run, system: System, where: str) -> list[str]:
+    """The outputs of ``run`` without a single sample (their ``y_`` column is empty throughout);
+    :class:`DataError` when that is every output: the run holds no measurement to estimate or
+    learn from."""
+    empty = [name for name, col in zip(system.output_names, run.missing.T) if col.all()]
+    if len(empty) == system.ny:
+        raise DataError(f"{where}: the run holds no measurement: every y_ cell of "
+                        f"{', '.join('y_' + n for n in empty)} is empty ({len(run)} samples); "
+                        "fill in the measured outputs (an empty cell means a missing sample)")
+    return empty
+
+
+def longest_gap(run: Run) -> tuple[int, int]:
+    """``(first sample, length)`` of the longest stretch of samples without any output
+    (``(0, 0)`` when every sample has one)."""
+    none = run.missing.all(axis=1).astype(np.int8)
+    edges = np.diff(np.concatenate([[0], none, [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    if not len(starts):
+        return 0, 0
+    k = int(np.argmax(ends - starts))
+    return int(starts[k]), int(ends[k] - starts[k])
+
+
 def check_sampling(run: Run, dt: float, where: str, *, rtol: float = SAMPLING_RTOL,
                    jitter: float = JITTER_RTOL) -> None:
     """Raise :class:`DataError` unless ``run`` is sampled every ``dt`` seconds.

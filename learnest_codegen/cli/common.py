@@ -43,15 +43,24 @@ RESAMPLE = click.option("--resample", is_flag=True,
                              "(default: refuse such a run)")
 
 
-def read_run(data: str, system, resample: bool):
-    """Read a run CSV and make sure it is sampled at the system's ``dt`` (or resample it)."""
-    from ..data import check_sampling, read_run
+def read_run(data: str, system, resample: bool, measured: bool = True):
+    """Read a run CSV and make sure it is sampled at the system's ``dt`` (or resample it).
+
+    With ``measured``, a run without any measurement is an error and an output column without
+    a single sample is said on stderr (the estimate or the model then rests on the others)."""
+    from ..data import check_sampling, read_run, unmeasured_outputs
     from ..data import resample as to_grid
 
     run = read_run(data, system)
     if resample:
         run = to_grid(run, system.dt)
     check_sampling(run, system.dt, str(data))
+    if measured:
+        for name in unmeasured_outputs(run, system, str(data)):
+            click.echo(f"Warning: {data}: column y_{name} holds no sample ({len(run)} empty cells): "
+                       f"output {name} is never measured, so what it would tell comes from the "
+                       "model and the other outputs alone; check the column (an empty cell means "
+                       "a missing sample)", err=True)
     return run
 
 
@@ -187,13 +196,19 @@ def parse_covariance(text: str | None, system, option: str = "--P0") -> np.ndarr
     nx*nx entries row by row; ``None`` stays ``None`` (the estimator's own)."""
     if text is None:
         return None
+    from ..errors import DataError
+    from ..estimators.validation import covariance
+
     n = system.nx
     if text.strip() == "initial":
         return np.diag(np.square(system.noise.initial_std))
     count = len(text.split(","))
-    if count == n:
-        return np.diag(parse_vector(text, n, option))
-    if count == n * n:
-        return parse_vector(text, n * n, option).reshape(n, n)
-    raise click.BadParameter(f"expected 'initial', {n} variances or {n * n} entries, got {count} "
-                             "values", param_hint=option)
+    if count not in (n, n * n):
+        raise click.BadParameter(f"expected 'initial', {n} variances or {n * n} entries, got "
+                                 f"{count} values", param_hint=option)
+    P0 = np.diag(parse_vector(text, n, option)) if count == n else \
+        parse_vector(text, n * n, option).reshape(n, n)
+    try:
+        return covariance(option, P0, n)
+    except DataError as exc:
+        raise click.BadParameter(str(exc).removeprefix(f"{option}: "), param_hint=option) from exc

@@ -34,7 +34,7 @@ from ..errors import DataError, ModelMismatchError, SettingsError, ShapeError, S
 from ..estimators import validation
 from .limits import check_option
 from .manifest import check_manifest, read_manifest
-from .status import status_name
+from .status import STATUS_BY_CODE, status_name
 
 C_DTYPES = {"float64": (np.float64, ctypes.c_double), "float32": (np.float32, ctypes.c_float)}
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -215,10 +215,13 @@ class CompiledEstimator:
         return check_option(limit, value, where)
 
     def check_status(self, call: str, code: int, detail: str = "") -> int:
-        """Raise :class:`SolverError` for a negative status; return the code otherwise."""
+        """Raise :class:`SolverError` for a negative status, naming the code, what it means and
+        how to recover (``runtime/status.py``); return the code otherwise."""
         if code < 0:
+            status = STATUS_BY_CODE.get(code)
+            why = f": {status.meaning}; {status.recovery}" if status else "; the estimator is as before"
             raise SolverError(f"{type(self).__name__}.{call} ({self.directory.name}{detail}): "
-                              f"C returned {code} ({status_name(code)}); the estimator is as before")
+                              f"C returned {code} ({status_name(code)}){why}")
         return code
 
     # -- the shared API --------------------------------------------------------------------

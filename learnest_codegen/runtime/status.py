@@ -72,6 +72,7 @@ STATUSES = (
 )
 
 STATUS_NAMES = {s.code: s.name for s in STATUSES}
+STATUS_BY_CODE = {s.code: s for s in STATUSES}
 
 
 def status_name(code: int) -> str:
