@@ -86,13 +86,12 @@ def cartpole():
     return get_system("cartpole")
 
 
-def builds(with_ipopt: bool = False) -> dict[str, Path]:
-    """The nominal cartpole estimators, compiled once into build/bench/reliability/lib."""
+def builds(with_ipopt: bool = False, lib: Path = OUT / "lib") -> dict[str, Path]:
+    """The nominal cartpole estimators, compiled once into ``lib``."""
     from learnest_codegen.compilation import compile_estimators, estimator_dir
     from learnest_codegen.export import prior_model
 
     model = prior_model(cartpole())
-    lib = OUT / "lib"
     for precision in ("float64", "float32"):
         chosen = ("ukf", "mhe_gn", "mhe_rti") + (("mhe",) if with_ipopt and precision == "float64" else ())
         compile_estimators(model, lib, model_hash="nominal", estimators=chosen, precision=precision)
@@ -212,7 +211,7 @@ def soak(folders: dict[str, Path], steps: int, ipopt_steps: int) -> dict:
     return {"lap_samples": LAP, "builds": out, "measured": measured()}
 
 
-def gaps(folders: dict[str, Path]) -> dict:
+def gaps(folders: dict[str, Path], lengths: tuple[int, ...] = GAPS) -> dict:
     system = cartpole()
     run = simulated(LONG)
     x0 = np.asarray(system.x0, float)
@@ -220,7 +219,7 @@ def gaps(folders: dict[str, Path]) -> dict:
     for name, directory in folders.items():
         clean, _ = Driver(directory, x0).run(run.u, run.y)
         rows = {}
-        for gap in GAPS:
+        for gap in lengths:
             valid = np.ones_like(run.y, dtype=bool)
             valid[GAP_START:GAP_START + gap] = False
             Xg, failed = Driver(directory, x0).run(run.u, run.y, valid)
@@ -234,7 +233,7 @@ def gaps(folders: dict[str, Path]) -> dict:
     return {"gap_start": GAP_START, "run_samples": LONG, "builds": out, "measured": measured()}
 
 
-def predictions(folders: dict[str, Path]) -> dict:
+def predictions(folders: dict[str, Path], starts: tuple[int, ...] = PREDICTION_STARTS) -> dict:
     from learnest_codegen.errors import SolverError
 
     system = cartpole()
@@ -244,7 +243,7 @@ def predictions(folders: dict[str, Path]) -> dict:
     for name, directory in folders.items():
         clean, _ = Driver(directory, x0).run(run.u, run.y)
         rows = {}
-        for start in PREDICTION_STARTS:
+        for start in starts:
             est = load(directory)
             est.reset(x0)
             X = np.empty((LONG, est.nx))
@@ -272,7 +271,7 @@ def predictions(folders: dict[str, Path]) -> dict:
         print(f"    predictions {name}: " + ", ".join(
             f"{s}: {r['back_in_band_after']}{'' if r['finite'] else ' NONFINITE'}" for s, r in rows.items()),
             flush=True)
-    return {"predictions": PREDICTIONS, "starts": list(PREDICTION_STARTS), "builds": out,
+    return {"predictions": PREDICTIONS, "starts": list(starts), "builds": out,
             "measured": measured()}
 
 
