@@ -25,8 +25,14 @@ minutes on 2 idle cores; ``python scripts/bench.py reliability --parts=hostile``
   build, in child processes so that a crash is counted: crashes, clear errors, runs.
 - ``csv_memory``: the peak resident memory (``VmHWM``) of a fresh process that imports the
   package and reads a 1e6-row run CSV (``data.read_run``; the seed-1 run tiled, truth included).
+- ``fuzz``: ``scripts/fuzz_c_api.py``, seeded plans of adversarial raw C calls in child
+  processes, ``--fuzz-calls`` per target (10,000; the Ipopt MHE a tenth), the cartpole and
+  ground-robot estimators in both precisions: crashes, hangs, success codes with non-finite
+  outputs, failed calls that changed the estimate.
 - ``hostile``: ``scripts/hostile_inputs.py`` (every case in its own process): silent, crash,
-  hang and confusing counts, and the cases not as expected (about 40 minutes on 2 cores).
+  hang and confusing counts, and the cases not as expected (an hour or more on 2 cores).
+- ``outliers``: ``scripts/bench_outlier_recovery.py``: bursts of garbage in ``y`` and in ``u``
+  (both systems, Python and C in both precisions): samples to recover and the deviation after.
 
 A part not run keeps its figures from the last run that measured it (each part records its
 own commit, date and load). Times are not what this benchmark measures.
@@ -47,8 +53,8 @@ import numpy as np
 
 MINUTES = 12
 ORDER = 60
-PARTS = ("soak", "gaps", "predictions", "threads", "csv_memory", "hostile")
-DEFAULT_PARTS = ("soak", "gaps", "predictions", "threads", "csv_memory")
+PARTS = ("soak", "gaps", "predictions", "threads", "csv_memory", "fuzz", "hostile", "outliers")
+DEFAULT_PARTS = ("soak", "gaps", "predictions", "threads", "csv_memory", "fuzz")
 BUILDS = tuple((e, p) for e in ("ukf", "mhe_gn", "mhe_rti") for p in ("float64", "float32"))
 LAP = 5000
 LONG = 16_000
@@ -69,6 +75,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--thread-runs", type=int, default=100, help="two-thread runs per build")
     parser.add_argument("--csv-rows", type=int, default=1_000_000)
     parser.add_argument("--hostile-jobs", type=int, default=2, help="hostile cases run at a time")
+    parser.add_argument("--fuzz-calls", type=int, default=10_000, help="per target")
 
 
 def _parts(text: str) -> list[str]:
@@ -385,6 +392,31 @@ def hostile(jobs: int) -> dict:
     return {**report["verdicts"], "groups": groups, "not_as_expected": off, "measured": measured()}
 
 
+def fuzz(calls: int) -> dict:
+    sys.path.insert(0, str(figures.ROOT / "scripts"))
+    import fuzz_c_api
+
+    result = fuzz_c_api.main(["--calls", str(calls), "--ipopt-calls", str(max(1, calls // 10)),
+                              "--build-dir", str(OUT / "fuzz"), "--out", str(OUT / "fuzz.json")])
+    keep = ("calls", "crashes", "hangs", "nonfinite_ok", "changed_on_error", "handle_not_null_on_error",
+            "accepted_bad_memory", "covariance_not_psd_ok")
+    targets = {r["target"]: {**{k: r.get(k, 0) for k in keep}, "step_codes": r["codes"].get("step", {})}
+               for r in result["targets"]}
+    totals = {k: sum(t[k] for t in targets.values()) for k in keep}
+    return {"seed": result["seed"], "calls_per_target": calls, "targets": targets, "totals": totals,
+            "measured": measured()}
+
+
+def outliers() -> dict:
+    sys.path.insert(0, str(figures.ROOT / "scripts"))
+    import bench_outlier_recovery
+
+    result = bench_outlier_recovery.main(["--build-dir", str(OUT / "outliers"),
+                                          "--out", str(OUT / "outliers.json")])
+    return {"tables": [bench_outlier_recovery.markdown(t) for t in result["tables"]],
+            "measured": measured()}
+
+
 def measure(args) -> tuple[dict, dict]:
     cond = figures.conditions(
         model="the nominal (prior) cartpole model, estimators compiled with their default settings "
@@ -414,6 +446,10 @@ def measure(args) -> tuple[dict, dict]:
             result["csv_memory"] = csv_memory(args.csv_rows)
         elif part == "hostile":
             result["hostile"] = hostile(args.hostile_jobs)
+        elif part == "fuzz":
+            result["fuzz"] = fuzz(args.fuzz_calls)
+        elif part == "outliers":
+            result["outliers"] = outliers()
         result.setdefault("part_seconds", {})[part] = round(time.perf_counter() - start, 1)
         start = time.perf_counter()
     result["max_rss_mb_of_the_benchmark"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -504,3 +540,37 @@ def render_memory(data: dict) -> str:
             f"| {m['rows']:,} | {m['file_mb']:.0f} MB | {m['numbers_mb']:.0f} MB | "
             f"{m['rss_before_read_mb']:.0f} MB | {m['peak_rss_mb']:.0f} MB | {m['seconds']:.1f} |\n\n"
             f"{_when(m)}.")
+
+
+def render_fuzz(data: dict) -> str:
+    f = data["figures"].get("fuzz")
+    if not f:
+        return "(not measured yet: python scripts/bench.py reliability --parts=fuzz)"
+    lines = ["| target | calls | crashes | hangs | non-finite with OK | changed on error "
+             "| `step` codes seen |", "|---|---:|---:|---:|---:|---:|---|"]
+    for name, t in f["targets"].items():
+        order = sorted(t["step_codes"].items(), key=lambda kv: (not kv[0].lstrip("-").isdigit(), kv[0]))
+        codes = " ".join(f"{c}:{n}" for c, n in order)
+        lines.append(f"| {name} | {t['calls']:,} | {t['crashes']} | {t['hangs']} | {t['nonfinite_ok']} | "
+                     f"{t['changed_on_error']} | {codes} |")
+    tot = f["totals"]
+    lines.append(f"| **total** | **{tot['calls']:,}** | **{tot['crashes']}** | **{tot['hangs']}** | "
+                 f"**{tot['nonfinite_ok']}** | **{tot['changed_on_error']}** | |")
+    lines.append(f"\nSeed {f['seed']}; {_when(f)}.")
+    return "\n".join(lines)
+
+
+def render_outliers(data: dict) -> str:
+    o = data["figures"].get("outliers")
+    if not o:
+        return "(not measured yet: python scripts/bench.py reliability --parts=outliers)"
+    return "\n\n".join(o["tables"]) + f"\n\n{_when(o)}."
+
+
+def render_ranges(data: dict) -> str:
+    """The option ranges (``runtime/limits.py``, the one table; not a measurement)."""
+    from learnest_codegen.runtime.limits import LIMITS
+
+    lines = ["| option | range | why |", "|---|---|---|"]
+    lines += [f"| `{lim.name}` | {lim.describe()} | {lim.why} |" for lim in LIMITS.values()]
+    return "\n".join(lines)
