@@ -154,7 +154,7 @@ def _read_table(path: Path, required: list[str],
 def _parse(path: Path, fh, required: list[str],
            states: tuple[str, ...]) -> tuple[list[str], dict[str, np.ndarray]]:
     lines = _text_lines(path, fh)
-    rows = (row for row in csv.reader(lines) if row)
+    rows = (row for row in csv.reader(lines) if row and (len(row) > 1 or row[0].strip()))  # blank lines
     first = next(rows, None)
     if first is None:
         raise DataError(f"{path}: empty file, expected a header with columns {required}")

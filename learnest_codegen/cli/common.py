@@ -13,6 +13,7 @@ import click
 import numpy as np
 
 from ..errors import LearnestError
+from ..runtime.limits import LIMITS
 
 SYSTEM_HELP = "built-in system name (cartpole) or path to a .py file defining SYSTEM"
 
@@ -67,6 +68,14 @@ def read_run(data: str, system, resample: bool, measured: bool = True):
 def system_named(name: str):
     from ..systems import get_system
 
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError as exc:  # a path of bytes that are not UTF-8 (surrogate escapes)
+        raw = os.fsencode(name)
+        bad = raw[len(name[:exc.start].encode("utf-8", "surrogateescape")):][:1]
+        raise click.BadParameter(f"system file {raw.decode('utf-8', 'backslashreplace')}: its path "
+                                 f"is not UTF-8 (byte {bad!r}); rename the file or its folder with "
+                                 "UTF-8 characters", param_hint="--system") from None
     return get_system(name)
 
 
@@ -171,9 +180,10 @@ def gate_settings(threshold: float, recover_after: int, inflation: float):
     return None if gate == GateSettings() else gate
 
 
-HORIZON = click.option("--horizon", type=click.IntRange(min=1), default=None,
+_N = LIMITS["horizon"]
+HORIZON = click.option("--horizon", type=click.IntRange(min=int(_N.low), max=int(_N.high)), default=None,
                        help="MHE horizon N, the samples in the window minus one (mhe, mhe_gn, "
-                            "mhe_rti; default 20)")
+                            f"mhe_rti; default 20; {_N.describe()})")
 
 
 def parse_vector(text: str | None, n: int, option: str) -> np.ndarray | None:
