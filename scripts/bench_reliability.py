@@ -313,7 +313,7 @@ def threads(folders: dict[str, Path], runs: int) -> dict:
     out = {}
     env = dict(os.environ, PYTHONPATH=str(figures.ROOT))
     for name, directory in folders.items():
-        n = min(runs, 10) if name.startswith("mhe_float64") else runs
+        n = runs
         done, crashes, errors, complete, finite, signals = 0, 0, 0, 0, 0, []
         while done < n:
             proc = subprocess.run([sys.executable, "-c", THREAD_CHILD, str(directory), str(done), str(n)],
@@ -458,6 +458,12 @@ def measure(args) -> tuple[dict, dict]:
 
 # ---- views -------------------------------------------------------------------------------------
 
+def _label(name: str) -> str:
+    """``mhe_gn_float32`` -> ``mhe_gn float32``."""
+    estimator, precision = name.rsplit("_", 1)
+    return f"{estimator} {precision}"
+
+
 def _when(part: dict) -> str:
     m = part.get("measured", {})
     return f"commit {m.get('commit', '?')}, {m.get('date', '?')}, load {m.get('load_1min', '?')}"
@@ -469,7 +475,7 @@ def render_soak(data: dict) -> str:
              "| laps within 2x | lap MSE, whole lap: first / median later | re-acquired after (samples) |",
              "|---|---:|---:|---|---:|---|---|---:|"]
     for name, r in s["builds"].items():
-        lines.append(f"| {name.replace('_', ' ', 1)} | {r['steps']:,} | {r['failed_steps']} | "
+        lines.append(f"| {_label(name)} | {r['steps']:,} | {r['failed_steps']} | "
                      f"{r['mse_second_half_first_lap']:.4g} / {r['mse_second_half_max_later']:.4g} | "
                      f"{r['worst_ratio_to_first']:.3f} | {r['laps_within_2x']} of {r['laps'] - 1} | "
                      f"{r['mse_lap_first']:.4g} / {r['mse_lap_median_later']:.4g} | "
@@ -486,7 +492,7 @@ def render_gaps(data: dict) -> str:
     for name, rows in g["builds"].items():
         cells = [f"{r['back_in_band_after']}"
                  + (f" ({r['failed_steps']} failed)" if r["failed_steps"] else "") for r in rows.values()]
-        lines.append(f"| {name.replace('_', ' ', 1)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_label(name)} | " + " | ".join(cells) + " |")
     lines.append(f"\nSamples (at 500 Hz) from the first valid output after the gap until the estimate "
                  f"stays in the clean band; gaps from sample {g['gap_start']} of a "
                  f"{g['run_samples']:,}-sample run; {_when(g)}.")
@@ -499,7 +505,7 @@ def render_predictions(data: dict) -> str:
              "measured step's status | back in band after |", "|---|---:|---|---:|---:|---|---:|---:|"]
     for name, rows in p["builds"].items():
         for start, r in rows.items():
-            lines.append(f"| {name.replace('_', ' ', 1)} | {start} | {'yes' if r['finite'] else 'NO'} | "
+            lines.append(f"| {_label(name)} | {start} | {'yes' if r['finite'] else 'NO'} | "
                          f"{r['failed_steps']} | {r['unreliable_from_prediction']} | "
                          f"{'yes' if r['unreliable_at_end'] else 'no'} | {r['first_measured_status']} | "
                          f"{r['back_in_band_after']} |")
@@ -512,7 +518,7 @@ def render_threads(data: dict) -> str:
     lines = ["| build | runs | crashes | runs with a clear error | every step accounted |",
              "|---|---:|---:|---:|---:|"]
     for name, r in t["builds"].items():
-        lines.append(f"| {name.replace('_', ' ', 1)} | {r['runs']} | {r['crashes']} | "
+        lines.append(f"| {_label(name)} | {r['runs']} | {r['crashes']} | "
                      f"{r['runs_with_clear_errors']} | {r['runs_every_step_accounted']} |")
     lines.append(f"\nTwo threads of {t['steps_per_thread']} steps each on one handle per run; {_when(t)}.")
     return "\n".join(lines)
