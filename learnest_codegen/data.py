@@ -102,14 +102,12 @@ def read_run(path: str | Path, system: System) -> Run:
 
     Empty or ``nan`` cells of ``y_`` columns are missing outputs (NaN in ``Run.y``); anything
     else that is not a finite real number is an error naming the file, the column and the row.
-    A UTF-8 byte-order mark is accepted.
+    A UTF-8 byte-order mark is accepted. The file is read as a stream: the memory it takes is
+    the numbers of the columns used (8 bytes a cell) plus one block of rows as text.
     """
     path = Path(path)
-    header, rows = _read_table(path, columns(system, False))
-    where = {name: i for i, name in enumerate(header)}
-    truth_cols = [f"x_{n}" for n in system.state_names]
-    used = columns(system, all(c in where for c in truth_cols))
-    data = {name: _column(path, name, [r[where[name]] for r in rows]) for name in used}
+    header, data = _read_table(path, columns(system, False), system.state_names)
+    used = list(data)
     for name in used:
         bad = ~np.isfinite(data[name])
         if name.startswith("y_"):
@@ -132,44 +130,103 @@ def read_run(path: str | Path, system: System) -> Run:
     return Run(t, pick("u", system.input_names), pick("y", system.output_names), x, system.name)
 
 
-def _read_table(path: Path, required: list[str]) -> tuple[list[str], list[list[str]]]:
-    """The header and the rows of a run CSV, with one-line errors for what is not one."""
+#: Rows parsed at a time by :func:`_read_table` (their text is all it holds besides the numbers).
+BLOCK_ROWS = 65536
+
+
+def _read_table(path: Path, required: list[str],
+                states: tuple[str, ...]) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The header and the used columns (``required``, plus every ``x_<state>`` when all are
+    there) of a run CSV as float arrays, read block by block, with one-line errors for what is
+    not one."""
     if not path.exists():
         raise FileNotFoundError(f"run file {path} not found")
     if not path.is_file():
         raise DataError(f"{path}: not a regular file (a folder or a device); expected a run CSV")
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8-sig")  # a byte-order mark is not part of the first name
-    except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise DataError(f"{path}: not UTF-8 text (byte {exc.start}, line {line}: "
-                        f"{raw[exc.start:exc.start + 1]!r}); save the run CSV as UTF-8") from exc
-    if "\x00" in text:
-        raise DataError(f"{path}: holds NUL bytes; expected a run CSV (text)")
-    table = [row for row in csv.reader(text.splitlines()) if row]
-    if not table:
+    with path.open(encoding="utf-8-sig", newline="") as fh:  # a byte-order mark is not a name
+        try:
+            return _parse(path, fh, required, states)
+        except UnicodeDecodeError:
+            pass
+    raise _not_utf8(path)
+
+
+def _parse(path: Path, fh, required: list[str],
+           states: tuple[str, ...]) -> tuple[list[str], dict[str, np.ndarray]]:
+    lines = _text_lines(path, fh)
+    rows = (row for row in csv.reader(lines) if row and (len(row) > 1 or row[0].strip()))  # blank lines
+    first = next(rows, None)
+    if first is None:
         raise DataError(f"{path}: empty file, expected a header with columns {required}")
-    header = [h.strip() for h in table[0]]
+    header = [h.strip() for h in first]
     repeated = sorted({h for h in header if header.count(h) > 1})
     if repeated:
         raise DataError(f"{path}: column(s) {repeated} appear more than once in the header")
     missing = [c for c in required if c not in header]
     if missing:
         raise DataError(f"{path}: missing columns {missing} (has {header})")
-    rows = table[1:]
-    ragged = [i for i, r in enumerate(rows) if len(r) != len(header)]
-    if ragged:
-        r = ragged[0]
-        raise DataError(f"{path}: data row {r + 1} has {len(rows[r])} values, the header "
-                        f"{len(header)} ({len(ragged)} such rows)")
-    if len(rows) < 2:
-        raise DataError(f"{path}: need at least 2 samples, got {len(rows)}")
-    return header, rows
+    where = {name: i for i, name in enumerate(header)}
+    truth = [f"x_{n}" for n in states]
+    used = required + (truth if all(c in where for c in truth) else [])
+    blocks: dict[str, list[np.ndarray]] = {name: [] for name in used}
+    count = 0
+    block: list[list[str]] = []
+    for row in rows:
+        if len(row) != len(header):
+            ragged = 1 + sum(len(r) != len(header) for r in rows)
+            raise DataError(f"{path}: data row {count + len(block) + 1} has {len(row)} values, "
+                            f"the header {len(header)} ({ragged} such rows)")
+        block.append(row)
+        if len(block) == BLOCK_ROWS:
+            _convert(path, block, where, blocks, count)
+            count += len(block)
+            block = []
+    if block:
+        _convert(path, block, where, blocks, count)
+        count += len(block)
+    if count < 2:
+        raise DataError(f"{path}: need at least 2 samples, got {count}")
+    return header, {name: np.concatenate(parts) for name, parts in blocks.items()}
 
 
-def _column(path: Path, name: str, cells: list[str]) -> np.ndarray:
-    """The cells of one column as floats; an empty cell is NaN, text is an error."""
+def _text_lines(path: Path, fh):
+    """The file's lines; a NUL byte is an error (a binary file, not a run CSV)."""
+    for line in fh:
+        if "\x00" in line:
+            raise DataError(f"{path}: holds NUL bytes; expected a run CSV (text)")
+        yield line
+
+
+def _convert(path: Path, block: list[list[str]], where: dict[str, int],
+             out: dict[str, list[np.ndarray]], start: int) -> None:
+    """Append the used columns of ``block`` (rows ``start`` + 1 ... of the file) as floats."""
+    for name, parts in out.items():
+        parts.append(_column(path, name, [r[where[name]] for r in block], start))
+
+
+def _not_utf8(path: Path) -> DataError:
+    """The error for a file that is not UTF-8 text, naming its first bad byte and line."""
+    import codecs
+
+    decoder = codecs.getincrementaldecoder("utf-8")()
+    offset, lines = 0, 1
+    with path.open("rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            try:
+                decoder.decode(chunk)
+            except UnicodeDecodeError as exc:
+                bad = offset + exc.start
+                lines += chunk[:exc.start].count(b"\n")
+                return DataError(f"{path}: not UTF-8 text (byte {bad}, line {lines}: "
+                                 f"{chunk[exc.start:exc.start + 1]!r}); save the run CSV as UTF-8")
+            offset += len(chunk)
+            lines += chunk.count(b"\n")
+    return DataError(f"{path}: not UTF-8 text; save the run CSV as UTF-8")
+
+
+def _column(path: Path, name: str, cells: list[str], start: int = 0) -> np.ndarray:
+    """The cells of one column (data rows ``start`` + 1 ...) as floats; an empty cell is NaN,
+    text is an error."""
     cells = [c.strip() or "nan" for c in cells]
     try:
         return np.asarray(cells, dtype=float)
@@ -180,7 +237,7 @@ def _column(path: Path, name: str, cells: list[str]) -> np.ndarray:
             except ValueError:
                 hint = " (a complex number: give its real part)" if _is_complex(c) else ""
                 raise DataError(f"{path}: non-numeric value {c!r} in column {name!r} at data row "
-                                f"{r + 1}{hint}") from None
+                                f"{start + r + 1}{hint}") from None
         raise
 
 
@@ -190,6 +247,30 @@ def _is_complex(cell: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def unmeasured_outputs(run: Run, system: System, where: str) -> list[str]:
+    """The outputs of ``run`` without a single sample (their ``y_`` column is empty throughout);
+    :class:`DataError` when that is every output: the run holds no measurement to estimate or
+    learn from."""
+    empty = [name for name, col in zip(system.output_names, run.missing.T) if col.all()]
+    if len(empty) == system.ny:
+        raise DataError(f"{where}: the run holds no measurement: every y_ cell of "
+                        f"{', '.join('y_' + n for n in empty)} is empty ({len(run)} samples); "
+                        "fill in the measured outputs (an empty cell means a missing sample)")
+    return empty
+
+
+def longest_gap(run: Run) -> tuple[int, int]:
+    """``(first sample, length)`` of the longest stretch of samples without any output
+    (``(0, 0)`` when every sample has one)."""
+    none = run.missing.all(axis=1).astype(np.int8)
+    edges = np.diff(np.concatenate([[0], none, [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    if not len(starts):
+        return 0, 0
+    k = int(np.argmax(ends - starts))
+    return int(starts[k]), int(ends[k] - starts[k])
 
 
 def check_sampling(run: Run, dt: float, where: str, *, rtol: float = SAMPLING_RTOL,

@@ -16,12 +16,20 @@ API. Each ends in one outcome:
 - ``traceback``, ``hang`` (the case's time limit passed; its process group is killed),
   ``crash`` (killed by a signal).
 
-The battery covers the cases of issue 28 (options, names, shapes, files, CSVs, libraries,
-threads, float32, wrong inputs ``u``) and a set of controls that already held. Each case names
-the part of the package whose checks own its fix (``owner``): ``boundaries`` (system files,
-simulation, options, output files, builds, the bindings), ``c-api`` (the generated C) and
-``data`` (run-CSV reading, the estimators' checks of their inputs). Fixtures (a cartpole run,
-compiled nominal estimators) are built once.
+The battery covers options, names, shapes, files, CSVs, libraries, threads, float32 and wrong
+inputs ``u``, and the streams surface: validity masks, ``set_noise``/``set_arrival``,
+``predict``, ``--x0``/``--P0``, ``--horizon``, empty and mixed-rate CSVs, moved and oddly named
+system files, long gaps, long predictions, lost tracks, one handle in two threads, inputs far
+outside the range of a system without limits and training data without measurements; and
+controls that must keep working. Each case names the part of the package whose checks own its
+fix (``owner``): ``boundaries`` (system files, simulation, options, output files, builds, the
+bindings), ``c-api`` (the generated C) and ``data`` (run-CSV reading, the estimators' checks of
+their inputs). Fixtures (cartpole and ground-robot runs, compiled nominal estimators in both
+precisions) are built once.
+
+Outcomes are also counted as the reliability benchmark reports them (:func:`verdicts`):
+*silent* (a wrong result accepted without an error), *crash*, *hang* and *confusing* (an error
+that does not name the cause and the remedy, or a traceback).
 
 Usage::
 
@@ -214,6 +222,28 @@ def cartpole_estimate(folder, data, out, *extra):
             json.loads((Path(folder) / "manifest.json").read_text())["estimator"],
             "--compiled", folder, "--out", out, *extra]
 
+LONG = W / "long.csv"
+ROBOT = W / "robot.csv"
+BUILDS = [f"cartpole_nominal_{e}{p}" for e in ("ukf", "mhe_gn_n20", "mhe_rti_n20") for p in ("", "_float32")]
+
+def load(name):
+    from learnest_codegen.pipeline import load_estimator
+    return load_estimator(LIB / name)
+
+def long_run(system="cartpole"):
+    from learnest_codegen import get_system
+    from learnest_codegen.data import read_run
+    return read_run(LONG if system == "cartpole" else ROBOT, get_system(system))
+
+def band_entry(X, X_clean, truth, start, settle=500):
+    """The first sample from `start` on after which the estimate stays in the clean run's band
+    (|e| <= |e_clean| + rms_clean per state) to the end; None if it is not back within `settle`."""
+    e, ec = np.abs(X - truth), np.abs(X_clean - truth)
+    rms = np.sqrt(np.mean(ec[start:] ** 2, axis=0))
+    out = np.flatnonzero(np.any(e[start:] > ec[start:] + rms, axis=1))
+    back = 0 if not len(out) else int(out[-1]) + 1
+    return back if back <= settle else None
+
 def step_through(est, U, Y, x0):
     """Step an estimator sample by sample (sample k uses U[k-1]); failed steps keep the estimate."""
     from learnest_codegen.errors import SolverError
@@ -259,6 +289,12 @@ compile_estimators(model, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn"
 compile_estimators(model, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti"),
                    precision="float32")
 compile_estimators(true_model(get_system("cartpole")), LIB, model_hash="true", estimators=("mhe",))
+robot = prior_model(get_system("ground_robot"))
+for precision in ("float64", "float32"):
+    compile_estimators(robot, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti"),
+                       precision=precision)
+must(["simulate", "--system", "cartpole", "--seed", 1, "--duration", 24.0, "--out", W / "long.csv"])
+must(["simulate", "--system", "ground_robot", "--seed", 1, "--out", W / "robot.csv"])
 print("fixtures ready", sorted(p.name for p in LIB.iterdir()))
 '''
 
@@ -882,9 +918,486 @@ def input_cases() -> list[Case]:
     return out
 
 
+# ---- the streams surface: predictions, gaps, lost tracks, tuning, masks, threads ------------
+
+def _builds(both=True):
+    """(label, folder) of the cartpole builds the recovery cases run on."""
+    names = [f"{e}{p}" for e in ("ukf", "mhe_gn", "mhe_rti") for p in (("", "_float32") if both else ("",))]
+    return [(n, f"cartpole_nominal_{n}".replace("mhe_gn", "mhe_gn_n20").replace("mhe_rti", "mhe_rti_n20"))
+            for n in names]
+
+
+def prediction_cases() -> list[Case]:
+    """10,000 predictions from a sample: finite, UNRELIABLE, and the next measurement recovers."""
+    body = '''
+    from learnest_codegen.errors import SolverError
+    run = long_run()
+    est = load("{folder}")
+    x0 = np.array([0, 0, 0.3, 0.0])
+    clean = est.run(run.u, run.y, x0)
+    est.reset(x0)
+    start, n = {start}, 10000
+    X, codes = [], []
+    for k in range(len(run.y)):
+        u = run.u[max(k - 1, 0)]
+        if start <= k < start + n:
+            X.append(est.predict(u))
+        else:
+            X.append(est.step(u, run.y[k]))
+        codes.append(est.last_status)
+    X = np.array(X)
+    pred = X[start:start + n]
+    finite = bool(np.isfinite(pred).all())
+    flagged = bool(codes[start + n - 1] & 4)
+    first = codes[start + n]
+    back = band_entry(X, clean, run.x, start + n)
+    verdict(finite and flagged and not first & 4 and back is not None,
+            f"finite {{finite}}, status 4 at the end of the predictions {{flagged}}, first valid "
+            f"step status {{first}}, back in the clean band after {{back}} samples")
+    '''
+    out = []
+    for label, folder in _builds():
+        for start in (0, 500, 1500):
+            out.append(_case(f"predict/10000-from-{start}-{label}", "c-api", RESULT,
+                             f"10,000 predictions from sample {start}, {label}: finite, status "
+                             "UNRELIABLE (4), and the next measurements recover within 1 s",
+                             body.format(folder=folder, start=start), timeout=240))
+    out.append(_case("predict/status-bit-run", "c-api", RESULT,
+                     "control: a C run whose samples are all invalid returns the bit UNRELIABLE", '''
+                     run = long_run()
+                     est = load("cartpole_nominal_ukf")
+                     X = est.run(run.u[:100], run.y[:100], np.array([0, 0, 0.3, 0.0]),
+                                 valid=np.zeros((100, 2), dtype=bool))
+                     verdict(np.isfinite(X).all() and est.last_status & 4, f"status {est.last_status}")
+                     '''))
+    return out
+
+
+def gap_cases() -> list[Case]:
+    """learnest estimate on a run whose every y cell is empty over a long stretch."""
+    body = '''
+    lines = LONG.read_text().splitlines()
+    head = lines[0].split(",")
+    ys = [i for i, c in enumerate(head) if c.startswith("y_")]
+    rows = [l.split(",") for l in lines[1:]]
+    for r in rows[500:500 + {gap}]:
+        for i in ys:
+            r[i] = ""
+    (CASE / "gap.csv").write_text("\\n".join([lines[0]] + [",".join(r) for r in rows]) + "\\n")
+    step(cartpole_estimate(LIB / "{folder}", LONG, CASE / "clean.csv"))
+    def check(out):
+        run, est, clean = table(LONG), table(CASE / "e.csv"), table(CASE / "clean.csv")
+        xs = [i for i, c in enumerate(head) if c.startswith("x_")]
+        tail = slice(500 + {gap} + 500, None)
+        e = np.median(np.abs(est[tail, 1:] - run[tail][:, xs]))
+        e_clean = np.median(np.abs(clean[tail, 1:] - run[tail][:, xs]))
+        said = "longest gap" in out
+        return said and e <= 2 * e_clean + 1e-3, (f"median error from 1 s after the gap {{e:.3g}} "
+                                                  f"(clean {{e_clean:.3g}}), gap named {{said}}")
+    final(cartpole_estimate(LIB / "{folder}", CASE / "gap.csv", CASE / "e.csv"), check=check)
+    '''
+    out = []
+    for label, folder in _builds():
+        for gap in (1000, 4000, 10000):
+            out.append(_case(f"gaps/estimate-{gap}-{label}", "c-api", RESULT,
+                             f"estimate with every y empty for {gap} samples, {label}: exit 0, "
+                             "back to the clean run's error 1 s after, the gap said",
+                             body.format(folder=folder, gap=gap), timeout=300))
+    return out
+
+
+def lap_cases() -> list[Case]:
+    """The run repeated: the state jumps ~45 rad at the wrap; the estimate must re-acquire it."""
+    body = '''
+    from learnest_codegen import get_system
+    from learnest_codegen.simulation import simulate
+    system = get_system("cartpole")
+    run = simulate(system, seed=1, duration=10.0)
+    n = len(run.y)
+    U, Y, X = (np.concatenate([a] * 3) for a in (run.u, run.y, run.x))
+    est = load("{folder}")
+    Xh = est.run(U, Y, np.asarray(system.x0, float))
+    half = n // 2
+    mse = [float(np.mean((Xh[k * n + half:(k + 1) * n] - X[k * n + half:(k + 1) * n]) ** 2))
+           for k in range(3)]
+    verdict(max(mse[1:]) <= 2 * mse[0], f"second-half MSE per lap {{[round(m, 4) for m in mse]}}")
+    '''
+    return [_case(f"laps/wrap-{label}", "c-api", RESULT,
+                  f"the seed-1 run three times in a row (a 45 rad wrap of the angle), {label}: "
+                  "every lap within 2x of the first", body.format(folder=folder), timeout=240)
+            for label, folder in _builds()]
+
+
+def noise_cases() -> list[Case]:
+    """set_noise / set_arrival on a running estimator: the same rule in every estimator."""
+    head = '''
+    est = load("{folder}")
+    est.reset(np.array([0, 0, 0.3, 0.0]))
+    '''
+    bad = [("R-zero", "R=np.zeros((2, 2))", ("R", "positive definite")),
+           ("R-1e-300", "R=1e-300 * np.eye(2)", ("R", "range")),
+           ("R-nan", "R=np.full((2, 2), np.nan)", ("R",)),
+           ("R-asymmetric", "R=np.array([[1e-4, 1e-5], [0.0, 1e-4]])", ("R", "symmetric")),
+           ("R-shape", "R=np.eye(3)", ("R", "shape")),
+           ("Q-negative", "Q=-np.eye(4)", ("Q",)),
+           ("Q-1e250", "Q=1e250 * np.eye(4)", ("Q", "range"))]
+    out = []
+    for label, folder in _builds():
+        for name, call, needles in bad:
+            out.append(_case(f"noise/{name}-{label}", "boundaries", ERROR, f"set_noise({call}), {label}",
+                             head.format(folder=folder), f"est.set_noise({call})", needles=needles))
+        if label.startswith("mhe"):
+            out.append(_case(f"noise/P_arrival-1e-300-{label}", "boundaries", ERROR,
+                             f"set_noise(P_arrival=1e-300 I), {label} (an error of 14.7 before)",
+                             head.format(folder=folder), "est.set_noise(P_arrival=1e-300 * np.eye(4))",
+                             needles=("P_arrival", "range")))
+    out += [
+        _case("noise/R-zero-ukf-python", "data", ERROR, "the Python UKF: set_noise(R=0)", '''
+              from learnest_codegen.pipeline import reference_estimator
+              est = reference_estimator("nominal", "ukf", system="cartpole")
+              est.reset(np.array([0, 0, 0.3, 0.0]))
+              est.set_noise(R=np.zeros((2, 2)))
+              ''', needles=("R",)),
+        _case("noise/P_arrival-ukf", "boundaries", ERROR, "set_noise(P_arrival=...) on a UKF", '''
+              est = load("cartpole_nominal_ukf")
+              est.reset(np.array([0, 0, 0.3, 0.0]))
+              est.set_noise(P_arrival=np.eye(4))
+              ''', needles=("P_arrival",)),
+        _case("noise/c-set-arrival-1e-300", "c-api", ERROR,
+              "C <prefix>_set_arrival(P = 1e-300 I) on mhe_gn", '''
+              est = load("cartpole_nominal_mhe_gn_n20")
+              est.reset(np.array([0, 0, 0.3, 0.0]))
+              code = est._c["set_arrival"](est._handle, np.ascontiguousarray(1e-300 * np.eye(4)))
+              if code < 0:
+                  mark("ERROR", type="C", message=f"set_arrival returned {code}")
+              verdict(False, f"accepted ({code})")
+              '''),
+        _case("noise/c-ukf-R-zero", "c-api", ERROR, "C <prefix>_set_noise(R = 0) on the UKF", '''
+              est = load("cartpole_nominal_ukf")
+              est.reset(np.array([0, 0, 0.3, 0.0]))
+              code = est._c["set_noise"](est._handle, None, np.zeros((2, 2)).ctypes.data)
+              if code < 0:
+                  mark("ERROR", type="C", message=f"set_noise returned {code}")
+              verdict(False, f"accepted ({code})")
+              '''),
+        _case("noise/valid-retune", "boundaries", RESULT,
+              "control: set_noise(R=4 R) on a running mhe_rti keeps tracking", '''
+              run = long_run()
+              est = load("cartpole_nominal_mhe_rti_n20")
+              clean = est.run(run.u[:2000], run.y[:2000], np.array([0, 0, 0.3, 0.0]))
+              est.reset(np.array([0, 0, 0.3, 0.0]))
+              X = []
+              for k in range(2000):
+                  if k == 500:
+                      est.set_noise(R=4e-4 * np.eye(2))
+                  X.append(est.step(run.u[max(k - 1, 0)], run.y[k]))
+              e = np.abs(np.array(X) - run.x[:2000])[1000:].max()
+              verdict(e < 5 * np.abs(clean - run.x[:2000])[1000:].max(), f"max error {e:.3g}")
+              '''),
+    ]
+    return out
+
+
+def mask_cases() -> list[Case]:
+    """The validity mask: flags, shapes and samples without any output."""
+    head = '''
+    est = load("{folder}")
+    est.reset(np.array([0, 0, 0.3, 0.0]))
+    '''
+    cases = []
+    for label in ("ukf", "mhe_gn_float32"):
+        folder = f"cartpole_nominal_{label}".replace("mhe_gn", "mhe_gn_n20")
+        cases += [
+            _case(f"mask/flag-2-{label}", "boundaries", ERROR, f"valid = [2, 1], {label}",
+                  head.format(folder=folder), "est.step(np.zeros(1), np.zeros(2), valid=[2, 1])",
+                  needles=("valid",)),
+            _case(f"mask/shape-{label}", "boundaries", ERROR, f"valid of 3 flags, {label}",
+                  head.format(folder=folder), "est.step(np.zeros(1), np.zeros(2), valid=[1, 1, 1])",
+                  needles=("shape",)),
+            _case(f"mask/nan-valid-{label}", "boundaries", ERROR, f"y = NaN marked valid, {label}",
+                  head.format(folder=folder), "est.step(np.zeros(1), np.array([np.nan, 0.3]), valid=[1, 1])",
+                  needles=("NaN",)),
+            _case(f"mask/run-none-valid-{label}", "boundaries", RESULT,
+                  f"control: run with every flag 0 (predictions), {label}: finite, bit 4", '''
+                  run = long_run()
+                  est = load("''' + folder + '''")
+                  X = est.run(run.u[:300], run.y[:300], np.array([0, 0, 0.3, 0.0]),
+                              valid=np.zeros((300, 2), dtype=bool))
+                  verdict(np.isfinite(X).all() and est.last_status & 4, f"status {est.last_status}")
+                  '''),
+            _case(f"mask/garbage-masked-{label}", "boundaries", RESULT,
+                  f"control: 1e300 in y where valid is 0 is never read, {label}", '''
+                  run = long_run()
+                  est = load("''' + folder + '''")
+                  x0 = np.array([0, 0, 0.3, 0.0])
+                  clean = est.run(run.u[:300], run.y[:300], x0)
+                  Y = run.y[:300].copy()
+                  valid = np.ones_like(Y, dtype=bool)
+                  Y[100:120, 1], valid[100:120, 1] = 1e300, False
+                  X = est.run(run.u[:300], Y, x0, valid=valid)
+                  ref = run.y[:300].copy()
+                  ref[100:120, 1] = np.nan
+                  verdict(np.array_equal(X, est.run(run.u[:300], ref, x0)), "masked == NaN")
+                  '''),
+        ]
+    cases.append(_case("mask/c-flag-byte-7", "c-api", ERROR, "C step with a valid byte of 7", '''
+                       est = load("cartpole_nominal_mhe_rti_n20")
+                       est.reset(np.array([0, 0, 0.3, 0.0]))
+                       flags = np.array([7, 1], dtype=np.uint8)
+                       code = est._c["step"](est._handle, np.zeros(1), np.zeros(2).ctypes.data,
+                                             flags.ctypes.data)
+                       if code < 0:
+                           mark("ERROR", type="C", message=f"step returned {code}")
+                       verdict(False, f"accepted ({code})")
+                       '''))
+    return cases
+
+
+def start_cases() -> list[Case]:
+    """--x0, --P0 and --horizon of learnest estimate."""
+    est = 'final(cartpole_estimate(LIB / "{folder}", RUN, CASE / "e.csv", {args}))'
+    bad = [("x0-1e300", "ukf", '"--x0", "1e300,0,0,0"', ("--x0",)),
+           ("x0-1e300-mhe_gn", "mhe_gn", '"--x0", "1e300,0,0,0"', ("--x0",)),
+           ("x0-nan", "ukf", '"--x0", "nan,0,0,0"', ("--x0",)),
+           ("x0-count", "mhe_rti", '"--x0", "1,2"', ("--x0",)),
+           ("x0-text", "ukf", '"--x0", "a,b,c,d"', ("--x0",)),
+           ("P0-1e300", "mhe_gn", '"--P0", "1e300,1,1,1"', ("--P0",)),
+           ("P0-negative", "ukf", '"--P0", "-1,1,1,1"', ("--P0",)),
+           ("P0-asymmetric", "mhe_rti", '"--P0", "1,0.5,0,0,0,1,0,0,0,0,1,0,0,0,0,1"', ("--P0",)),
+           ("P0-nan", "ukf", '"--P0", "nan,1,1,1"', ("--P0",)),
+           ("P0-word", "ukf", '"--P0", "steady"', ("--P0",)),
+           ("horizon-0", "mhe_gn", '"--horizon", "0"', ("horizon",)),
+           ("horizon-negative", "mhe_gn", '"--horizon", "-3"', ("horizon",)),
+           ("horizon-1e9", "mhe_rti", '"--horizon", "1000000000"', ("horizon",)),
+           ("horizon-float", "mhe_rti", '"--horizon", "2.5"', ("horizon",)),
+           ("horizon-ukf", "ukf", '"--horizon", "10"', ("horizon",)),
+           ("horizon-vs-compiled", "mhe_gn", '"--horizon", "10"', ("horizon",))]
+    cases = [_case(f"start/{name}", "boundaries", ERROR, f"estimate {args.replace(chr(34), '')} ({e})",
+                   est.format(folder=f"cartpole_nominal_{e}", args=args), needles=needles)
+             for name, e, args, needles in bad]
+    cases.append(_case("start/x0-alone-mhe_gn", "boundaries", RESULT,
+                       "--x0 3 initial stds off without --P0 (mhe_gn): as good as with --P0 initial "
+                       "(4.3x the MSE and 26 good outputs gated out before)", '''
+                       off = 3 * np.array([0.05, -0.1, 0.05, -0.1])
+                       x0 = ",".join(str(v) for v in np.array([0, 0, 0.3, 0.0]) + off)
+                       folder = LIB / "cartpole_nominal_mhe_gn_n20"
+                       step(cartpole_estimate(folder, RUN, CASE / "p.csv", "--x0", x0, "--P0", "initial"))
+                       def check(out):
+                           run, a, b = table(RUN), table(CASE / "e.csv"), table(CASE / "p.csv")
+                           mse = lambda e: float(np.mean((e[:, 1:] - run[:, 4:]) ** 2))
+                           note = f"MSE {mse(a):.4g} vs {mse(b):.4g} with --P0 initial"
+                           return mse(a) <= 1.1 * mse(b), note
+                       final(cartpole_estimate(folder, RUN, CASE / "e.csv", "--x0", x0), check=check)
+                       '''))
+    return cases
+
+
+def csv_stream_cases() -> list[Case]:
+    """Run CSVs of the streams surface: empty columns, mixed rates, line endings, odd cells."""
+    est = ('final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"), '
+           'check={check})')
+    said = '''
+    def said(out):
+        return "{needle}" in out and np.isfinite(table(CASE / "e.csv")).all(), out.strip()[-120:]
+    '''
+    def blank(cols, every=1):
+        return ('def blank(lines):\n'
+                '    head = lines[0].split(",")\n'
+                f'    idx = [head.index(c) for c in {cols!r}]\n'
+                '    out = [lines[0]]\n'
+                '    for k, l in enumerate(lines[1:]):\n'
+                '        c = l.split(",")\n'
+                f'        if k % {every} != 0 or {every} == 1:\n'
+                '            for i in idx:\n'
+                '                c[i] = ""\n'
+                '        out.append(",".join(c))\n'
+                '    return out\n'
+                'edit_csv(RUN, CASE / "bad.csv", transform=blank)\n')
+    cases = [
+        _case("csv/empty-y-column", "data", RESULT,
+              "a y column without a single sample: said (exit 0 with only '5000 missing' before)",
+              blank(["y_alpha"]), '''
+              code, out, err = run(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv",
+                                                     CASE / "e.csv"))
+              if code != 0:
+                  classify(code, out, err)
+              verdict("y_alpha holds no sample" in err and np.isfinite(table(CASE / "e.csv")).all(),
+                      err.strip()[-160:])
+              ''', timeout=120),
+        _case("csv/all-y-empty", "data", ERROR, "every y cell empty: nothing to estimate from",
+              blank(["y_p", "y_alpha"]), 'final(cartpole_estimate(LIB / "cartpole_nominal_ukf", '
+              'CASE / "bad.csv", CASE / "e.csv"))', needles=("no measurement",)),
+        _case("csv/mixed-rate", "data", RESULT, "control: y_alpha every 4th sample only",
+              said.format(needle="missing"), blank(["y_alpha"], every=4), est.format(check="said")),
+        _case("csv/crlf", "data", RESULT, "control: CRLF line endings", said.format(needle="estimates"),
+              '(CASE / "bad.csv").write_bytes(RUN.read_bytes().replace(b"\\n", b"\\r\\n"))',
+              est.format(check="said")),
+        _case("csv/trailing-blank-lines", "data", RESULT, "control: blank lines at the end",
+              said.format(needle="estimates"),
+              '(CASE / "bad.csv").write_text(RUN.read_text() + "\\n\\n\\n")', est.format(check="said")),
+        _case("csv/extra-column", "data", RESULT, "control: an unknown column is ignored",
+              said.format(needle="estimates"), '''
+              edit_csv(RUN, CASE / "bad.csv", transform=lambda ls: [l + (",note" if i == 0 else ",x")
+                                                                    for i, l in enumerate(ls)])
+              ''', est.format(check="said")),
+        _case("csv/empty-file", "data", ERROR, "a file of 0 bytes", '(CASE / "bad.csv").write_text("")',
+              'final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))',
+              needles=("empty",)),
+        _case("csv/whitespace-only", "data", ERROR, "a file of blank lines",
+              '(CASE / "bad.csv").write_text("\\n  \\n\\n")',
+              'final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))',
+              needles=("bad.csv",)),
+        _case("csv/nan-u", "data", ERROR, "NaN in u_F (an input is what was applied)", '''
+              edit_csv(RUN, CASE / "bad.csv", row=10, column="u_F", value="nan")
+              final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))
+              ''', needles=("u_F",)),
+        _case("csv/empty-t", "data", ERROR, "an empty time cell", '''
+              edit_csv(RUN, CASE / "bad.csv", row=10, column="t", value="")
+              final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))
+              ''', needles=("'t'",)),
+        _case("csv/inf-y", "data", ERROR, "inf in y_p", '''
+              edit_csv(RUN, CASE / "bad.csv", row=10, column="y_p", value="inf")
+              final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))
+              ''', needles=("y_p",)),
+        _case("csv/ragged-late", "data", ERROR, "a short row near the end", '''
+              cut = lambda ls: ls[:-3] + [ls[-3].rsplit(",", 1)[0]] + ls[-2:]
+              edit_csv(RUN, CASE / "bad.csv", transform=cut)
+              final(cartpole_estimate(LIB / "cartpole_nominal_ukf", CASE / "bad.csv", CASE / "e.csv"))
+              ''', needles=("row",)),
+        _case("csv/quoted-numbers", "data", RESULT, "control: every cell in double quotes",
+              said.format(needle="estimates"), '''
+              edit_csv(RUN, CASE / "bad.csv", transform=lambda ls: [",".join(f'"{c}"' for c in l.split(","))
+                                                                    for l in ls])
+              ''', est.format(check="said")),
+    ]
+    return cases
+
+
+def train_cases() -> list[Case]:
+    """Training data without measurements."""
+    blank = '''
+    lines = RUN.read_text().splitlines()
+    head = lines[0].split(",")
+    ys = [i for i, c in enumerate(head) if c.startswith("y_")]
+    rows = [l.split(",") for l in lines[1:]]
+    for r in rows:
+        for i in ys:
+            r[i] = ""
+    (CASE / "noy.csv").write_text("\\n".join([lines[0]] + [",".join(r) for r in rows]) + "\\n")
+    '''
+    return [
+        _case("train/no-measurement", "data", ERROR,
+              "train on a run whose every y cell is empty (a model was written before)", blank,
+              'final(["train", "--data", CASE / "noy.csv", "--out", CASE / "m", "--epochs", 2, '
+              '"--refine", 0])', needles=("no measurement",), timeout=180),
+        _case("train/full-state-no-y", "data", RESULT,
+              "control: --full-state trains on x_ columns, without any y", blank, '''
+              final(["train", "--data", CASE / "noy.csv", "--out", CASE / "m", "--epochs", 2,
+                     "--refine", 0, "--full-state"],
+                    check=lambda out: ((CASE / "m" / "model.json").is_file(), out.strip()[-80:]))
+              ''', timeout=240),
+    ]
+
+
+def system_path_cases() -> list[Case]:
+    """System files that moved, or whose path is not UTF-8."""
+    return [
+        _case("sysfile/moved-after-compile", "boundaries", ERROR,
+              "a folder compiled from a system file that was moved since", '''
+              path = system_file("my.py")
+              must(["simulate", "--system", path, "--out", CASE / "run.csv"])
+              must(["--nominal", "--system", path, "--estimator", "ukf", "--out", CASE / "gen"], compile=True)
+              path.rename(CASE / "moved.py")
+              final(["estimate", "--data", CASE / "run.csv", "--estimator", "ukf", "--compiled",
+                     CASE / "gen" / "my_pendulum_nominal_ukf", "--out", CASE / "e.csv"])
+              ''', needles=("my.py", "--system"), timeout=240),
+        _case("sysfile/non-utf8-path", "boundaries", ERROR,
+              "--system given a path with a Latin-1 byte in its name", '''
+              good = system_file("good.py")
+              bad = os.fsencode(str(CASE)) + b"/caf\\xe9.py"
+              with open(bad, "wb") as fh:
+                  fh.write(good.read_bytes())
+              proc = subprocess.run([os.fsencode(sys.executable), b"-m", b"learnest_codegen.cli",
+                                     b"simulate", b"--system", bad, b"--out",
+                                     os.fsencode(str(CASE / "r.csv"))],
+                                    capture_output=True)
+              out, err = proc.stdout.decode(errors="replace"), proc.stderr.decode(errors="replace")
+              if proc.returncode == 0:
+                  verdict(True, "simulated")
+              classify(proc.returncode, out, err)
+              ''', needles=("caf",), timeout=120),
+        _case("sysfile/missing", "boundaries", ERROR, "control: --system names a file that does not exist",
+              'final(["simulate", "--system", CASE / "nope.py", "--out", CASE / "r.csv"])',
+              needles=("nope.py",)),
+    ]
+
+
+def handle_thread_cases() -> list[Case]:
+    """One handle stepped from two Python threads: never a crash (the binding locks it)."""
+    body = '''
+    import threading
+    from learnest_codegen.errors import SolverError
+    run = long_run()
+    est = load("{folder}")
+    errors = []
+    for round_ in range({rounds}):
+        est.reset(np.array([0, 0, 0.3, 0.0]))
+        def work(offset):
+            for k in range(200):
+                try:
+                    est.step(run.u[k + offset], run.y[k + offset])
+                except SolverError as exc:  # a clear error is an answer too
+                    errors.append(str(exc))
+        before = len(errors)
+        threads = [threading.Thread(target=work, args=(o,)) for o in (0, 3000)]
+        for t in threads: t.start()
+        for t in threads: t.join()
+        if est.samples + len(errors) - before != 400 or not np.isfinite(est.x).all():
+            verdict(False, f"round {{round_}}: {{est.samples}} samples taken and "
+                    f"{{len(errors) - before}} errors of 400 steps")
+    verdict(True, f"{{len(errors)}} clear errors, no crash")
+    '''
+    folders = [*(f for _, f in _builds()), "cartpole_nominal_mhe"]
+    return [_case(f"threads/one-handle-{f.replace('cartpole_nominal_', '')}", "boundaries", RESULT,
+                  f"one {f.replace('cartpole_nominal_', '')} handle stepped from two threads, "
+                  "10 rounds (segfaulted in 3 of 12 runs before)",
+                  body.format(folder=f, rounds=3 if f.endswith("_mhe") else 10), timeout=300)
+            for f in folders]
+
+
+def unlimited_input_cases() -> list[Case]:
+    """Inputs far outside the range of a system that declares no input limits (ground robot)."""
+    body = '''
+    run = long_run("ground_robot")
+    est = load("{folder}")
+    x0 = np.asarray(run.x[0], float)
+    clean, _ = step_through(est, run.u, run.y, x0)
+    U = run.u.copy()
+    U[{k} - 1] = {size}
+    X, failed = step_through(est, U, run.y, x0)
+    rms = np.sqrt(np.mean((clean - run.x) ** 2, axis=0))
+    after = float((np.abs(X - clean) / rms)[{k} + 60:].max())
+    verdict(after <= 1.0 and failed == 0 and est.input_rejections >= 1,
+            f"deviation 60 samples after {{after:.3g}} clean RMS errors, {{failed}} failed steps, "
+            f"{{est.input_rejections}} input(s) replaced")
+    '''
+    out = []
+    for e in ("ukf", "mhe_gn", "mhe_rti"):
+        horizon = "" if e == "ukf" else "_n20"
+        for p in ("", "_float32"):
+            for size in ("1e30", "1e6"):
+                out.append(_case(f"inputs/ground-robot-u-{size}-{e}{p}", "c-api", RESULT,
+                                 f"ground robot (no input limits), one u = {size}, {e}{p}: recovered "
+                                 "within 60 samples", body.format(folder=f"ground_robot_nominal_{e}{horizon}{p}",
+                                                                  k=800, size=size), timeout=240))
+    return out
+
+
 def all_cases() -> list[Case]:
     return [*system_cases(), *simulate_cases(), *option_cases(), *file_cases(), *library_cases(),
-            *thread_cases(), *csv_cases(), *input_cases()]
+            *thread_cases(), *csv_cases(), *input_cases(), *prediction_cases(), *gap_cases(),
+            *lap_cases(), *noise_cases(), *mask_cases(), *start_cases(), *csv_stream_cases(),
+            *train_cases(), *system_path_cases(), *handle_thread_cases(), *unlimited_input_cases()]
 
 
 # ---- running ---------------------------------------------------------------------------------
@@ -956,32 +1469,54 @@ def judge(case: Case, code: int | None, out: str, err: str) -> tuple[str, str]:
 
 def setup(workdir: Path) -> None:
     if (workdir / "lib" / "cartpole_true_mhe_n20" / "manifest.json").is_file() \
-            and (workdir / "run.csv").is_file():
+            and (workdir / "lib" / "ground_robot_nominal_mhe_rti_n20_float32" / "manifest.json").is_file() \
+            and (workdir / "run.csv").is_file() and (workdir / "robot.csv").is_file():
         return
     code, out, err = _execute(SETUP, workdir, workdir / "setup", 1800)
     if code != 0 or "fixtures ready" not in out:
         raise SystemExit(f"fixtures failed:\n{out}\n{err}")
 
 
-def run_cases(cases: list[Case], workdir: Path, baseline: dict | None = None) -> list[dict]:
-    results = []
-    for case in cases:
-        start = time.perf_counter()
-        casedir = workdir / "cases" / case.id.replace("/", "__")
-        if casedir.exists():
-            subprocess.run(["rm", "-rf", str(casedir)], check=True)
-        code, out, err = _execute(case.code, workdir, casedir, case.timeout)
-        outcome, detail = judge(case, code, out, err)
-        row = {"id": case.id, "group": case.group, "owner": case.owner, "what": case.what,
-               "expect": sorted(case.expect), "outcome": outcome,
-               "passed": outcome in case.expect or outcome == "skipped",
-               "detail": detail, "seconds": round(time.perf_counter() - start, 1)}
-        if baseline and case.id in baseline:
-            row["before"] = baseline[case.id]["outcome"]
-        results.append(row)
-        print(f"{'ok ' if row['passed'] else 'BAD'} {case.id:48s} {case.owner:8s} {outcome:15s} "
-              f"{detail[:110]}", flush=True)
-    return results
+def run_case(case: Case, workdir: Path, baseline: dict | None = None) -> dict:
+    """Run one case in its own folder and process; its result row."""
+    start = time.perf_counter()
+    casedir = workdir / "cases" / case.id.replace("/", "__")
+    if casedir.exists():
+        subprocess.run(["rm", "-rf", str(casedir)], check=True)
+    code, out, err = _execute(case.code, workdir, casedir, case.timeout)
+    outcome, detail = judge(case, code, out, err)
+    row = {"id": case.id, "group": case.group, "owner": case.owner, "what": case.what,
+           "expect": sorted(case.expect), "outcome": outcome,
+           "passed": outcome in case.expect or outcome == "skipped",
+           "detail": detail, "seconds": round(time.perf_counter() - start, 1)}
+    if baseline and case.id in baseline:
+        row["before"] = baseline[case.id]["outcome"]
+    print(f"{'ok ' if row['passed'] else 'BAD'} {case.id:48s} {case.owner:8s} {outcome:15s} "
+          f"{detail[:110]}", flush=True)
+    return row
+
+
+def run_cases(cases: list[Case], workdir: Path, baseline: dict | None = None,
+              jobs: int = 1) -> list[dict]:
+    """Every case, ``jobs`` at a time (each in its own process); rows in the cases' order."""
+    if jobs <= 1:
+        return [run_case(case, workdir, baseline) for case in cases]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        return list(pool.map(lambda case: run_case(case, workdir, baseline), cases))
+
+
+def verdicts(results: list[dict]) -> dict[str, int]:
+    """The counts the reliability benchmark reports: *silent* (a wrong result accepted, or an
+    error expected and none given), *crash*, *hang*, *confusing* (an error that does not name
+    its cause and remedy, or a traceback), and the cases as expected."""
+    return {"cases": len(results), "as_expected": sum(r["passed"] for r in results),
+            "silent": sum(r["outcome"] == "wrong result" for r in results),
+            "crash": sum(r["outcome"] == "crash" for r in results),
+            "hang": sum(r["outcome"] == "hang" for r in results),
+            "confusing": sum(r["outcome"] in ("unclear error", "traceback") for r in results),
+            "battery_errors": sum(r["outcome"] == "battery error" for r in results)}
 
 
 def summary(results: list[dict]) -> dict:
@@ -1014,6 +1549,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--only", default="", help="run the cases whose id contains this text")
     parser.add_argument("--baseline", type=Path, default=None, help="an earlier --out to compare with")
     parser.add_argument("--markdown", type=Path, default=None, help="also write the table as Markdown")
+    parser.add_argument("--jobs", type=int, default=1, help="cases run at a time")
     args = parser.parse_args(argv)
     workdir = (args.workdir or Path(tempfile.mkdtemp(prefix="hostile_"))).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
@@ -1026,8 +1562,9 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"workdir {workdir}; {len(cases)} cases", flush=True)
     start = time.perf_counter()
     setup(workdir)
-    results = run_cases(cases, workdir, baseline)
-    report = {"summary": summary(results), "seconds": round(time.perf_counter() - start, 1),
+    results = run_cases(cases, workdir, baseline, args.jobs)
+    report = {"summary": summary(results), "verdicts": verdicts(results),
+              "seconds": round(time.perf_counter() - start, 1),
               "commit": subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
                                        capture_output=True, text=True).stdout.strip(),
               "results": results}
@@ -1036,7 +1573,7 @@ def main(argv: list[str] | None = None) -> dict:
         args.markdown.write_text(markdown(results) + "\n")
     s = report["summary"]
     print(f"{s['passed']} of {s['cases']} cases as expected; outcomes {s['outcomes']}; "
-          f"by owner {s['by_owner']}")
+          f"by owner {s['by_owner']}; {report['verdicts']}")
     return report
 
 

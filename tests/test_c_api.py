@@ -156,8 +156,12 @@ def test_set_noise_keeps_the_state_and_equals_the_reference(folders, model, run,
     for k in range(40, 80):
         np.testing.assert_allclose(est.step(data.u[k - 1], data.y[k]), ref.step(data.u[k - 1], data.y[k]),
                                    rtol=0, atol=atol)
-    with pytest.raises(DataError, match="positive semidefinite"):
+    with pytest.raises(DataError, match="positive (semi)?definite"):  # the MHEs invert Q
         est.set_noise(Q=-Q)
+    with pytest.raises(DataError, match=f"outside the range a covariance takes in {precision}"):
+        est.set_noise(R=1e-300 * np.eye(2))  # the UKF drifted to an error of 9-12 on it
+    with pytest.raises(DataError, match="positive definite"):
+        est.set_noise(R=np.zeros((2, 2)))
 
 
 def test_set_arrival_on_a_running_mhe(folders, model, run, cartpole):

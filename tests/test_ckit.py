@@ -203,31 +203,45 @@ def test_block_tridiagonal_solve_equals_a_dense_solve(libraries, cc, real):
 @pytest.mark.parametrize("cc", COMPILERS)
 def test_gate_equals_the_python_gate(libraries, cc):
     """Random normalised innovations and validity: the C gate rejects the same outputs, keeps
-    the same per-output streaks and inflation, ends the same episodes and returns the same
-    factors as estimators/gate.py."""
+    the same per-output streaks, inflation and age, ends the same episodes, loses and re-seeds
+    the same tracks and returns the same factors as estimators/gate.py."""
     k = libraries("kit_core", cc, "double")
     settings = GateSettings(threshold=9.0, recover_after=3, inflation=2.0)
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
-    k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e12, restype=None)
+    k("kt_gate_defaults", g, 9.0, 3, 2.0, 1e4, restype=None)
     py = GateState(settings, 2)
+    assert py.lost_after == 3 + 13  # 2**13 <= 1e4 < 2**14
     rng = np.random.default_rng(2)
     rho, streaks, episodes = ctypes.c_double(), np.zeros(2, dtype=np.intc), 0
-    for step in range(600):
-        d2 = rng.choice([0.5, 3.0, 20.0, 1e6, np.nan], size=2, p=[0.3, 0.2, 0.2, 0.2, 0.1])
-        valid = (rng.random(2) < [0.9, 0.3]).astype(np.uint8)  # a fast and a slow output
+    age, lost, reseeds, lost_steps = ctypes.c_int(), ctypes.c_int(), 0, 0
+    for step in range(3000):
+        phase = (step // 300) % 3  # clean-ish, a lost track, long gaps
+        p = ([0.3, 0.2, 0.2, 0.2, 0.1], [0.02, 0.02, 0.06, 0.8, 0.1], [0.3, 0.2, 0.2, 0.2, 0.1])[phase]
+        d2 = rng.choice([0.5, 3.0, 20.0, 1e6, np.nan], size=2, p=p)
+        rate = ([0.9, 0.3], [0.9, 0.6], [0.05, 0.02])[phase]
+        valid = (rng.random(2) < rate).astype(np.uint8)  # a fast and a slow output
         rejected = np.zeros(2, dtype=np.intc)
         any_c = k("kt_gate_test", g, k.a(d2), valid, rejected)
         expected = py.test(d2, valid.astype(bool))
         np.testing.assert_array_equal(rejected.astype(bool), expected, err_msg=f"step {step}")
         assert any_c == int(expected.any())
+        reseed = k("kt_gate_reseeds", g, rejected)
+        assert reseed == int(py.reseeds(expected)), f"step {step}"
+        if reseed:
+            expected = np.zeros(2, dtype=bool)
+            assert not rejected.any()
+        reseeds += reseed
         ends = k("kt_gate_ends_episode", g, rejected, valid)
         assert ends == int(py.ends_episode(expected, valid.astype(bool)))
         episodes += ends
         factor = k("kt_gate_record", g, rejected, valid, restype=ctypes.c_double)
         assert factor == py.record(expected, valid.astype(bool))
-        k("kt_gate_state", g, ctypes.byref(rho), streaks, restype=None)
+        k("kt_gate_state", g, ctypes.byref(rho), streaks, ctypes.byref(age), ctypes.byref(lost),
+          restype=None)
         assert rho.value == py.inflation and streaks.tolist() == py.streaks.tolist()
-    assert episodes > 0 and py.inflation >= 1
+        assert (age.value, lost.value) == (py.age, int(py.lost)), f"step {step}"
+        lost_steps += lost.value
+    assert episodes > 0 and py.inflation >= 1 and reseeds > 0 and lost_steps > 0
     # out of range: refused, nothing changed
     for bad in ((0.5, 3, 2.0), (-1.0, 3, 2.0), (np.nan, 3, 2.0), (9.0, 0, 2.0), (9.0, 10**7, 2.0),
                 (9.0, 3, 1.0), (9.0, 3, 1e4), (9.0, 3, np.inf)):
@@ -258,13 +272,13 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
     assert k("kt_mhe_reset", m, k.a(x0), k.a(P0), k.a(Q), k.a(R)) == 0
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
     gate = settings.gate
-    k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e12, restype=None)
-    n1, restarts, rejections, carried_steps = N + 1, 0, 0, 0
+    k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e4, restype=None)
+    n1, restarts, rejections, carried_steps, reseeds, since = N + 1, 0, 0, 0, 0, 10**6
     for step in range(300):
         u = rng.normal(size=1)
         y = model.measure(mhe.x, u) + 0.01 * rng.normal(size=2)
-        if 100 <= step < 106 or rng.random() < 0.03:
-            y = y + 5.0  # gross: rejected, and six in a row trip the recovery
+        if 100 <= step < 106 or 200 <= step < 230 or rng.random() < 0.03:
+            y = y + 5.0  # gross: rejected; six in a row trip the recovery, thirty lose the track
         valid = rng.random(2) < 0.85
         y = np.where(valid, y, np.nan)  # a missing output's value is never read
         has_previous = mhe._count > 0
@@ -275,6 +289,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         # where a carried arrival covariance moves on: the leaving stage X[0] (Python's _carried)
         H0 = np.asarray(mhe._meas(mhe._window[0], mhe._now.U[0])[1])
         A0 = np.asarray(mhe._jac(mhe._window[0], mhe._now.U[1]))
+        rejected_before = mhe._gate.test(np.full(2, np.inf), valid) if mhe._gate.lost else np.zeros(2, bool)
         nxt = mhe._advance(u, y, valid)
         window, guess, rejected = nxt.window, nxt.guess, nxt.rejected
         h, C = (np.asarray(v) for v in mhe._meas(x_pred, u))
@@ -293,7 +308,10 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         np.testing.assert_array_equal(mask, window.mask, err_msg=f"step {step}")
         np.testing.assert_array_equal(G, window.G.ravel(), err_msg=f"step {step}")
         restarts += restarted.value
-        if restarted.value:  # the prior: a Kalman update, numpy's solve against Cholesky
+        reseeds += int(restarted.value and rejected_before.any() and not rejected.any())
+        since = 0 if restarted.value else since + 1
+        if restarted.value or since <= n1:  # a restart prior (a Kalman update, numpy's solve
+            # against Cholesky) stays the window's xbar until the window is full again
             np.testing.assert_allclose(xbar, window.xbar, rtol=1e-12, atol=1e-14)
             np.testing.assert_allclose(Xn, guess.ravel(), rtol=1e-12, atol=1e-14)
         else:
@@ -311,8 +329,8 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         carried_steps += carried
         k("kt_gate_record", g, rej, valid.astype(np.uint8), restype=ctypes.c_double)
         rejections += int(rejected.sum())
-    # the recovery, the failures and the carried arrival covariance were exercised
-    assert restarts >= 3 and rejections >= 6 and carried_steps >= 3 * n1
+    # the recovery, the re-seed, the failures and the carried arrival covariance were exercised
+    assert restarts >= 3 and rejections >= 6 and carried_steps >= 3 * n1 and reseeds >= 1
 
 
 # -- the kit's estimators over a linear model ----------------------------------------------

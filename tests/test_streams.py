@@ -421,6 +421,6 @@ def test_estimate_options_are_checked(gappy_csv, tmp_path):
     assert code == 2 and "a horizon applies to the MHEs" in text, text
     code, text = _cli("estimate", "--data", path, "--estimator", "ukf", "--backend", "python",
                       "--P0", "1,0,0,0,0,1,0,0,0,0,-1,0,0,0,0,1", "--out", out)
-    assert code == 1 and "positive semidefinite" in text, text
+    assert code == 2 and "--P0" in text and "positive semidefinite" in text, text
     code, text = _cli("estimate", "--data", "/dev/zero", "--estimator", "ukf", "--out", out)
     assert code == 1 and "/dev/zero: not a regular file" in text, text

@@ -183,6 +183,7 @@ int LEARNEST_API(step)(LEARNEST_HANDLE* h, const learnest_real* u, const learnes
   for (j = 0; j < LEARNEST_NU; ++j) {
     if (h->c.input_rejections < INT_MAX) h->c.input_rejections += u_rejected[j];
   }
+  if (learnest_gate_lost(&h->c.gate)) code |= LEARNEST_UNRELIABLE;
   return code | (u_any ? LEARNEST_INPUT_REJECTED : 0);
 }
 
@@ -200,7 +201,7 @@ int LEARNEST_API(run)(LEARNEST_HANDLE* h, int T, const learnest_real* U, const l
     code = LEARNEST_API(step)(h, U + (k > 0 ? k - 1 : 0) * LEARNEST_NU, Y + k * LEARNEST_NY,
                               valid ? valid + k * LEARNEST_NY : 0);
     if (code < 0) return code;
-    status |= code;  /* success codes are bits: 1 an output rejected, 2 an input rejected */
+    status |= code;  /* success codes are bits: 1 output rejected, 2 input rejected, 4 unreliable */
     memcpy(Xhat + k * LEARNEST_NX, learnest_est_state(h), LEARNEST_NX * sizeof(learnest_real));
   }
   return status;

@@ -173,6 +173,23 @@ LEARNEST_KIT void learnest_mat_mul_t(const learnest_real* A, const learnest_real
   }
 }
 
+/* 1 when every variance (diagonal entry) of the n x n A is in the precision's range
+ * (learnest_status.h LEARNEST_VARIANCE_MIN/_MAX, a float build LEARNEST_VARIANCE_FLOAT32_*),
+ * or is 0 where definite is 0: a variance beyond it has an inverse or a square the estimator
+ * cannot carry (runtime/limits.py). */
+LEARNEST_KIT int learnest_variances_ok(const learnest_real* A, int n, int definite) {
+  const learnest_real lo = LEARNEST_IS_FLOAT ? (learnest_real)LEARNEST_VARIANCE_FLOAT32_MIN
+                                             : (learnest_real)LEARNEST_VARIANCE_MIN;
+  const learnest_real hi = LEARNEST_IS_FLOAT ? (learnest_real)LEARNEST_VARIANCE_FLOAT32_MAX
+                                             : (learnest_real)LEARNEST_VARIANCE_MAX;
+  int i;
+  for (i = 0; i < n; ++i) {
+    const learnest_real v = A[i * n + i];
+    if (!((v >= lo && v <= hi) || (!definite && v == 0))) return 0;
+  }
+  return 1;
+}
+
 /* A covariance as an API call gives it (n x n, row-major) checked: finite (else
  * LEARNEST_NONFINITE_INPUT), symmetric and positive semidefinite to rounding (else
  * LEARNEST_NOT_POSITIVE_DEFINITE); dst = its column-major copy; work holds n * n. */
@@ -182,6 +199,24 @@ LEARNEST_KIT int learnest_covariance_in(const learnest_real* A, int n, learnest_
   if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   learnest_transpose(dst, A, n);
   return LEARNEST_OK;
+}
+
+/* Scale row and column i of the symmetric n x n A (either order) by sqrt(ceiling_i / A_ii)
+ * where A_ii exceeds ceiling_i: the variances are then at most the ceiling and the
+ * correlations stay (A stays positive semidefinite); s holds n. Returns 1 when a variance
+ * was capped. */
+LEARNEST_KIT int learnest_cap_variances(learnest_real* A, int n, const learnest_real* ceiling,
+                                        learnest_real* s) {
+  int i, j, capped = 0;
+  for (i = 0; i < n; ++i) {
+    s[i] = A[i * n + i] > ceiling[i] ? LEARNEST_SQRT(ceiling[i] / A[i * n + i]) : 1;
+    capped |= s[i] != 1;
+  }
+  if (!capped) return 0;
+  for (i = 0; i < n; ++i) {
+    for (j = 0; j < n; ++j) A[i * n + j] *= s[i] * s[j];
+  }
+  return 1;
 }
 
 /* A <- (A + A^T) / 2 for the n x n A. */

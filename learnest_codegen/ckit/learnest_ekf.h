@@ -12,8 +12,21 @@
 
 #include "learnest_kalman.h"
 
+/* The predicted outputs' covariance S = C P C' + R and P C' (column-major) of the prior P. */
+LEARNEST_KIT void learnest_ekf_innovation(const LEARNEST_HANDLE* h, const learnest_real* P,
+                                          const learnest_real* C, learnest_real* PCt,
+                                          learnest_real* S) {
+  int j, k;
+  learnest_mat_mul_t(P, C, LEARNEST_NX, LEARNEST_NX, LEARNEST_NY, PCt);
+  learnest_mat_mul(C, PCt, LEARNEST_NY, LEARNEST_NX, LEARNEST_NY, S);
+  for (j = 0; j < LEARNEST_NY; ++j) {
+    for (k = 0; k < LEARNEST_NY; ++k) S[j + k * LEARNEST_NY] += h->R[j + k * LEARNEST_NY];
+  }
+}
+
 /* One sample: x = F(x, u), P = A P A' + Q (not on the first sample), then the Kalman update on
- * the valid outputs the gate keeps (K = P C' M S^-1 with S = M (C P C' + R) M + I - M). */
+ * the valid outputs the gate keeps (K = P C' M S^-1 with S = M (C P C' + R) M + I - M); a lost
+ * estimate re-seeds: the update of the prior covariance diag(ceiling) by every valid output. */
 LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    int* rejected) {
@@ -32,14 +45,16 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     for (i = 0; i < LEARNEST_KF_NXX; ++i) P[i] += h->Q[i];
   }
   learnest_model_node(&h->model, x, u, hx, C);
-  learnest_mat_mul_t(P, C, LEARNEST_NX, LEARNEST_NX, LEARNEST_NY, PCt);
-  learnest_mat_mul(C, PCt, LEARNEST_NY, LEARNEST_NX, LEARNEST_NY, S);
+  learnest_ekf_innovation(h, P, C, PCt, S);
   for (j = 0; j < LEARNEST_NY; ++j) {
-    for (k = 0; k < LEARNEST_NY; ++k) S[j + k * LEARNEST_NY] += h->R[j + k * LEARNEST_NY];
     z[j] = y[j] - hx[j];
     d2[j] = z[j] * z[j] / S[j + j * LEARNEST_NY];
   }
-  (void)learnest_gate_test(&h->c.gate, d2, valid, LEARNEST_NY, rejected);
+  if (learnest_gate_test(&h->c.gate, d2, valid, LEARNEST_NY, rejected)
+      && learnest_gate_reseeds(&h->c.gate, rejected)) {
+    learnest_kalman_reseed(P);
+    learnest_ekf_innovation(h, P, C, PCt, S);
+  }
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
   for (j = 0; j < LEARNEST_NY; ++j) {
     for (k = 0; k < LEARNEST_NY; ++k) {

@@ -1,7 +1,14 @@
 /* learnest_kalman.h -- what the Kalman filters of the kit (the UKF, learnest_ukf.h; the EKF,
  * learnest_ekf.h) share: the handle (the state, its covariance, the noise covariances, the
- * model), their tuning from covariances, run-time tuning, the covariance guard and recovery of
- * a step, the API of learnest_api.h and get_covariance.
+ * model), their tuning from covariances, run-time tuning, the covariance guard, ceiling,
+ * recovery and re-seed of a step, the API of learnest_api.h and get_covariance.
+ *
+ * Ceiling: no variance of P exceeds LEARNEST_MAX_INFLATION times the build's initial variance
+ * (LEARNEST_DEFAULT_P0, the settings' initial_std squared): a long run of predictions, or the
+ * recovery's inflation, grows P up to it and no further (P's rows and columns are scaled, so
+ * the correlations stay). Unbounded, the cartpole UKF's P went from 16 to 1e44 within 1,000
+ * predictions and the state to 6e12. A re-seed (learnest_gate.h) updates the prediction from
+ * the prior covariance diag(ceiling).
  *
  * Include after learnest_kit.h with LEARNEST_PREFIX, LEARNEST_NX, LEARNEST_NU, LEARNEST_NY and
  * the model (struct learnest_model); the including file then defines learnest_est_step.
@@ -38,9 +45,10 @@ LEARNEST_KIT int learnest_kalman_variances_ok(const learnest_real* A, int n) {
   return 1;
 }
 
-/* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; positive
- * semidefinite is enough, no variance below zero); nothing is written unless every given one is
- * valid. */
+/* P0, Q, R (NULL: left alone) checked by learnest_covariance_in into t (column-major; P0 and Q
+ * positive semidefinite, no variance below zero; R positive definite, as the update inverts
+ * it), every variance in the precision's range (P0's and Q's may be 0; else
+ * LEARNEST_BAD_ARGUMENT); nothing is written unless every given one is valid. */
 LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
                                    const learnest_real* Q, const learnest_real* R) {
   learnest_real w[LEARNEST_KF_NMAX * LEARNEST_KF_NMAX];
@@ -53,6 +61,15 @@ LEARNEST_KIT int learnest_est_tune(learnest_tuning* t, const learnest_real* P0,
       (Q && !learnest_kalman_variances_ok(Q, LEARNEST_NX)) ||
       (R && !learnest_kalman_variances_ok(R, LEARNEST_NY))) {
     return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
+  if (R) {  /* R positive definite: its Cholesky factor exists */
+    memcpy(w, c.R, sizeof c.R);
+    if (!learnest_cholesky(w, LEARNEST_NY)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  }
+  if ((P0 && !learnest_variances_ok(P0, LEARNEST_NX, 0)) ||
+      (Q && !learnest_variances_ok(Q, LEARNEST_NX, 0)) ||
+      (R && !learnest_variances_ok(R, LEARNEST_NY, 1))) {
+    return LEARNEST_BAD_ARGUMENT;
   }
   if (P0) memcpy(t->P0, c.P0, sizeof c.P0);
   if (Q) memcpy(t->Q, c.Q, sizeof c.Q);
@@ -132,17 +149,37 @@ LEARNEST_KIT int learnest_kalman_keep_pd(learnest_real* P, learnest_real* work) 
   return -1;
 }
 
+/* The covariance ceiling (NX variances): LEARNEST_MAX_INFLATION times the build's initial
+ * variances. */
+LEARNEST_KIT void learnest_kalman_ceiling(learnest_real* ceiling) {
+  static const learnest_real P0[LEARNEST_KF_NXX] = LEARNEST_DEFAULT_P0;
+  int i;
+  for (i = 0; i < LEARNEST_NX; ++i) {
+    ceiling[i] = (learnest_real)LEARNEST_MAX_INFLATION * P0[i * LEARNEST_NX + i];
+  }
+}
+
+/* A re-seed's prior covariance: P = diag(ceiling) (column-major or row-major alike). */
+LEARNEST_KIT void learnest_kalman_reseed(learnest_real* P) {
+  learnest_real ceiling[LEARNEST_NX];
+  int i;
+  learnest_kalman_ceiling(ceiling);
+  for (i = 0; i < LEARNEST_KF_NXX; ++i) P[i] = 0;
+  for (i = 0; i < LEARNEST_NX; ++i) P[i * LEARNEST_NX + i] = ceiling[i];
+}
+
 /* The end of a step: x_post and P_post (column-major, overwritten) must be finite, P_post
  * symmetric (it is symmetrised) and positive semidefinite to rounding (P - K S K^T can lose it
  * from extreme but valid covariances; such a P would poison every later step, so it is an
  * error, not an OK), and it is kept positive definite (learnest_kalman_keep_pd: a P that is
  * singular to rounding gets its diagonal loaded by a few epsilons); then the gate books the
  * step (rejected, valid: NY flags each), its recovery grows the variances (the covariances
- * stay, so stale correlations fade) and the step is committed. */
+ * stay, so stale correlations fade), the variances are capped at the ceiling and the step is
+ * committed. */
 LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real* x_post,
                                         learnest_real* P_post, const int* rejected,
                                         const unsigned char* valid) {
-  learnest_real work[LEARNEST_KF_NXX], factor;
+  learnest_real work[LEARNEST_KF_NXX], ceiling[LEARNEST_NX], factor;
   int i, any = 0;
   if (!learnest_all_finite(x_post, LEARNEST_NX) || !learnest_all_finite(P_post, LEARNEST_KF_NXX)) {
     return LEARNEST_NONFINITE_RESULT;
@@ -153,6 +190,8 @@ LEARNEST_KIT int learnest_kalman_commit(LEARNEST_HANDLE* h, const learnest_real*
   for (i = 0; i < LEARNEST_NY; ++i) any |= rejected[i];
   factor = learnest_gate_record(&h->c.gate, rejected, valid);
   for (i = 0; factor != 1 && i < LEARNEST_NX; ++i) P_post[i * LEARNEST_NX + i] *= factor;
+  learnest_kalman_ceiling(ceiling);
+  (void)learnest_cap_variances(P_post, LEARNEST_NX, ceiling, work);
   memcpy(h->x, x_post, sizeof h->x);
   memcpy(h->P, P_post, sizeof h->P);
   return any ? LEARNEST_MEASUREMENT_REJECTED : LEARNEST_OK;

@@ -2,9 +2,17 @@
  * a sample (window and weights, laid out as ParamLayout in estimators/mhe_problem.py), their
  * tuning from covariances, the arrival weight (the running one, or a first prior's covariance
  * carried forward, estimators/arrival.py), the innovation gate of a new sample and the
- * recovery's restart (estimators/mhe.py is the Python reference, line by line).
+ * recovery's restart and re-seed (estimators/mhe.py is the Python reference, line by line).
  *
- * Include after learnest_kit.h with LEARNEST_NX, LEARNEST_NU, LEARNEST_NY, LEARNEST_N.
+ * Ceilings: a restart's prior variances are at most LEARNEST_MAX_INFLATION times the running
+ * arrival covariance's, and the covariances that become arrival weights (the restart prior's
+ * posterior, a carried one) at most LEARNEST_ARRIVAL_CEILING (100) times: the arrival weight
+ * then stays within that factor of the running one, which the Gauss-Newton normal equations
+ * resolve in float32 (with 1e3 the float32 mhe_gn failed with MAX_ITERATIONS after a gap of
+ * 10,000 samples, with 1e5 at every step after a restart; docs/reports/reliability.md).
+ *
+ * Include after learnest_kit.h with LEARNEST_NX, LEARNEST_NU, LEARNEST_NY, LEARNEST_N and
+ * LEARNEST_MAX_INFLATION.
  */
 #ifndef LEARNEST_MHE_H
 #define LEARNEST_MHE_H
@@ -52,12 +60,14 @@ struct learnest_mhe {
 };
 
 /* One covariance A (n x n, row-major) checked and inverted: finite (else
- * LEARNEST_NONFINITE_INPUT), symmetric and positive definite (else
+ * LEARNEST_NONFINITE_INPUT), its variances in the precision's range (else
+ * LEARNEST_BAD_ARGUMENT), symmetric and positive definite (else
  * LEARNEST_NOT_POSITIVE_DEFINITE); cov = A symmetrised, weight = its inverse (symmetrised). */
 LEARNEST_KIT int learnest_mhe_covariance(const learnest_real* A, int n, learnest_real* cov,
                                          learnest_real* weight) {
   learnest_real work[LEARNEST_NMAX * LEARNEST_NMAX];
   if (!learnest_all_finite(A, n * n)) return LEARNEST_NONFINITE_INPUT;
+  if (!learnest_variances_ok(A, n, 1)) return LEARNEST_BAD_ARGUMENT;
   if (!learnest_covariance_ok(A, n, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   memcpy(cov, A, (size_t)(n * n) * sizeof(learnest_real));
   learnest_symmetrise(cov, n);
@@ -91,6 +101,17 @@ LEARNEST_KIT int learnest_mhe_tune(struct learnest_mhe_tuning* t, const learnest
     memcpy(t->R, c.R, sizeof c.R);
   }
   return LEARNEST_OK;
+}
+
+/* The largest variance of a covariance that becomes an arrival weight, relative to the running
+ * arrival covariance's (estimators/arrival.py ARRIVAL_CEILING). */
+#define LEARNEST_ARRIVAL_CEILING 100
+
+/* factor times the running arrival covariance's variances (NX). */
+LEARNEST_KIT void learnest_mhe_ceiling(const struct learnest_mhe* m, learnest_real factor,
+                                       learnest_real* ceiling) {
+  int i;
+  for (i = 0; i < LEARNEST_NX; ++i) ceiling[i] = factor * m->P_cov[i * LEARNEST_NX + i];
 }
 
 /* 1 when the covariance A (NX x NX, symmetric) is no larger than the running arrival
@@ -223,8 +244,8 @@ LEARNEST_KIT int learnest_mhe_carries(const struct learnest_mhe* m, int has_prev
 /* next and its warm start Xn from now and X: the window moves on one stage when a sample was
  * taken before (has_previous) and opens the new sample's stage with input u. When the window
  * was full the arrival moves on: its weight becomes W, or, while a covariance is carried
- * (learnest_mhe_carries: H and A given, else NULL), the inverse of the carried one until it
- * has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
+ * (learnest_mhe_carries: H and A given, else NULL), the inverse of the carried one (its
+ * variances capped at the arrival ceiling) until it has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
  * (when has_previous). */
 LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
                                        const learnest_real* u, const learnest_real* H,
@@ -236,7 +257,10 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
   if (has_previous) {
     if (m->now.w.mask[0] == 1) {  /* the arrival moves on */
       if (m->carried_next && H && A) {
+        learnest_real ceiling[LEARNEST_NX], work[LEARNEST_NX];
         learnest_mhe_carry(m, H, A, m->Cn);
+        learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
+        (void)learnest_cap_variances(m->Cn, LEARNEST_NX, ceiling, work);
         if (learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
       } else {
         m->carried_next = 0;
@@ -250,27 +274,24 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
 }
 
 /* The recovery's new prior (estimators/mhe.py restart_prior): the Kalman update of x_pred
- * with covariance Pd = rho diag(P_cov) (its correlations dropped) by the outputs kept
- * (keep[j]), C = dh/dx (NY x NX, column-major), R_cov (row-major) and innovation nu: xbar and
- * its covariance cov = Pd - K C Pd (row-major). xbar = x_pred and cov = Pd when no output is
- * kept or S is not positive definite. */
+ * with the diagonal covariance diag(pd) by the outputs kept (keep[j]), C = dh/dx (NY x NX,
+ * column-major), R_cov (row-major) and innovation nu: xbar and its covariance
+ * cov = Pd - K C Pd (row-major). xbar = x_pred and cov = diag(pd) when no output is kept or S
+ * is not positive definite. */
 LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const learnest_real* C,
-                                         const learnest_real* P_cov, learnest_real rho,
-                                         const learnest_real* R_cov, const learnest_real* nu,
-                                         const int* keep, learnest_real* xbar, learnest_real* cov) {
+                                         const learnest_real* pd, const learnest_real* R_cov,
+                                         const learnest_real* nu, const int* keep,
+                                         learnest_real* xbar, learnest_real* cov) {
   learnest_real PCt[LEARNEST_NX * LEARNEST_NY], S[LEARNEST_NYY], Si[LEARNEST_NYY];
   learnest_real L[LEARNEST_NYY], z[LEARNEST_NY];
   int i, j, l;
   for (i = 0; i < LEARNEST_NX; ++i) xbar[i] = x_pred[i];
   for (i = 0; i < LEARNEST_NXX; ++i) cov[i] = 0;
-  for (i = 0; i < LEARNEST_NX; ++i) cov[i * LEARNEST_NX + i] = rho * P_cov[i * LEARNEST_NX + i];
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* PCt = rho diag(P) C^T M */
-    for (j = 0; j < LEARNEST_NY; ++j) {
-      learnest_real v = P_cov[i * LEARNEST_NX + i] * C[j + i * LEARNEST_NY];
-      PCt[i * LEARNEST_NY + j] = keep[j] ? rho * v : 0;
-    }
+  for (i = 0; i < LEARNEST_NX; ++i) cov[i * LEARNEST_NX + i] = pd[i];
+  for (i = 0; i < LEARNEST_NX; ++i) {  /* PCt = diag(pd) C^T M */
+    for (j = 0; j < LEARNEST_NY; ++j) PCt[i * LEARNEST_NY + j] = keep[j] ? pd[i] * C[j + i * LEARNEST_NY] : 0;
   }
-  for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (C rho P C^T + R) M + (I - M) */
+  for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (C diag(pd) C^T + R) M + (I - M) */
     for (l = 0; l < LEARNEST_NY; ++l) {
       learnest_real v = R_cov[j * LEARNEST_NY + l];
       for (i = 0; i < LEARNEST_NX; ++i) v += C[j + i * LEARNEST_NY] * PCt[i * LEARNEST_NY + l];
@@ -300,23 +321,26 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
   learnest_symmetrise(cov, LEARNEST_NX);
 }
 
-/* The innovation gate of the new sample (u, y, valid) and the recovery's restart, after
- * learnest_mhe_advance and the prediction of Xn[N]: h and C = dh/dx (column-major) at
+/* The innovation gate of the new sample (u, y, valid) and the recovery's restart and re-seed,
+ * after learnest_mhe_advance and the prediction of Xn[N]: h and C = dh/dx (column-major) at
  * x_pred = Xn[N]; a valid output's d2 = (y - h)^2 / S_jj with
  * S_jj = rho (C P_arr C^T)_jj + R_cov_jj, P_arr the carried covariance of next's prior if
- * any, else the running P_cov. A restart (after a failed step, or on the step that ends a
- * recovery episode, learnest_gate_ends_episode) empties the window around
- * learnest_restart_prior, folds the sample into it and carries the prior's covariance
- * (its inverse is the arrival weight). Weighs the sample's outputs (G); sets rejected (NY)
- * and *restarted; returns 1 when an output was rejected. */
+ * any, else the running P_cov. A restart (after a failed step, on the step that ends a
+ * recovery episode, learnest_gate_ends_episode, or on a re-seed, learnest_gate_reseeds, which
+ * takes every valid output) empties the window around learnest_restart_prior from the variances
+ * min(rho P_arr_ii, cap P_cov_ii) (a re-seed: cap P_cov_ii), folds the sample into it and
+ * carries the prior's covariance, capped at the arrival ceiling (its inverse is the arrival
+ * weight). Weighs the sample's
+ * outputs (G); sets rejected (NY) and *restarted; returns 1 when an output was rejected. */
 LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest_gate* g,
                                    int has_previous, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    const learnest_real* h, const learnest_real* C, int* rejected,
                                    int* restarted) {
   learnest_real d2[LEARNEST_NY], nu[LEARNEST_NY], xbar[LEARNEST_NX], cov[LEARNEST_NXX];
+  learnest_real pd[LEARNEST_NX], ceiling[LEARNEST_NX];
   const learnest_real* P_arr = m->carried_next ? m->Cn : m->P_cov;
-  int i, j, k, any, keep[LEARNEST_NY];
+  int i, j, k, any, reseed, keep[LEARNEST_NY];
   for (i = 0; i < LEARNEST_NY; ++i) {
     learnest_real s = 0;
     for (j = 0; j < LEARNEST_NX; ++j) {
@@ -329,11 +353,18 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
     d2[i] = nu[i] * nu[i] / s;
   }
   any = learnest_gate_test(g, d2, valid, LEARNEST_NY, rejected);
+  reseed = any && has_previous && learnest_gate_reseeds(g, rejected);
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
-  *restarted = has_previous && (m->restart || learnest_gate_ends_episode(g, rejected, valid));
+  *restarted = has_previous && (m->restart || reseed || learnest_gate_ends_episode(g, rejected, valid));
   if (*restarted) {
-    learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, P_arr, g->rho, m->R_cov, nu,
-                           keep, xbar, cov);
+    learnest_mhe_ceiling(m, (learnest_real)LEARNEST_MAX_INFLATION, pd);
+    for (i = 0; i < LEARNEST_NX && !reseed; ++i) {
+      learnest_real v = g->rho * P_arr[i * LEARNEST_NX + i];
+      pd[i] = v < pd[i] ? v : pd[i];
+    }
+    learnest_restart_prior(m->Xn + LEARNEST_N * LEARNEST_NX, C, pd, m->R_cov, nu, keep, xbar, cov);
+    learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
+    (void)learnest_cap_variances(cov, LEARNEST_NX, ceiling, pd);
     learnest_window_reset(&m->next.w, xbar);
     learnest_window_open(&m->next.w, u);
     learnest_window_fill(m->Xn, xbar);
@@ -343,7 +374,7 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
     for (j = 0; j < LEARNEST_NY; ++j) keep[j] = 0;  /* the sample is in the prior */
   }
   learnest_window_weigh(&m->next.w, y, keep);
-  return any;
+  return any && !reseed;
 }
 
 /* The solved next problem becomes the current one. */

@@ -165,7 +165,8 @@ LEARNEST_KIT int learnest_model_update(struct learnest_model* md, const learnest
 #endif
 
 /* One sample: predict with u (not on the first sample after init/reset), update with the
- * valid outputs of y, gate them, guard the covariance, recover; commit only on success. */
+ * valid outputs of y, gate them (or re-seed), guard and cap the covariance, recover; commit
+ * only on success. */
 LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    int* rejected) {
@@ -183,9 +184,13 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     for (i = 0; i < LEARNEST_NY; ++i) mask[i] = valid[i];
     rc = learnest_model_update(&h->model, x_prior, P_prior, u, y, h->R, mask, x_post, P_post, d2);
     /* Gate: a valid output whose d2 = (y - zp)^2 / S_jj exceeds the threshold (or is NaN) is
-     * rejected, and the update is redone without it. */
+     * rejected, and the update is redone without it; a lost estimate re-seeds instead: the
+     * update is redone from the prior covariance diag(ceiling) with every valid output. */
     if (rc == 0) any = learnest_gate_test(&h->c.gate, d2, valid, LEARNEST_NY, rejected);
-    if (rc == 0 && any) {
+    if (rc == 0 && any && learnest_gate_reseeds(&h->c.gate, rejected)) {
+      learnest_kalman_reseed(P_prior);
+      rc = learnest_model_update(&h->model, x_prior, P_prior, u, y, h->R, mask, x_post, P_post, d2);
+    } else if (rc == 0 && any) {
       for (i = 0; i < LEARNEST_NY; ++i) mask[i] = valid[i] && !rejected[i];
       rc = learnest_model_update(&h->model, x_prior, P_prior, u, y, h->R, mask, x_post, P_post, d2);
     }

@@ -13,6 +13,7 @@ import click
 import numpy as np
 
 from ..errors import LearnestError
+from ..runtime.limits import LIMITS
 
 SYSTEM_HELP = "built-in system name (cartpole) or path to a .py file defining SYSTEM"
 
@@ -43,21 +44,38 @@ RESAMPLE = click.option("--resample", is_flag=True,
                              "(default: refuse such a run)")
 
 
-def read_run(data: str, system, resample: bool):
-    """Read a run CSV and make sure it is sampled at the system's ``dt`` (or resample it)."""
-    from ..data import check_sampling, read_run
+def read_run(data: str, system, resample: bool, measured: bool = True):
+    """Read a run CSV and make sure it is sampled at the system's ``dt`` (or resample it).
+
+    With ``measured``, a run without any measurement is an error and an output column without
+    a single sample is said on stderr (the estimate or the model then rests on the others)."""
+    from ..data import check_sampling, read_run, unmeasured_outputs
     from ..data import resample as to_grid
 
     run = read_run(data, system)
     if resample:
         run = to_grid(run, system.dt)
     check_sampling(run, system.dt, str(data))
+    if measured:
+        for name in unmeasured_outputs(run, system, str(data)):
+            click.echo(f"Warning: {data}: column y_{name} holds no sample ({len(run)} empty cells): "
+                       f"output {name} is never measured, so what it would tell comes from the "
+                       "model and the other outputs alone; check the column (an empty cell means "
+                       "a missing sample)", err=True)
     return run
 
 
 def system_named(name: str):
     from ..systems import get_system
 
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError as exc:  # a path of bytes that are not UTF-8 (surrogate escapes)
+        raw = os.fsencode(name)
+        bad = raw[len(name[:exc.start].encode("utf-8", "surrogateescape")):][:1]
+        raise click.BadParameter(f"system file {raw.decode('utf-8', 'backslashreplace')}: its path "
+                                 f"is not UTF-8 (byte {bad!r}); rename the file or its folder with "
+                                 "UTF-8 characters", param_hint="--system") from None
     return get_system(name)
 
 
@@ -162,9 +180,10 @@ def gate_settings(threshold: float, recover_after: int, inflation: float):
     return None if gate == GateSettings() else gate
 
 
-HORIZON = click.option("--horizon", type=click.IntRange(min=1), default=None,
+_N = LIMITS["horizon"]
+HORIZON = click.option("--horizon", type=click.IntRange(min=int(_N.low), max=int(_N.high)), default=None,
                        help="MHE horizon N, the samples in the window minus one (mhe, mhe_gn, "
-                            "mhe_rti; default 20)")
+                            f"mhe_rti; default 20; {_N.describe()})")
 
 
 def parse_vector(text: str | None, n: int, option: str) -> np.ndarray | None:
@@ -187,13 +206,19 @@ def parse_covariance(text: str | None, system, option: str = "--P0") -> np.ndarr
     nx*nx entries row by row; ``None`` stays ``None`` (the estimator's own)."""
     if text is None:
         return None
+    from ..errors import DataError
+    from ..estimators.validation import covariance
+
     n = system.nx
     if text.strip() == "initial":
         return np.diag(np.square(system.noise.initial_std))
     count = len(text.split(","))
-    if count == n:
-        return np.diag(parse_vector(text, n, option))
-    if count == n * n:
-        return parse_vector(text, n * n, option).reshape(n, n)
-    raise click.BadParameter(f"expected 'initial', {n} variances or {n * n} entries, got {count} "
-                             "values", param_hint=option)
+    if count not in (n, n * n):
+        raise click.BadParameter(f"expected 'initial', {n} variances or {n * n} entries, got "
+                                 f"{count} values", param_hint=option)
+    P0 = np.diag(parse_vector(text, n, option)) if count == n else \
+        parse_vector(text, n * n, option).reshape(n, n)
+    try:
+        return covariance(option, P0, n)
+    except DataError as exc:
+        raise click.BadParameter(str(exc).removeprefix(f"{option}: "), param_hint=option) from exc

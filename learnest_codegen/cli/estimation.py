@@ -190,6 +190,9 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
         check_horizon((estimator,), horizon)
     except ValueError as exc:
         raise click.UsageError(f"--horizon: {exc}") from exc
+    from ..data import longest_gap
+    from ..errors import LearnestError, SolverError
+    from ..estimators.gate import lost_after
     from ..evaluation import mse, run_estimator
     from ..outputs import atomic_file, claim_output
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
@@ -198,7 +201,8 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
                  force=force)
     system = resolve_system(system_name, model, compiled if backend == "c" else None)
     x0 = parse_vector(x0_text, system.nx, "--x0")
-    P0 = parse_covariance(P0_text, system)
+    # a guess of one's own is as uncertain as the system's initial state, not as the steady state
+    P0 = parse_covariance("initial" if P0_text is None and x0 is not None else P0_text, system)
     run = read_run(data, system, resample)
     trained = None
     if model not in ("nominal", "true"):
@@ -218,8 +222,15 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
                        "--compiled DIR runs a folder of learnest-compile)", err=True)
         est = make_estimator(resolved, estimator, backend=backend, system=system, precision=precision,
                              out=where, gate=gate, horizon=horizon)
-    result = run_estimator(est, run, np.asarray(system.x0, float) if x0 is None else x0,
-                           f"{estimator}:{model}:{backend}", P0)
+    try:
+        result = run_estimator(est, run, np.asarray(system.x0, float) if x0 is None else x0,
+                               f"{estimator}:{model}:{backend}", P0)
+    except (SolverError, LearnestError) as exc:
+        if x0_text is None and P0_text is None:
+            raise
+        raise type(exc)(f"{exc}; the initial guess may be the cause (--x0 {x0_text}, --P0 "
+                        f"{P0_text or 'initial'}): give a state near the run's first one and a "
+                        "covariance of its error") from exc
     header = "t," + ",".join(f"xhat_{n}" for n in system.state_names)
     with atomic_file(out) as tmp:
         np.savetxt(tmp, np.column_stack([run.t, result.x_hat]), delimiter=",", header=header,
@@ -231,6 +242,12 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     missing = int(run.missing.sum())
     if missing:
         line += f", {missing} missing"
+        gap = longest_gap(run)
+        lost = lost_after(est.settings.gate)
+        if gap[1] >= lost:
+            line += (f" (longest gap without any measurement: {gap[1]} samples from row {gap[0] + 1}, "
+                     f"{gap[1] * system.dt:.3g} s; the estimate there is a prediction, unreliable "
+                     f"after {lost} samples)")
     input_rejections = int(getattr(est, "input_rejections", 0))
     if input_rejections:
         line += f", {input_rejections} implausible input(s) replaced"

@@ -89,7 +89,7 @@ def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, lay
 
     claim_output(out, inputs=(data,), force=force, kind="dir")
     system = system_named(system_name)
-    run = read_run(data, system, resample)
+    run = read_run(data, system, resample, measured=not full_state)  # full states need no y
     settings = replace(_TRAIN, epochs=epochs, learning_rate=learning_rate, batch_size=batch_size, seed=seed,
                        network=NetworkSettings(layers, hidden, activation),
                        validation_fraction=validation_fraction, refine=refine, restarts=restarts,

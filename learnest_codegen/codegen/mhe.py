@@ -116,7 +116,9 @@ def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
         "threads": ("\n *   The Ipopt MHE: use one library from one thread at a time (each solve "
                     "checks a\n *   memory out of CasADi's static pool)." if solver == "Ipopt" else ""),
         "covariance_rule": "each must be symmetric positive definite (the cost weighs by their "
-                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE. P0 is the\n * "
+                           "inverses), else LEARNEST_NOT_POSITIVE_DEFINITE,\n * with every "
+                           "variance in the precision's range (LEARNEST_VARIANCE_MIN/_MAX), else "
+                           "LEARNEST_BAD_ARGUMENT. P0 is the\n * "
                            "covariance of the first prior x0: larger than the running arrival "
                            "covariance\n * (the build's default, set_arrival), it is carried "
                            "forward with the window until it\n * is no larger (after a recovery "
@@ -128,7 +130,11 @@ def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:
                     "covariance in force).",
         "recovery_doc": "rho is multiplied by it; the first step that then\n"
                         " *   accepts its outputs restarts the window (emptied, its prior the "
-                        "Kalman update of\n *   xpred by the sample), and rho shrinks again "
-                        "per clean step. A step that fails\n *   makes the next step restart "
-                        "the window the same way.",
+                        "Kalman update of\n *   xpred by the sample from the variances "
+                        "min(rho P0_ii, ceiling_i), the ceiling being\n *   "
+                        "the cap times the running arrival covariance's), and rho shrinks "
+                        "again per clean step.\n *   A step that fails makes the next step "
+                        "restart the window the same way.",
+        "reseed_doc": "the window restarts from the Kalman update of xpred by every\n"
+                      " *   valid output with the ceiling's variances.",
     }

@@ -229,11 +229,17 @@ def header_doc(settings: UKFSettings) -> dict[str, str]:
             "rounding (tests/test_ukf.py); the kit also runs the samples, the gate and the "
             "covariance guards around it."),
         "arrival_note": "", "reset_keeps": "", "init_options": "", "threads": "",
-        "covariance_rule": "each must be symmetric positive semidefinite (to rounding), else "
-                           "LEARNEST_NOT_POSITIVE_DEFINITE.",
+        "covariance_rule": "P0 and Q must be symmetric positive semidefinite (to rounding) and R "
+                           "positive definite, else\n * LEARNEST_NOT_POSITIVE_DEFINITE; every "
+                           "variance in the precision's range (LEARNEST_VARIANCE_MIN/_MAX;\n * "
+                           "P0's and Q's may be 0), else LEARNEST_BAD_ARGUMENT.",
         "set_noise_keeps": "the state, its covariance and the gate",
         "gate_doc": "each step computes, per valid output j, d2_j = (y_j - zp_j)^2 / S_jj with\n"
                     " *   zp and S = P_zz + R the predicted output and its covariance.",
         "recovery_doc": "the variances (the diagonal of P; the covariances\n"
-                        " *   stay, so stale correlations fade) are multiplied by it.",
+                        " *   stay, so stale correlations fade) are multiplied by it. No variance "
+                        "of P exceeds\n *   its ceiling, the cap times the initial variance "
+                        "(the default P0's diagonal).",
+        "reseed_doc": "the update is redone from the prior covariance\n"
+                      " *   diag(ceiling) with every valid output.",
     }

@@ -10,7 +10,9 @@ outputs, then the transition), linearised at the window's estimate of the stage 
     P+ = A (P - P C^T (C P C^T + R)^-1 C P) A^T + Q,
 
 until it is no larger than the running covariance (``P+ <= P_run`` in the positive-
-semidefinite order); from then on the running weight applies. Jumping straight from the
+semidefinite order); from then on the running weight applies. Its variances are kept below
+:data:`ARRIVAL_CEILING` times the running ones (a long gap would otherwise grow it without
+bound). Jumping straight from the
 first prior to the steady-state weight instead pins the states the outputs see only through
 the dynamics to whatever the first window made of them: after a recovery restart the
 cartpole's rates stayed off for hundreds of samples (``docs/reports/reliability.md``).
@@ -23,6 +25,12 @@ import numpy as np
 
 #: Relative slack of the "no larger than the running covariance" test (rounding).
 SETTLED_RTOL = 1e-9
+#: The largest variance of a carried arrival covariance (and of a restart prior's posterior,
+#: :mod:`.mhe`) relative to the running one's: its weight then stays within 100 times the
+#: running weight, which the float32 Gauss-Newton normal equations resolve (at 1e3 the float32
+#: ``mhe_gn`` failed with MAX_ITERATIONS after a gap of 10,000 samples; the C kit's
+#: ``LEARNEST_ARRIVAL_CEILING``).
+ARRIVAL_CEILING = 100.0
 
 
 def transition_jacobian(model, name: str = "A") -> cs.Function:

@@ -25,11 +25,31 @@ step with at least one rejected output on, every such step multiplies the estima
 uncertainty by ``inflation`` (gamma): the UKF's variances (the diagonal of ``P``, after the
 step; the covariances stay, so stale correlations fade), the MHEs' arrival covariance in the
 gate (and a restart of the window once the measurements pass, see :mod:`.mhe`). The
-inflation compounds, so a persistent offset of any size is accepted after about
-``K + log_gamma(d^2 / threshold)`` steps, while a burst shorter than K only costs the
-prediction. A step without rejection resets the streak and divides ``rho`` by gamma (down to
-1; the UKF's ``P`` shrinks by its own updates). ``rho`` is
-capped at :func:`max_inflation` (1e12; a float32 MHE 1e6) so a covariance cannot overflow.
+inflation compounds up to :data:`MAX_INFLATION` (1e4), so an offset up to about 100 prior
+standard deviations is accepted after about ``K + log_gamma(d^2 / threshold)`` steps, while a
+burst shorter than K only costs the prediction. A step without rejection resets the streak
+and divides ``rho`` by gamma (down to 1; the UKF's ``P`` shrinks by its own updates).
+
+Ceiling. No covariance an estimator carries grows beyond :data:`MAX_INFLATION` times its
+reference: the UKF's ``P`` beyond the settings' initial variances (a long run of predictions
+grew the cartpole UKF's ``P`` from 16 to 1e44 within 1,000 steps and its state to 6e12), an
+MHE's restart prior or carried arrival covariance beyond the running arrival covariance (a
+larger one made the float32 Gauss-Newton normal equations fail at every step after a
+restart). :func:`cap_variances` scales the rows and columns, so the correlations stay.
+
+Lost track and re-seed. ``age`` counts the steps since one last accepted an output (a step
+whose outputs are all missing or all rejected lengthens it); ``lost_after`` is
+``recover_after`` plus the widenings ``rho`` needs to reach the cap (23 by default). An estimate
+is *lost* when an output's streak has reached ``lost_after`` (a track the widest gate cannot
+re-acquire) or ``age`` has (a run of that many predictions): each step then reports
+:data:`UNRELIABLE` (status bit 4), and the next step whose gate rejects a valid output re-seeds
+instead (:meth:`GateState.reseeds`): it takes every valid output, from the prediction with the
+ceiling as its covariance (the UKF's update; the MHEs' window restart, :mod:`.mhe`), which ends
+the streaks and the age. A sensor that stays off by more than the widest gate is thus taken
+after ``lost_after`` samples, as the inflation would take any persistent offset. A 45 rad jump
+of the cartpole's angle needs ``rho`` ~ 1.6e7 to pass the gate, and a cap that large leaves the
+float32 normal equations of a restarted MHE unsolvable; the re-seed re-acquires it after
+``lost_after`` steps in both precisions (``docs/reports/reliability.md``).
 
 ``threshold = inf`` (or 0, which means the same) disables the gate and the recovery.
 
@@ -38,9 +58,8 @@ accepted nor rejected. The streak is kept per output and counts that output's ow
 a missing sample neither lengthens nor ends it, and the accepted samples of a fast output do
 not end the streak of a slow one that keeps being rejected (counted per step, a quarter-rate
 output of the cartpole was rejected 589 times out of 1,250 and never recovered: the UKF's MSE
-was 4.6 times the clean run's; ``docs/reports/reliability.md``). A step whose outputs are all missing
-(a pure prediction) carries no evidence either way and leaves the streaks and ``rho`` as they
-were.
+was 4.6 times the clean run's). A step whose outputs are all missing (a pure prediction)
+leaves the streaks and ``rho`` as they were and lengthens ``age``.
 """
 
 from __future__ import annotations
@@ -61,17 +80,41 @@ from .inputs import INPUT_REJECTED, MEASUREMENT_REJECTED, InputCheck
 #: outputs and its MSE moved by 11 %; at 50.8 it rejects none (docs/reports/reliability.md), while
 #: garbage of 10 units on a 0.01-std output scores d^2 ~ 1e6.
 DEFAULT_THRESHOLD = 50.844127911818155
-#: Largest factor one recovery episode multiplies the uncertainty by, per precision (the
-#: MHEs' arrival weight in float32: 1e6; see :func:`max_inflation`).
-MAX_INFLATION = {"float64": 1e12, "float32": 1e6}
+#: The widest the recovery opens the gate (``rho``'s cap), and the ceiling of every covariance an
+#: estimator carries relative to its reference (see the module docstring), in every estimator and
+#: precision: at 1e5 the float32 Gauss-Newton MHE failed every step after a restart.
+MAX_INFLATION = 1e4
+#: Status bit: no output has been accepted for ``lost_after`` steps (see the module docstring).
+UNRELIABLE = 4
 
 
 def max_inflation(estimator: str, precision: str) -> float:
-    """The inflation cap of ``estimator`` in ``precision``: 1e12, but 1e6 for a float32 MHE,
-    whose arrival weight (the inverse covariance) enters float32 normal equations. A float32
-    UKF's variances times 1e12 stay far inside float32's range, and at 1e6 it never
-    re-acquired a 45 rad jump of the cartpole's angle (docs/reports/reliability.md, float32 soak)."""
-    return MAX_INFLATION["float64"] if estimator == "ukf" else MAX_INFLATION[precision]
+    """The inflation cap and covariance ceiling factor of ``estimator`` in ``precision``:
+    :data:`MAX_INFLATION` for every one (the C's ``LEARNEST_MAX_INFLATION``)."""
+    return MAX_INFLATION
+
+
+def cap_variances(P: np.ndarray, ceiling: np.ndarray) -> np.ndarray:
+    """``P (n, n)`` with row and column ``i`` scaled by ``sqrt(ceiling_i / P_ii)`` where
+    ``P_ii`` exceeds ``ceiling_i`` (the C kit's ``learnest_cap_variances``): variances at most
+    the ceiling, correlations kept."""
+    P = np.array(P, dtype=float)
+    d = np.diag(P).copy()
+    over = d > ceiling
+    if not over.any():
+        return P
+    s = np.where(over, np.sqrt(np.divide(ceiling, d, where=over, out=np.ones_like(d))), 1.0)
+    return P * s[:, None] * s[None, :]
+
+
+def lost_after(settings: "GateSettings", cap: float = MAX_INFLATION) -> int:
+    """``recover_after`` plus the number of widenings by ``inflation`` that keep ``rho`` within
+    ``cap``: the steps without an accepted output after which an estimate is lost."""
+    r, n = 1.0, 0
+    while r * settings.inflation <= cap and n < 1000:
+        r *= settings.inflation
+        n += 1
+    return settings.recover_after + n
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -147,21 +190,30 @@ class GateState:
         (a missing sample neither lengthens nor breaks it).
     streak : the longest of them.
     inflation : rho, the factor in force (1 outside an episode; see the module docstring).
+    age : steps since one accepted an output.
+    lost : whether an output's streak or ``age`` has reached ``lost_after`` (the estimate is
+        unreliable; see the module docstring).
     """
 
     def __init__(self, settings: GateSettings, ny: int, precision: str = "float64"):
         self.settings, self.ny = settings, ny
-        self.cap = MAX_INFLATION[precision]
+        self.cap = MAX_INFLATION
+        self.lost_after = lost_after(settings, self.cap)
         self.reset()
 
     def reset(self) -> None:
         self.rejected = np.zeros(self.ny, dtype=bool)
         self.streaks = np.zeros(self.ny, dtype=int)
         self.inflation = 1.0
+        self.age = 0
 
     @property
     def streak(self) -> int:
         return int(self.streaks.max(initial=0))
+
+    @property
+    def lost(self) -> bool:
+        return self.age >= self.lost_after or self.streak >= self.lost_after
 
     def test(self, d2: np.ndarray, observed: np.ndarray | None = None) -> np.ndarray:
         """The rejected mask of normalised innovations ``d2 (ny,)`` (not stored); an output
@@ -172,6 +224,11 @@ class GateState:
         with np.errstate(invalid="ignore"):
             return ~(np.asarray(d2) <= self.settings.threshold) & observed  # NaN d2 is rejected
 
+    def reseeds(self, rejected: np.ndarray) -> bool:
+        """Whether a step whose gate rejected ``rejected`` re-seeds instead: the estimate is
+        lost and an output was rejected (the caller then takes every valid output)."""
+        return bool(np.any(rejected)) and self.lost
+
     def ends_episode(self, rejected: np.ndarray, observed: np.ndarray) -> bool:
         """Whether this step ends a recovery episode: it rejects nothing and accepts a sample of
         an output whose streak had reached ``recover_after`` (the MHEs restart their window)."""
@@ -179,18 +236,21 @@ class GateState:
         return bool(not np.any(rejected) and np.any(in_episode & np.asarray(observed, bool)))
 
     def record(self, rejected: np.ndarray, observed: np.ndarray | None = None) -> float:
-        """Store the step's mask, update the streaks; return the factor to inflate by now (>= 1).
+        """Store the step's mask, update the streaks and the age; return the factor to inflate
+        by now (>= 1).
 
         Per observed output the streak grows by a rejection and ends with an acceptance. A step
         with a rejection of an output whose streak has reached ``recover_after`` multiplies
         ``rho`` by ``inflation`` (capped); a step that observes an output and rejects none
         divides it (down to 1); a step with no ``observed`` output (a pure prediction) changes
-        nothing. With every output sampled every step this is the single-rate rule of the
-        module docstring; with outputs at different rates a slow output's rejections still add
-        up while a fast one is accepted in between.
+        neither. ``age`` restarts at 0 on a step that accepts an output and grows otherwise.
+        With every output sampled every step this is the single-rate rule of the module
+        docstring; with outputs at different rates a slow output's rejections still add up
+        while a fast one is accepted in between.
         """
         self.rejected = np.asarray(rejected, dtype=bool).copy()
         observed = np.ones(self.ny, dtype=bool) if observed is None else np.asarray(observed, bool)
+        self.age = 0 if np.any(observed & ~self.rejected) else self.age + 1
         if not observed.any():
             return 1.0
         self.streaks = np.where(observed, np.where(self.rejected, self.streaks + 1, 0), self.streaks)
@@ -240,6 +300,8 @@ class GateReport:
     @property
     def last_status(self) -> int:
         """The last step's status bits: 0 OK, +1 an output was rejected, +2 an input
-        component was replaced (:mod:`.inputs`); none of them is an error."""
+        component was replaced (:mod:`.inputs`), +4 the estimate is unreliable (lost, see the
+        module docstring); none of them is an error."""
         return (MEASUREMENT_REJECTED * self._gate.status
-                | INPUT_REJECTED * int(self._inputs.rejected.any()))
+                | INPUT_REJECTED * int(self._inputs.rejected.any())
+                | UNRELIABLE * int(self._gate.lost))

@@ -38,19 +38,23 @@ in the window's weights ``G`` and never enters the cost while the sample is in t
 Recovery: ``rho`` is 1 normally and multiplied by ``inflation`` at each rejecting step from the
 ``recover_after``-th consecutive one on, so the gate widens until the new measurements pass.
 The first step that then rejects nothing (and has an output) ends the episode and restarts the
-window: it is emptied, its prior ``xbar`` is the Kalman update of the prediction
-``xpred ~ (., rho diag(P_arr))`` by the sample (:func:`restart_prior`), the sample itself is
+window: it is emptied, its prior ``xbar`` is the Kalman update of the prediction ``xpred ~ (.,
+diag(min(rho P_arr_ii, cap P_run_ii)))`` by the sample (:func:`restart_prior`; ``cap`` is
+:data:`~.gate.MAX_INFLATION`, ``P_run`` the running arrival covariance), the sample itself is
 folded into that prior (gate weight 0), and the prior's weight is the inverse of that update's
-covariance until the window is full again. A lost track means the whole state is in doubt:
-with the running weight instead, states the outputs do not see (the cartpole's rates after a
-few samples of a wrong input) stayed pinned to their wrong values, each restart was followed
-by new rejections, and the MHE rejected 73 % of the clean samples for good (measured,
-``docs/reports/reliability.md``). ``rho`` then shrinks by ``inflation`` per step without rejection, so
-the gate stays wide while the window re-learns (resetting ``rho`` to 1 at the restart made a
-wrap of the whole cartpole state lose the track again for 1,500 samples). A step the solver
-fails on also restarts the window at the next step (the estimate stays as it was; the prior is
-updated by the outputs the gate keeps), so a window the solver cannot solve is not retried
-forever.
+covariance, its variances capped at :attr:`MHE.ceiling` (:data:`~.arrival.ARRIVAL_CEILING`
+times the running ones), until the window is full again. A lost estimate (:mod:`.gate`) re-
+seeds the same way from the variances ``cap P_run_ii`` with every valid output of the sample,
+and a carried arrival covariance keeps its variances below the ceiling. A lost track means the
+whole state is in doubt: with the running weight instead, states the outputs do not see (the
+cartpole's rates after a few samples of a wrong input) stayed pinned to their wrong values,
+each restart was followed by new rejections, and the MHE rejected 73 % of the clean samples for
+good (measured, ``docs/reports/reliability.md``). ``rho`` then shrinks by ``inflation`` per
+step without rejection, so the gate stays wide while the window re-learns (resetting ``rho`` to
+1 at the restart made a wrap of the whole cartpole state lose the track again for 1,500
+samples). A step the solver fails on also restarts the window at the next step (the estimate
+stays as it was; the prior is updated by the outputs the gate keeps), so a window the solver
+cannot solve is not retried forever.
 
 Why a restart and not a relaxed arrival weight on the old window (the first design): a window
 that keeps its old samples must explain a real jump by one huge process-noise step, and an
@@ -68,7 +72,7 @@ import numpy as np
 from ..errors import ShapeError, SolverError
 from ..export import DiscreteModel
 from . import arrival, validation
-from .gate import GateReport, GateState
+from .gate import MAX_INFLATION, GateReport, GateState, cap_variances
 from .inputs import InputCheck
 from .mhe_problem import MHESettings, ParamLayout, build_problem, measurement_function, mhe_settings
 from .mhe_window import Window
@@ -274,9 +278,15 @@ class MHE(GateReport):
         S = rho * np.einsum("ij,jk,ik->i", C, cov, C) + np.diag(self._R_cov)
         innovation = np.where(valid, y - h, 0.0)
         rejected = self._gate.test(innovation ** 2 / S, valid)  # absurd y: d2 = inf, rejected
+        reseed = has_previous and self._gate.reseeds(rejected)
+        if reseed:  # lost: every valid output, from the ceiling's variances
+            rejected = np.zeros_like(rejected)
         keep = valid & ~rejected
-        if has_previous and (self._restart or self._gate.ends_episode(rejected, valid)):
-            xbar, arrival_cov = restart_prior(guess[-1], C, rho * cov, self._R_cov, innovation, ~keep)
+        if has_previous and (self._restart or reseed or self._gate.ends_episode(rejected, valid)):
+            widest = MAX_INFLATION * np.diag(self._P_run_cov)
+            pd = widest if reseed else np.minimum(rho * np.diag(cov), widest)
+            xbar, arrival_cov = restart_prior(guess[-1], C, np.diag(pd), self._R_cov, innovation, ~keep)
+            arrival_cov = cap_variances(arrival_cov, self.ceiling)
             P = _inverse(arrival_cov)
             window = Window.empty(self.layout, xbar)
             window.open(u)
@@ -307,7 +317,15 @@ class MHE(GateReport):
         A = np.asarray(self._jac(x0, window.U[1]))
         cov = arrival.propagate(cov, A, np.asarray(C), window.G[0] == 1.0,
                                 _inverse(self._weights[0]), self._R_cov)
+        cov = cap_variances(cov, self.ceiling)
         return None if arrival.settled(cov, self._P_run) else cov
+
+    @property
+    def ceiling(self) -> np.ndarray:
+        """(nx,) the largest variance a covariance that becomes the arrival weight (a restart
+        prior's posterior, a carried one) may hold: :data:`~.arrival.ARRIVAL_CEILING` times the
+        running arrival covariance's (the C's ``LEARNEST_ARRIVAL_CEILING``)."""
+        return arrival.ARRIVAL_CEILING * np.diag(self._P_run_cov)
 
     def _started(self) -> np.ndarray:
         if self._window is None:

@@ -54,7 +54,7 @@ import numpy as np
 from ..errors import SettingsError, ShapeError
 from ..runtime.limits import check_option
 from .gate import GateSettings
-from .inputs import check_limits
+from .inputs import check_limits, plausible_inputs
 
 #: Where the arrival covariance comes from (:attr:`MHESettings.arrival`).
 ARRIVALS = ("steady_state", "arrival_std")
@@ -104,7 +104,8 @@ class MHESettings:
         ``"arrival_std"``, ``diag(arrival_std**2)``.
     gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
     input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
-        (:mod:`.inputs`); ``None``: only finiteness is checked.
+        (:mod:`.inputs`; ``from_system`` takes :func:`~.inputs.plausible_inputs`); ``None``:
+        only finiteness is checked.
     """
 
     horizon: int = 20
@@ -142,12 +143,13 @@ class MHESettings:
 
     @classmethod
     def from_system(cls, system: "System", **overrides) -> "MHESettings":
-        """Settings from ``system.noise`` (arrival std = ``initial_std``) and the system's input
-        limits, with ``overrides``. The steady-state arrival covariance needs the model: it is
-        filled in when an estimator is built (:func:`mhe_settings`)."""
+        """Settings from ``system.noise`` (arrival std = ``initial_std``) and the system's
+        plausible inputs (:func:`~.inputs.plausible_inputs`), with ``overrides``. The
+        steady-state arrival covariance needs the model: it is filled in when an estimator is
+        built (:func:`mhe_settings`)."""
         noise = system.noise
         defaults = {"process_std": noise.process_std, "measurement_std": noise.measurement_std,
-                    "arrival_std": noise.initial_std, "input_limits": system.input_limits}
+                    "arrival_std": noise.initial_std, "input_limits": plausible_inputs(system)}
         return cls(**{**defaults, **overrides})
 
     def check(self, nx: int, ny: int, where: str, nu: int | None = None) -> None:

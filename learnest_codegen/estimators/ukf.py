@@ -24,8 +24,8 @@ from ..export import DiscreteModel
 from ..runtime.limits import check_option
 from ..systems import System
 from . import validation
-from .gate import GateReport, GateSettings, GateState
-from .inputs import InputCheck, check_limits
+from .gate import MAX_INFLATION, GateReport, GateSettings, GateState, cap_variances
+from .inputs import InputCheck, check_limits, plausible_inputs
 
 _STD_FIELDS = ("process_std", "measurement_std", "initial_std")
 
@@ -44,7 +44,8 @@ class UKFSettings:
         Every std is in ``[1e-100, 1e100]`` (``runtime/limits.py``).
     gate : the innovation gate and lost-track recovery (:mod:`.gate`); a dict is accepted.
     input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
-        (:mod:`.inputs`); ``None``: only finiteness is checked.
+        (:mod:`.inputs`; ``from_system`` takes :func:`~.inputs.plausible_inputs`); ``None``:
+        only finiteness is checked.
     """
 
     alpha: float = 0.1
@@ -77,12 +78,13 @@ class UKFSettings:
 
     @classmethod
     def from_system(cls, system: System, **overrides) -> "UKFSettings":
-        """Settings with the noise stds of ``system.noise``, any field overridden by keyword."""
+        """Settings with the noise stds of ``system.noise`` and the system's plausible inputs
+        (:func:`~.inputs.plausible_inputs`), any field overridden by keyword."""
         unknown = set(overrides) - {f.name for f in fields(cls)}
         if unknown:
             raise TypeError(f"UKFSettings has no field(s) {sorted(unknown)}")
         noise = {name: getattr(system.noise, name) for name in _STD_FIELDS}
-        return cls(**{**noise, "input_limits": system.input_limits, **overrides})
+        return cls(**{**noise, "input_limits": plausible_inputs(system), **overrides})
 
     def validate_for(self, model: DiscreteModel) -> None:
         """Raise :class:`ShapeError` unless the std lengths match ``model.nx`` and ``model.ny``."""
@@ -124,6 +126,8 @@ class UKF(GateReport):
     on the other outputs; none left: the prediction), and after ``recover_after`` consecutive
     steps with rejections each further one multiplies the variances (the diagonal of ``P``)
     by ``inflation``. A missing output (NaN) is left out the same way but is no rejection.
+    No variance of ``P`` exceeds :attr:`ceiling`; a lost estimate re-seeds (:mod:`.gate`): the
+    update from the prior covariance ``diag(ceiling)`` with every valid output.
 
     Parameters
     ----------
@@ -213,12 +217,13 @@ class UKF(GateReport):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
         try:  # the compiled filter's PSD guard (P - K S K^T can lose definiteness in rounding)
-            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx)
+            validation.covariance("UKF.step: updated P", self._kf.P, self.model.nx, precision=None)
         except DataError as exc:
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"{exc} (state left as before)") from exc
-        # recovery: the variances grow, the covariances stay (see estimators/gate.py)
+        # recovery: the variances grow, the covariances stay, up to the ceiling (estimators/gate.py)
         self._kf.P[np.diag_indices(self.model.nx)] *= self._gate.record(rejected, observed)
+        self._kf.P = cap_variances(self._kf.P, self.ceiling)
         self._inputs.record(u, u_rejected)
         self._missing = ~observed
         self.rejections += int(rejected.sum())
@@ -249,8 +254,15 @@ class UKF(GateReport):
         if R is not None:
             self._kf.R = R.copy()
 
+    @property
+    def ceiling(self) -> np.ndarray:
+        """(nx,) the largest variance ``P`` may hold: :data:`~.gate.MAX_INFLATION` times the
+        settings' initial variances (the C's ``learnest_kalman_ceiling``)."""
+        return MAX_INFLATION * np.square(self.settings.initial_std)
+
     def _gated_update(self, u: np.ndarray, y: np.ndarray, observed: np.ndarray) -> np.ndarray:
-        """FilterPy's update on the ``observed`` outputs the gate keeps; returns the rejected mask."""
+        """FilterPy's update on the ``observed`` outputs the gate keeps (or, re-seeding, on all
+        of them from ``diag(ceiling)``); returns the rejected mask."""
         from filterpy.kalman import unscented_transform
 
         kf = self._kf
@@ -260,6 +272,10 @@ class UKF(GateReport):
             zp, S = unscented_transform(sigmas_h, kf.Wm, kf.Wc, kf.R)
             with np.errstate(over="ignore", invalid="ignore"):  # an absurd y gives d2 = inf: rejected
                 rejected = self._gate.test((y - zp) ** 2 / np.diag(S), observed)
+        if self._gate.reseeds(rejected):  # lost: every valid output, from the widest prior
+            rejected = np.zeros(self.model.ny, dtype=bool)
+            kf.P = np.diag(self.ceiling)
+            kf.sigmas_f = self._points.sigma_points(kf.x, kf.P)
         keep = observed & ~rejected
         if keep.all():
             kf.update(y, u=u)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DataError, ShapeError
+from ..runtime.limits import limit
 
 #: Relative tolerance of the symmetry and semidefiniteness checks of a covariance.
 COVARIANCE_RTOL = 1e-9
@@ -81,11 +82,15 @@ def matrix(where: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def covariance(where: str, value, n: int, *, definite: bool = False) -> np.ndarray:
+def covariance(where: str, value, n: int, *, definite: bool = False,
+               precision: str | None = "float64") -> np.ndarray:
     """``value`` as a symmetric positive semidefinite ``(n, n)`` array (definite if asked).
 
     Symmetry and the smallest eigenvalue are judged relative to the largest diagonal entry
     (:data:`COVARIANCE_RTOL`): rounding passes, a real asymmetry or a negative direction not.
+    With ``precision``, every variance must lie in that precision's range
+    (``runtime/limits.py``, ``variance``; a semidefinite one may also be 0): the C checks the
+    same. ``None`` skips it (an estimator's own covariance).
     """
     a = matrix(where, value, (n, n))
     scale = float(np.max(np.abs(np.diag(a)), initial=0.0)) or 1.0
@@ -96,7 +101,20 @@ def covariance(where: str, value, n: int, *, definite: bool = False) -> np.ndarr
     if smallest < -COVARIANCE_RTOL * scale or (definite and smallest <= COVARIANCE_RTOL * scale):
         kind = "positive definite" if definite else "positive semidefinite"
         raise DataError(f"{where}: a covariance must be {kind}; its smallest eigenvalue is {smallest:.3g}")
+    if precision is not None:
+        _variances_in_range(where, a, definite, precision)
     return a
+
+
+def _variances_in_range(where: str, a: np.ndarray, definite: bool, precision: str) -> None:
+    lim = limit("variance", precision)
+    for i, v in enumerate(np.diag(a)):
+        if (v == 0 and not definite) or lim.contains(float(v)):
+            continue
+        allowed = lim.describe().replace("a number", "each variance")
+        zero = "" if definite else " (or 0: an exactly known direction)"
+        raise DataError(f"{where}: variance {v:.3g} (diagonal entry {i}) is outside the range a "
+                        f"covariance takes in {precision}: give {allowed}{zero}")
 
 
 def run_arrays(where: str, U, Y, nu: int, ny: int, *,

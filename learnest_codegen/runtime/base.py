@@ -8,17 +8,25 @@ refused before it runs), types each ``<prefix>_<name>`` symbol once from a signa
 and turns a negative C status (``learnest_status.h``) into :class:`SolverError` naming the
 call and the code. Each instance owns its workspace (a numpy buffer handed to
 ``<prefix>_init``), so any number of instances of one library run independently.
-Torch-free.
+
+Threads: a C handle must not be used by two threads at once (``learnest_api.h``: one step
+writes the whole estimator). Each instance holds a lock of its own around every call of its
+handle (:func:`_locked`), so one instance called from several threads never runs two calls at
+once: its steps are taken one after the other, in the order the threads get the lock (two
+threads stepping one MHE handle without it crashed the process in 3 of 12 runs). Interleaving
+two streams of samples on one estimator still makes no estimate of either: give each stream
+its own instance. Torch-free.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import threading
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 
@@ -26,13 +34,26 @@ from ..errors import DataError, ModelMismatchError, SettingsError, ShapeError, S
 from ..estimators import validation
 from .limits import check_option
 from .manifest import check_manifest, read_manifest
-from .status import status_name
+from .status import STATUS_BY_CODE, status_name
 
 C_DTYPES = {"float64": (np.float64, ctypes.c_double), "float32": (np.float32, ctypes.c_float)}
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 INT, HANDLE, PTR = ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p
 _LOCKS: dict[str, threading.Lock] = {}
 _LOCKS_LOCK = threading.Lock()
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _locked(method: _F) -> _F:
+    """``method`` holding the instance's lock: no two calls of one handle overlap (see the
+    module docstring)."""
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return call  # type: ignore[return-value]
 
 
 def library_lock(library: Path) -> threading.Lock:
@@ -51,6 +72,9 @@ class CompiledEstimator:
     ``_settings(settings)``, ``_covariances(P0) -> (P0, Q, R)`` and, for their own symbols,
     ``extra_signatures()``.
 
+    One instance may be called from several threads: every call holds the instance's lock (the
+    C handle itself is single-threaded; see the module docstring).
+
     Attributes
     ----------
     rejected, last_status, rejections : the innovation gate's report, as the references'.
@@ -65,8 +89,11 @@ class CompiledEstimator:
     SERIALISE = False
 
     ESTIMATORS: tuple[str, ...] = ()
+    #: Whether P0 and Q must be positive definite (the MHEs weigh by their inverses); R must be.
+    DEFINITE = True
 
     def __init__(self, directory: Path, expect: Mapping[str, Any] | None, settings: Any = None):
+        self._lock = threading.RLock()  # this instance's handle: one call at a time
         self.directory = Path(directory)
         if not self.directory.is_dir():
             raise FileNotFoundError(f"compiled estimator folder {self.directory} does not exist")
@@ -84,6 +111,7 @@ class CompiledEstimator:
         if precision not in C_DTYPES:
             raise ModelMismatchError(f"{self.where}: manifest precision {precision!r} is not one of "
                                      f"{list(C_DTYPES)}; recompile the estimator")
+        self.precision = precision
         self.dtype, self.c_real = C_DTYPES[precision]
         self.real_pointer = np.ctypeslib.ndpointer(dtype=self.dtype, flags="C_CONTIGUOUS")
         library = self.directory / m["library"]
@@ -187,14 +215,18 @@ class CompiledEstimator:
         return check_option(limit, value, where)
 
     def check_status(self, call: str, code: int, detail: str = "") -> int:
-        """Raise :class:`SolverError` for a negative status; return the code otherwise."""
+        """Raise :class:`SolverError` for a negative status, naming the code, what it means and
+        how to recover (``runtime/status.py``); return the code otherwise."""
         if code < 0:
+            status = STATUS_BY_CODE.get(code)
+            why = f": {status.meaning}; {status.recovery}" if status else "; the estimator is as before"
             raise SolverError(f"{type(self).__name__}.{call} ({self.directory.name}{detail}): "
-                              f"C returned {code} ({status_name(code)}); the estimator is as before")
+                              f"C returned {code} ({status_name(code)}){why}")
         return code
 
     # -- the shared API --------------------------------------------------------------------
 
+    @_locked
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """Start over from ``x0 (nx,)`` with covariance ``P0 (nx, nx)`` (default: the settings')
         and the settings' noise covariances and gate."""
@@ -218,6 +250,7 @@ class CompiledEstimator:
         self.last_status = 0
         self._missing = np.zeros(self.ny, dtype=bool)
 
+    @_locked
     def step(self, u: np.ndarray, y: np.ndarray, valid=None) -> np.ndarray:
         """One sample: ``u (nu,)`` the input applied since the previous sample, ``y (ny,)`` the
         measurement (NaN: a missing output), or ``valid (ny,)`` saying which outputs it holds
@@ -237,6 +270,7 @@ class CompiledEstimator:
         self._missing = np.zeros(self.ny, dtype=bool) if mask is None else ~mask
         return self.x
 
+    @_locked
     def predict(self, u: np.ndarray) -> np.ndarray:
         """A sample without measurement (every output missing); returns ``x (nx,)``."""
         handle = self._started("predict")
@@ -247,6 +281,7 @@ class CompiledEstimator:
         self._missing = np.ones(self.ny, dtype=bool)
         return self.x
 
+    @_locked
     def run(self, U: np.ndarray, Y: np.ndarray, x0: np.ndarray, P0: np.ndarray | None = None,
             valid=None) -> np.ndarray:
         """Estimate a whole run in C: ``U (T, nu)``, ``Y (T, ny)`` (NaN: missing), ``valid (T, ny)``
@@ -267,6 +302,7 @@ class CompiledEstimator:
         self._missing = np.zeros(self.ny, dtype=bool) if mask is None or not len(mask) else ~mask[-1]
         return X_hat.astype(float)
 
+    @_locked
     def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
                   P_arrival: np.ndarray | None = None) -> None:
         """New process- and measurement-noise covariances (None keeps one) on the running
@@ -277,14 +313,17 @@ class CompiledEstimator:
             raise SettingsError(f"{name}.set_noise: P_arrival is the MHEs' arrival covariance; "
                              f"this estimator has no arrival cost")
         Q = None if Q is None else self.real_array(
-            validation.covariance(f"{name}.set_noise: Q", Q, self.nx), exact=True)
+            validation.covariance(f"{name}.set_noise: Q", Q, self.nx, definite=self.DEFINITE,
+                                  precision=self.precision), exact=True)
         R = None if R is None else self.real_array(
-            validation.covariance(f"{name}.set_noise: R", R, self.ny), exact=True)
+            validation.covariance(f"{name}.set_noise: R", R, self.ny, definite=True,
+                                  precision=self.precision), exact=True)
         self.check_status("set_noise", self._c["set_noise"](
             self._started("set_noise"), None if Q is None else Q.ctypes.data,
             None if R is None else R.ctypes.data))
 
     @property
+    @_locked
     def x(self) -> np.ndarray:
         """The current estimate ``(nx,)``."""
         x = np.empty(self.nx, dtype=self.dtype)
@@ -292,6 +331,7 @@ class CompiledEstimator:
         return x.astype(float)
 
     @property
+    @_locked
     def rejected(self) -> np.ndarray:
         """(ny,) bool: the outputs the gate rejected in the last step."""
         mask = np.zeros(self.ny, dtype=np.intc)
@@ -304,6 +344,7 @@ class CompiledEstimator:
         return self._missing.copy()
 
     @property
+    @_locked
     def input_rejected(self) -> np.ndarray:
         """(nu,) bool: the input components the last step replaced by their held value."""
         mask = np.zeros(self.nu, dtype=np.intc)
@@ -312,16 +353,19 @@ class CompiledEstimator:
         return mask.astype(bool)
 
     @property
+    @_locked
     def input_rejections(self) -> int:
         """Input components replaced since :meth:`reset`."""
         return int(self._c["input_rejections"](self._started("input_rejections")))
 
     @property
+    @_locked
     def rejections(self) -> int:
         """Outputs rejected since :meth:`reset`."""
         return int(self._c["rejections"](self._started("rejections")))
 
     @property
+    @_locked
     def samples(self) -> int:
         """Samples taken since :meth:`reset`."""
         return int(self._c["samples"](self._started("samples")))

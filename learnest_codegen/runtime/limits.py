@@ -107,6 +107,14 @@ LIMITS: dict[str, Limit] = {limit.name: limit for limit in (
     Limit("std", 1e-100, 1e100,
           why="noise standard deviations: their squares and inverse squares (the weights) "
               "must be finite and non-zero in float64"),
+    Limit("variance[float64]", 1e-200, 1e200, c_name="VARIANCE",
+          why="a variance of a covariance given at run time (P0, Q, R, P_arrival), the std's "
+              "range squared: its inverse weighs a cost and its square enters the updates, so "
+              "both must stay finite and non-zero (R = 1e-300 I made the UKF drift to an error "
+              "of 9-12, P_arrival = 1e-300 I the mhe_gn to 14.7)"),
+    Limit("variance[float32]", 1e-30, 1e30, c_name="VARIANCE_FLOAT32",
+          why="the same in a float32 build, whose reals end at 3.4e38 and lose precision "
+              "below 1.2e-38"),
     Limit("ukf_alpha", 0.0, 1.0, low_open=True,
           why="the Merwe sigma-point spread: 0 < alpha <= 1"),
     Limit("run_length", 1, C_INT_MAX, integer=True, why="T of <prefix>_run is a C int"),

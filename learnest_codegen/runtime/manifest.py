@@ -132,7 +132,9 @@ def check_manifest(manifest: Mapping[str, Any], expect: Mapping[str, Any] | None
              else f"{k}: not recorded (built by an older version; recompile)"
              for k, v in expect.items() if manifest.get(k) != v]
     if wrong:
-        raise ModelMismatchError(f"{where}: compiled estimator does not match: " + "; ".join(wrong))
+        raise ModelMismatchError(f"{where}: compiled estimator does not match: " + "; ".join(wrong)
+                                 + "; use a folder compiled for these, recompile this one with them "
+                                 "(learnest-compile), or drop the option that asks for them")
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from ..errors import ModelMismatchError
 from ..estimators import validation
 from ..estimators.mhe import NO_COVARIANCE
 from ..estimators.mhe_problem import MHESettings
-from .base import HANDLE, INT, CompiledEstimator
+from .base import HANDLE, INT, CompiledEstimator, _locked
 
 
 class CompiledMHE(CompiledEstimator):
@@ -62,6 +62,7 @@ class CompiledMHE(CompiledEstimator):
         settings.check(self.nx, self.ny, self.where)
         return settings
 
+    @_locked
     def reset(self, x0: np.ndarray, P0: np.ndarray | None = None) -> None:
         """As :meth:`MHE.reset <learnest_codegen.estimators.mhe.MHE.reset>`: ``P0`` (default: the
         settings' arrival covariance) is the first prior's covariance, carried forward in C
@@ -77,7 +78,8 @@ class CompiledMHE(CompiledEstimator):
     def _covariances(self, P0):
         Q, R, P = self.settings.covariances()
         if P0 is not None:
-            P = validation.covariance(f"{type(self).__name__}.reset: P0", P0, self.nx, definite=True)
+            P = validation.covariance(f"{type(self).__name__}.reset: P0", P0, self.nx, definite=True,
+                                      precision=self.precision)
         return P, Q, R
 
     @property
@@ -86,12 +88,14 @@ class CompiledMHE(CompiledEstimator):
         raise AttributeError(NO_COVARIANCE)
 
     @property
+    @_locked
     def window(self) -> np.ndarray:
         X = np.empty((self.horizon + 1, self.nx), dtype=self.dtype)
         self.check_status("window", self._c["get_window"](self._started("window"), X))
         return X.astype(float)
 
     @property
+    @_locked
     def arrival_covariance(self) -> np.ndarray:
         """(nx, nx) the running arrival covariance (``set_noise(P_arrival=...)``'s)."""
         P = np.empty((self.nx, self.nx), dtype=self.dtype)
@@ -99,6 +103,7 @@ class CompiledMHE(CompiledEstimator):
         return P.astype(float)
 
     @property
+    @_locked
     def arrival_weight(self) -> np.ndarray:
         """(nx, nx) the weight of the arrival cost in force: the running one, or the inverse of
         a first prior's covariance carried forward (as :attr:`MHE.arrival_weight`)."""
@@ -107,6 +112,7 @@ class CompiledMHE(CompiledEstimator):
             self._started("arrival_weight"), P))
         return P.astype(float)
 
+    @_locked
     def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,
                   P_arrival: np.ndarray | None = None) -> None:
         """New covariances (None keeps one) on the running estimator, its window kept: process
@@ -114,7 +120,8 @@ class CompiledMHE(CompiledEstimator):
         ``set_arrival``)."""
         if P_arrival is not None:
             P = self.real_array(validation.covariance(f"{type(self).__name__}.set_noise: P_arrival",
-                                                      P_arrival, self.nx, definite=True),
+                                                      P_arrival, self.nx, definite=True,
+                                                      precision=self.precision),
                                 exact=True)
             self.check_status("set_noise", self._c["set_arrival"](self._started("set_noise"), P))
         if Q is not None or R is not None:

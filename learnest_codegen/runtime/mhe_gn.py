@@ -13,7 +13,7 @@ from typing import Any, Mapping
 from ..errors import ModelMismatchError
 from ..estimators.mhe_gn import GaussNewtonSettings
 from ..estimators.mhe_problem import MHESettings
-from .base import HANDLE, INT
+from .base import HANDLE, INT, _locked
 from .mhe import CompiledMHE
 
 MODES = {"converged": 0, "rti": 1}
@@ -54,6 +54,7 @@ class CompiledEmbeddedMHE(CompiledMHE):
                 "set_options": (INT, [HANDLE, INT, INT, self.c_real]), "iterations": (INT, [HANDLE])}
 
     @property
+    @_locked
     def iterations(self) -> int:
         """Gauss-Newton iterations of the last step."""
         return int(self._c["iterations"](self._started("iterations")))

@@ -36,11 +36,19 @@ STATUSES = (
            "MEASUREMENT_REJECTED; get_input_rejected says which)",
            "not an error; keep stepping (a long run of it means the actuator, its command log "
            "or the declared range is wrong)"),
+    Status(4, "UNRELIABLE",
+           "the estimate is not backed by the measurements: no output has been accepted for as "
+           "many steps as the gate needs to open fully (recover_after plus the widenings up to "
+           "its cap), after a long run of predictions or a lost track (a bit: OR-ed with the "
+           "others); the next step whose gate rejects a valid output re-seeds the estimate from "
+           "the measurements, and the next accepted output clears it",
+           "not an error; do not act on the estimate until it clears (a long run of it means "
+           "the sensors are off or the measurements stopped)"),
     Status(-1, "NOT_INITIALISED", "the handle is NULL or was not made by init",
            "call <prefix>_init on the workspace first"),
     Status(-2, "BAD_ARGUMENT",
-           "a NULL pointer, a size, a validity flag other than 0 or 1, or an option outside its "
-           "documented range (LEARNEST_*_MIN/_MAX below)",
+           "a NULL pointer, a size, a validity flag other than 0 or 1, or an option or a "
+           "covariance's variance outside its documented range (LEARNEST_*_MIN/_MAX below)",
            "fix the call; nothing was changed"),
     Status(-3, "NONFINITE_INPUT",
            "a valid output of y, x0 or a covariance is NaN or infinite (a non-finite u is "
@@ -64,6 +72,7 @@ STATUSES = (
 )
 
 STATUS_NAMES = {s.code: s.name for s in STATUSES}
+STATUS_BY_CODE = {s.code: s for s in STATUSES}
 
 
 def status_name(code: int) -> str:

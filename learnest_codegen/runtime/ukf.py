@@ -13,7 +13,7 @@ import numpy as np
 
 from ..estimators import validation
 from ..estimators.ukf import UKFSettings
-from .base import HANDLE, INT, CompiledEstimator
+from .base import HANDLE, INT, CompiledEstimator, _locked
 from .manifest import check_manifest
 
 
@@ -42,6 +42,7 @@ class CompiledUKF(CompiledEstimator):
     """
 
     ESTIMATORS = ("ukf",)
+    DEFINITE = False  # P0 and Q may be semidefinite (an exactly known direction)
 
     def __init__(self, directory, *, expect: Mapping[str, Any] | None = None,
                  settings: UKFSettings | None = None):
@@ -63,10 +64,11 @@ class CompiledUKF(CompiledEstimator):
 
     def _covariances(self, P0):
         P0 = self.settings.P0() if P0 is None else P0
-        P0 = validation.covariance("CompiledUKF.reset P0", P0, self.nx)
+        P0 = validation.covariance("CompiledUKF.reset P0", P0, self.nx, precision=self.precision)
         return P0, self.settings.Q(), self.settings.R()
 
     @property
+    @_locked
     def P(self) -> np.ndarray:
         """Current covariance ``(nx, nx)``."""
         P = np.empty((self.nx, self.nx), dtype=self.dtype)

@@ -76,6 +76,10 @@ K_T, TAU_MOTOR, K_DRAG = 11.4, 0.05, 0.35  # [m/s^2 per unit throttle], [s], [1/
 AXES = ("x", "y", "z")
 
 _TRUE = {"k_T": K_T, "tau": TAU_MOTOR, "k_D": K_DRAG, "g": GRAVITY, "v_nom": V_NOM}
+#: The inputs' real ranges: each thrust component is the unit body axis times the mean motor
+#: PWM over 65535 (0-1), so within [-1, 1]; the battery is one LiPo cell, 4.2 V full (the
+#: NanoBench flights log 2.0-4.19 V), read by the power monitor below 4.5 V.
+INPUT_LIMITS = ((-1.0, 1.0),) * 3 + ((0.0, 4.5),)
 
 
 def dynamics(ops, x, u, p):
@@ -195,6 +199,7 @@ QUADROTOR = System(
     default_observer="linear_rts",
     residual=ResidualStructure(inputs=(*(f"v{a}" for a in AXES), *(f"a{a}" for a in AXES),
                                        *(f"T{a}" for a in AXES), "vbat")),
+    input_limits=INPUT_LIMITS,
 )
 
 QUADROTOR_STATE = replace(

@@ -209,4 +209,6 @@ RC_CAR = System(
     # invariant to where the car is and its heading
     residual=ResidualStructure(states=("v", "psi"), inputs=("v", "throttle", "steering")),
     planar_pose=("x", "y", "v", "psi"),
+    # the commands' own ranges (the car's driver and the DART logs: throttle 0-1, steering +-1)
+    input_limits=((0.0, 1.0), (-1.0, 1.0)),
 )

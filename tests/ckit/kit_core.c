@@ -12,6 +12,7 @@
 #define LEARNEST_NU 1
 #define LEARNEST_NY 2
 #define LEARNEST_N 5
+#define LEARNEST_MAX_INFLATION 1e4
 #include "learnest_kit.h"
 
 struct learnest_model {
@@ -78,9 +79,15 @@ real kt_gate_record(void* g, const int* rejected, const unsigned char* valid) {
   return learnest_gate_record((struct learnest_gate*)g, rejected, valid);
 }
 
-void kt_gate_state(const void* g, real* rho, int* streaks) {
+void kt_gate_state(const void* g, real* rho, int* streaks, int* age, int* lost) {
   *rho = ((const struct learnest_gate*)g)->rho;
   memcpy(streaks, ((const struct learnest_gate*)g)->streaks, LEARNEST_NY * sizeof(int));
+  *age = ((const struct learnest_gate*)g)->age;
+  *lost = learnest_gate_lost((const struct learnest_gate*)g);
+}
+
+int kt_gate_reseeds(const void* g, int* rejected) {
+  return learnest_gate_reseeds((const struct learnest_gate*)g, rejected);
 }
 
 /* -- the MHE window, gate and restart (learnest_mhe.h) */

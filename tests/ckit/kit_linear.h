@@ -24,7 +24,7 @@
 #define LEARNEST_DEFAULT_THRESHOLD 50.8
 #define LEARNEST_DEFAULT_RECOVER_AFTER 10
 #define LEARNEST_DEFAULT_INFLATION 2.0
-#define LEARNEST_MAX_INFLATION 1e12
+#define LEARNEST_MAX_INFLATION 1e4
 #include "learnest_kit.h"
 #include "learnest_dense.h"
 

@@ -9,10 +9,13 @@
  * with every x_i as the 16 hex digits of its IEEE-754 binary64 bits (exact, and no printf or
  * heap needed), and busy_ticks the sample clock's ticks spent on the step. One last line,
  *
- *     summary steps=<T> status=<s> overruns=<n> busy_ticks_max=<t> busy_ticks_total=<t>
- *             tick_hz=<f> stack_peak_bytes=<b>
+ *     summary steps=<T> status=<s> overruns=<n> missed_ticks=<m> busy_ticks_max=<t>
+ *             busy_ticks_total=<t> tick_hz=<f> stack_peak_bytes=<b>
  *
- * (wrapped here, a single line in the output) closes the run. The program exits 0 when every
+ * (wrapped here, a single line in the output) closes the run: overruns counts the steps that
+ * took longer than the sample period (late steps; a step of 1.3 periods is late though it
+ * misses no tick), missed_ticks the sample ticks that passed while a step was still running
+ * beyond the next one. The program exits 0 when every
  * step succeeded (status >= 0, learnest_status.h); the loop stops at the first failing step. */
 #include <stdint.h>
 #include <string.h>
@@ -63,19 +66,21 @@ static void write_line(char* start, char* end) {
 int main(void) {
     char line[32 + 17 * EST_NX + 16];
     double x[EST_NX];
-    uint32_t k, busy, busy_max = 0, overruns = 0;
+    uint32_t k, busy, busy_max = 0, overruns = 0, missed = 0;
     uint64_t busy_total = 0;
+    const double period = RUN_DT_S * (double)platform_tick_hz(); /* ticks per sample */
     int status, i;
     char* p;
 
     status = estimator_init();
     platform_start(RUN_DT_S);
     for (k = 0; status >= 0 && k < RUN_T; ++k) {
-        overruns += platform_wait_for_sample();
+        missed += platform_wait_for_sample();
         /* Sample k: the input held since sample k - 1 (none before sample 0), measurement k. */
         status = estimator_step(run_u[k > 0 ? k - 1 : 0], run_y[k]);
         busy = platform_busy_ticks();
         estimator_get_state(x);
+        overruns += (double)busy > period; /* late: the step outlasted its sample period */
         busy_max = busy > busy_max ? busy : busy_max;
         busy_total += busy;
         p = put_text(line, "x ");
@@ -98,6 +103,8 @@ int main(void) {
         p = put_int(p, status);
         p = put_text(p, " overruns=");
         p = put_uint(p, overruns);
+        p = put_text(p, " missed_ticks=");
+        p = put_uint(p, missed);
         p = put_text(p, " busy_ticks_max=");
         p = put_uint(p, busy_max);
         p = put_text(p, " busy_ticks_total=");
