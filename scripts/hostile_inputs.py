@@ -1389,7 +1389,8 @@ def unlimited_input_cases() -> list[Case]:
                 out.append(_case(f"inputs/ground-robot-u-{size}-{e}{p}", "c-api", RESULT,
                                  f"ground robot (no input limits), one u = {size}, {e}{p}: recovered "
                                  "within 60 samples",
-                                 body.format(folder=f"ground_robot_nominal_{e}{horizon}{p}", k=800, size=size),
+                                 body.format(folder=f"ground_robot_nominal_{e}{horizon}{p}", k=800,
+                                             size=size),
                                  timeout=240))
     return out
 
