@@ -24,7 +24,7 @@ from learnest_codegen.pipeline import load_estimator
 from learnest_codegen.runtime.manifest import GeneratedEstimator
 from learnest_codegen.toolchain import CFLAGS, casadi_dirs
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "firmware.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "guide" / "firmware.md"
 PREFIX = "cartpole_nominal_mhe_rti_float32"
 WARNINGS = ["-Wall", "-Wextra", "-Werror", "-pedantic"]
 

@@ -322,7 +322,7 @@ def _mkdocs_build(tmp_path: Path, with_api: bool) -> Path:
 def test_docs_site_builds_strictly(tmp_path):
     """``mkdocs build --strict`` of the pages: a broken link or anchor fails."""
     site = _mkdocs_build(tmp_path, with_api=False)
-    assert (site / "results" / "index.html").is_file()
+    assert (site / "reports" / "results" / "index.html").is_file()
 
 
 def test_api_reference_builds_from_the_docstrings(tmp_path):
@@ -332,7 +332,7 @@ def test_api_reference_builds_from_the_docstrings(tmp_path):
         import mkdocstrings  # noqa: F401
     except ImportError:
         pytest.skip("the API reference needs mkdocstrings-python (pip install -e .[test])")
-    page = (_mkdocs_build(tmp_path, with_api=True) / "api" / "index.html").read_text()
+    page = (_mkdocs_build(tmp_path, with_api=True) / "guide" / "python_api" / "index.html").read_text()
     for name in ("pipeline.train", "pipeline.compile_estimator", "pipeline.evaluate",
                  "config.TrainingSettings", "systems.base.System", "data.read_run", "errors.SettingsError"):
         assert f'id="learnest_codegen.{name}"' in page, name
