@@ -149,4 +149,4 @@ def render_page(text: str) -> str:
     """``text`` with every figure block and inline value filled from its JSON."""
     text = BLOCK.sub(lambda m: m.group(1) + render_block(m.group("name")) + m.group(4), text)
     return VALUE.sub(lambda m: m.group(1) + format(lookup(load(m.group("bench")), m.group("path")),
-                                                   m.group("fmt")) + m.group(5), text)
+                                                   m.group("fmt")) + m.group(6), text)
