@@ -300,7 +300,8 @@ def render_inputs(data: dict) -> str:
             cells = [_cell([r for r in mine if r["size"] == size]) for size in SIZES]
             lines.append(f"| {estimator} | {backend} | {'yes' if limits else 'none'} | "
                          f"{', '.join(map(str, burst))} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n\n" + render_conditions(data)
+    never = t["clean"][0]["samples"] - t["burst_start"] - 1
+    return ("\n".join(lines) + f"\n\n{never}: not within the run. " + render_conditions(data))
 
 
 def render_conditions(data: dict) -> str:

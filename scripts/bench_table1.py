@@ -37,15 +37,15 @@ class LoadSampler(threading.Thread):
 
     def __init__(self, period: float = 30.0):
         super().__init__(daemon=True)
-        self.period, self.samples, self._stop = period, [], threading.Event()
+        self.period, self.samples, self._halt = period, [], threading.Event()
 
     def run(self) -> None:
-        while not self._stop.is_set():
+        while not self._halt.is_set():
             self.samples.append(os.getloadavg()[0])
-            self._stop.wait(self.period)
+            self._halt.wait(self.period)
 
     def stop(self) -> dict:
-        self._stop.set()
+        self._halt.set()
         self.join()
         s = self.samples or [os.getloadavg()[0]]
         return {"mean": round(sum(s) / len(s), 2), "min": round(min(s), 2), "max": round(max(s), 2),
@@ -58,7 +58,8 @@ def measure(args) -> tuple[dict, dict]:
     command = ["learnest", "reproduce", "table1", "--jobs", str(jobs)]
     if from_dir:
         folder = Path(from_dir).resolve()
-        how = f"read from the finished sweep in {folder} (not run by this command)"
+        shown = folder.relative_to(figures.ROOT) if folder.is_relative_to(figures.ROOT) else folder
+        how = f"read from the finished sweep in {shown} (not run by this command)"
         load = None
     else:
         folder = OUT
