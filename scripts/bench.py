@@ -3,6 +3,7 @@
     python scripts/bench.py list                 # the benchmarks, their figures and rough cost
     python scripts/bench.py demo callgrind       # run these, write docs/figures/<name>.json
     python scripts/bench.py all                  # every benchmark, in the order of the list
+    python scripts/bench.py table1 --jobs 2      # a benchmark's own options follow the names
 
 A benchmark is a module ``scripts/bench_<name>.py`` that defines ``MINUTES`` (its rough cost on
 2 idle cores), ``measure(args) -> (figures, conditions)`` and the ``render_<view>(data)``
@@ -44,8 +45,9 @@ def main(argv: list[str] | None = None) -> int:
             doc = (module.__doc__ or "").strip().splitlines()[0]
             print(f"  {name:<18} ~{module.MINUTES:>4} min  {doc}")
         return 0
-    names = list(table) if argv[0] == "all" else [a for a in argv if not a.startswith("-")]
-    rest = argv[1:] if argv[0] == "all" else [a for a in argv if a.startswith("-") or a not in table]
+    split = next((i for i, a in enumerate(argv) if a.startswith("-")), len(argv))
+    names, rest = argv[:split], argv[split:]  # the benchmarks, then their options
+    names = list(table) if names == ["all"] else names
     unknown = [n for n in names if n not in table]
     if unknown:
         print(f"unknown benchmark {unknown[0]!r}; choose from {', '.join(table)} or all", file=sys.stderr)

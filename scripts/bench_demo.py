@@ -48,7 +48,7 @@ def render_times(data: dict) -> str:
     lines = ["| estimator | backend | us/step |", "|---|---|---|"]
     lines += [f"| {r['method']} | {r['backend']} | {r['us_per_step']:.1f} |" for r in rows]
     m = data["conditions"]["machine"]
-    lines.append(f"\n{m['cpu']}, {m['cores']} cores, load {m['load_1min']} before and "
-                 f"{m.get('load_1min_at_end', '?')} after; {data['conditions']['date']}, commit "
-                 f"{data['conditions']['commit']}.")
+    lines.append(f"\nMeasured by `{data['command']}` on {data['conditions']['date']}: {m['cpu']}, "
+                 f"{m['cores']} cores, load {m['load_1min']} before and {m.get('load_1min_at_end', '?')} "
+                 "after.")
     return "\n".join(lines)

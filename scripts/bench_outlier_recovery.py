@@ -22,9 +22,10 @@ within the clean run's band (``|e|_i <= |e_clean|_i + rms_i``) -- after a wrong 
 estimator can come back *closer* to the truth than the clean run and still differ from it.
 
 The clean run is also estimated with the gate off: ``clean`` reports the MSE with the gate on
-and off and the clean samples the gate rejected. Usage::
+and off and the clean samples the gate rejected. The benchmark (``python scripts/bench.py
+outlier_recovery``) runs the cartpole and the ground robot, the compiled estimators in float64
+and float32. ``main`` is the same study with its own options, written to ``--out``::
 
-    python scripts/bench_outlier_recovery.py --out bench_outlier_recovery.json
     python scripts/bench_outlier_recovery.py --systems cartpole --precisions float64 float32
 """
 
@@ -51,6 +52,8 @@ from learnest_codegen.estimators.gate import GateSettings
 from learnest_codegen.export import prior_model
 from learnest_codegen.simulation import simulate
 
+MINUTES = 30
+ORDER = 50
 BURST_START = 150
 LENGTHS = (1, 3, 10)
 SIZES = (1e1, 1e3, 1e6)
@@ -242,6 +245,70 @@ def markdown(result: dict) -> str:
 def _backend(row: dict) -> str:
     precision = row.get("precision", "float64")
     return row["backend"] if precision == "float64" else f"{row['backend']} {precision}"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--systems", nargs="+", default=["cartpole", "ground_robot"])
+    parser.add_argument("--samples", type=int, default=400)
+    parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
+                        choices=["float64", "float32"], help="of the compiled estimators")
+
+
+def measure(args) -> tuple[dict, dict]:
+    import figures
+
+    cond = figures.conditions(
+        model="each system's nominal model (the prior)",
+        run=f"each system's simulated run seed 1, the first {args.samples} samples; bursts from sample "
+            f"{BURST_START} of {', '.join(map(str, LENGTHS))} samples of "
+            + ", ".join(f"+-{s:g}" for s in SIZES),
+        systems=list(args.systems), precisions=list(args.precisions))
+    build = figures.ROOT / "build" / "bench" / "outlier_recovery"
+    return {"tables": [table(name, build, samples=args.samples, precisions=tuple(args.precisions))
+                       for name in args.systems]}, cond
+
+
+def _table(data: dict, system: str) -> dict:
+    return next(t for t in data["figures"]["tables"] if t["system"] == system)
+
+
+def _cell(rows: list[dict]) -> str:
+    """Samples to recover / to be back in the band, the worst of ``rows``, and what happened."""
+    worst = max(rows, key=lambda r: (r["samples_to_recover"], r["samples_to_band"]))
+    text = f"{worst['samples_to_recover']} / {worst['samples_to_band']}"
+    if any(r.get("inputs_replaced") for r in rows) and all(r.get("inputs_replaced") == r["burst"]
+                                                          for r in rows):
+        text += " (replaced)"
+    rejected, errors = max(r["rejected"] for r in rows), max(r["errors"] for r in rows)
+    text += f", {rejected} rejected" if rejected and not errors else ""
+    text += f", {rejected} rejected, {errors} failed" if errors else ""
+    return text
+
+
+def render_inputs(data: dict) -> str:
+    """Wrong inputs on the cartpole: with and without the system's input limits."""
+    t = _table(data, "cartpole")
+    lines = ["| estimator | build | input limits | burst | 1e1: to recover / in band | 1e3 | 1e6 |",
+             "| --- | --- | --- | ---: | --- | --- | --- |"]
+    groups = {}
+    for r in t["u_rows"]:
+        groups.setdefault((r["estimator"], _backend(r), r["limits"]), []).append(r)
+    for (estimator, backend, limits), rows in groups.items():
+        bursts = [(b,) for b in LENGTHS] if not limits else [LENGTHS]
+        for burst in bursts:
+            mine = [r for r in rows if r["burst"] in burst]
+            cells = [_cell([r for r in mine if r["size"] == size]) for size in SIZES]
+            lines.append(f"| {estimator} | {backend} | {'yes' if limits else 'none'} | "
+                         f"{', '.join(map(str, burst))} | " + " | ".join(cells) + " |")
+    never = t["clean"][0]["samples"] - t["burst_start"] - 1
+    return ("\n".join(lines) + f"\n\n{never}: not within the run. " + render_conditions(data))
+
+
+def render_conditions(data: dict) -> str:
+    c = data["conditions"]
+    return (f"Measured by `{data['command']}` on {c['date']}: {c['model']}; {c['run']}. \"To recover\": "
+            f"samples until the estimate stays within {TOLERANCE:g} clean RMS error of the clean estimate; "
+            "\"in band\": until its error stays within the clean run's error band plus one RMS.")
 
 
 def main(argv=None) -> dict:

@@ -1,6 +1,8 @@
 """Real sensor streams: every estimator on the cartpole with a dropout, a slow output and a wrong start.
 
-Per estimator (and backend), on the cartpole test run (seed 1, the full 10 s):
+Per estimator (and backend), on the demo's test run (seed 1, the whole 10 s) with the demo's
+trained KNODE model (``bench_demo.model_dir()``; ``--model`` takes any model directory,
+``nominal`` or ``true``):
 
 - ``clean``: every output at every sample, started at the system's ``x0``;
 - ``dropout_<output>``: that output missing for 0.25 s (from 4 s on);
@@ -10,31 +12,24 @@ Per estimator (and backend), on the cartpole test run (seed 1, the full 10 s):
   ``wrong_start_default_P0`` the same start with the estimator's own ``P0``.
 
 Reported per case: the MSE and its ratio to the clean run's (and, for the dropout and slow
-cases, the ratio with the advice before missing outputs existed: skip every sample that lacks
-an output), the outputs the gate rejected,
-errors, and for the wrong starts ``converged_s``: the time from which the error of every state
-stays within the clean run's band (``|e_k,i| <= |e_clean,k,i| + rms_clean,i``) to the end, and
-the rejections after 1 s. Targets (``TARGETS``): dropout MSE at most 1.3x clean, a quarter
-rate within 2x and finite, a wrong start back in the band within 1 s with no rejection after.
+cases, the ratio when every sample that lacks an output is skipped instead of stepped with the
+output missing), the outputs the gate rejected, errors, and for the wrong starts
+``converged_s``: the time from which the error of every state stays within the clean run's band
+(``|e_k,i| <= |e_clean,k,i| + rms_clean,i``) to the end, and the rejections after 1 s.
+Criteria (``TARGETS``): dropout MSE at most 1.3x clean, a quarter rate within 2x and finite, a
+wrong start back in the band within 1 s with no rejection after.
 
-The model: the cartpole KNODE fixture ``tests/data/model_b12bfa1`` (a net trained for 3
-epochs: the KNODE model's structure and cost, quickly; ``--model`` takes any model directory,
-``nominal`` or ``true``). Backends: ``python`` (the references) and ``c`` (the compiled
-libraries, in each of ``--precisions`` they are built in: the Ipopt MHE is float64 only).
-Usage::
-
-    python scripts/bench_streams.py --out bench_streams.json
-    python scripts/bench_streams.py --backends c --precisions float64 float32 --out c.json
+Backends: ``python`` (the references) and ``c`` (the compiled libraries, in each of
+``--precisions`` they are built in: the Ipopt MHE is float64 only).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
+import figures
 import numpy as np
 
 import learnest_codegen as ln
@@ -42,8 +37,9 @@ from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.errors import SolverError
 from learnest_codegen.estimators.contract import takes_missing_outputs
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_MODEL = ROOT / "tests" / "data" / "model_b12bfa1"
+MINUTES = 40
+ORDER = 40
+BUILD = figures.ROOT / "build" / "bench" / "streams"
 DROPOUT_START_S, DROPOUT_S, SLOW_EVERY = 4.0, 0.25, 4
 #: estimator -> backends that have it (mhe_gn's Python reference is the Ipopt MHE: the same
 #: problem; mhe_rti has none).
@@ -184,39 +180,103 @@ def verdicts(rows) -> list[dict]:
     return out
 
 
-def markdown(result: dict) -> str:
-    lines = ["| estimator | backend | case | MSE | x clean | x clean, samples skipped | rejected | "
-             "converged [s] | errors |", "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for r in result["rows"]:
-        conv = r.get("converged_s", "")
-        conv = "never" if "converged_s" in r and conv is None else (f"{conv:.3f}" if conv != "" else "")
-        ratio = f"{r['mse_ratio']:.3f}" if "mse_ratio" in r else ""
-        before = f"{r['mse_ratio_dropping_samples']:.3g}" if "mse_ratio_dropping_samples" in r else ""
-        lines.append(f"| {r['estimator']} | {r['backend']} | {r['case']} | {r['mse']:.4e} | {ratio} | "
-                     f"{before} | {r['rejected']} | {conv} | {r['errors']} |")
-    return "\n".join(lines)
-
-
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default=str(DEFAULT_MODEL),
-                        help="model directory, 'nominal' or 'true' (default: the KNODE fixture)")
+def add_arguments(parser) -> None:
+    parser.add_argument("--model", default=None,
+                        help="model directory, 'nominal' or 'true' (default: the demo's trained model)")
     parser.add_argument("--backends", nargs="+", default=["python", "c"], choices=["python", "c"])
     parser.add_argument("--estimators", nargs="+", default=None, choices=list(BACKENDS))
     parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
                         choices=["float64", "float32"], help="of the compiled estimators")
-    parser.add_argument("--build-dir", type=Path, default=Path("build/bench_streams"))
-    parser.add_argument("--out", type=Path, default=Path("bench_streams.json"))
-    args = parser.parse_args(argv)
-    start = time.time()
-    result = bench(args.model, tuple(args.backends), args.build_dir, args.estimators,
-                   tuple(args.precisions))
-    result.update(machine=platform.platform(), python=platform.python_version(),
-                  wall_seconds=round(time.time() - start, 1))
-    args.out.write_text(json.dumps(result, indent=1))
-    print(markdown(result))
-    return result
+
+
+def measure(args) -> tuple[dict, dict]:
+    import bench_demo
+
+    model = args.model or str(bench_demo.model_dir())
+    described = (f"the demo's trained KNODE cartpole ({Path(model).relative_to(figures.ROOT)})"
+                 if not args.model else model)
+    cond = figures.conditions(model=described, run="cartpole seed 1 (the demo's test run), 5000 samples",
+                              settings="each estimator's defaults; backends " + ", ".join(args.backends)
+                              + "; compiled precisions " + ", ".join(args.precisions))
+    result = bench(model, tuple(args.backends), BUILD, args.estimators, tuple(args.precisions))
+    result["model"] = described
+    return result, cond
+
+
+# -- views -------------------------------------------------------------------------------------
+
+def _ratio(r: dict, key: str) -> str:
+    v = r.get(key)
+    return "" if v is None else (f"{v:.3g}" if v < 1e4 else f"{v:.1e}")
+
+
+def _rows(data: dict, backends) -> list[dict]:
+    return [r for r in data["figures"]["rows"] if r["backend"].split()[0] in backends]
+
+
+def render_cases(data: dict) -> str:
+    """The references (Python) case by case."""
+    lines = ["| estimator | case | MSE | × clean | × clean, skipping samples with a missing output | "
+             "outputs rejected | back in the clean band |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    for r in _rows(data, ("python",)):
+        conv = r.get("converged_s", "")
+        conv = "never" if "converged_s" in r and conv is None else (f"{conv:.2f} s" if conv != "" else "")
+        lines.append(f"| {r['estimator'].upper() if r['estimator'] in ('ukf', 'mhe') else r['estimator']} | "
+                     f"{CASE_LABELS.get(r['case'], r['case'])} | {r['mse']:.3e} | "
+                     f"{_ratio(r, 'mse_ratio') if r['case'] != 'clean' else '1'} | "
+                     f"{_ratio(r, 'mse_ratio_dropping_samples')} | "
+                     f"{r['rejected']} | {conv} |")
+    return "\n".join(lines) + "\n\n" + render_conditions(data)
+
+
+def render_compiled(data: dict) -> str:
+    """The compiled builds, one line each."""
+    def get(rows, case):
+        return next(r for r in rows if r["case"] == case)
+
+    head = ("| estimator | build | clean MSE | p / alpha missing 0.25 s (× clean) | p / alpha at 1/4 rate "
+            "(× clean) | 3 sigma off, `P0 = initial`: in band / rejected | own `P0`: in band / rejected "
+            "(after 1 s) | errors | criteria met |")
+    lines = [head, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    rows = _rows(data, ("c",))
+    verdict = data["figures"]["verdict"]
+    for name in BACKENDS:
+        for backend in dict.fromkeys(r["backend"] for r in rows if r["estimator"] == name):
+            mine = [r for r in rows if (r["estimator"], r["backend"]) == (name, backend)]
+            c, w, d = get(mine, "clean"), get(mine, "wrong_start"), get(mine, "wrong_start_default_P0")
+            met = [v["met"] for v in verdict if (v["estimator"], v["backend"]) == (name, backend)]
+            build = "C " + (backend.split()[1] if " " in backend else "float64")
+            lines.append(
+                f"| {name} | {build} | {c['mse']:.3e} | {get(mine, 'dropout_p')['mse_ratio']:.2f} / "
+                f"{get(mine, 'dropout_alpha')['mse_ratio']:.2f} | "
+                f"{get(mine, 'quarter_p')['mse_ratio']:.2f} / "
+                f"{get(mine, 'quarter_alpha')['mse_ratio']:.2f} | {_seconds(w)} / {w['rejected']} | "
+                f"{_seconds(d)} / {d['rejected']} ({d['rejected_after_1s']}) | "
+                f"{sum(r['errors'] for r in mine)} | {sum(met)} of {len(met)} |")
+    return "\n".join(lines) + "\n\n" + render_conditions(data)
+
+
+def _seconds(r: dict) -> str:
+    return "never" if r["converged_s"] is None else f"{r['converged_s']:.2f} s"
+
+
+CASE_LABELS = {"clean": "clean", "dropout_p": "p missing 0.25 s", "dropout_alpha": "alpha missing 0.25 s",
+               "quarter_p": "p at 1/4 rate", "quarter_alpha": "alpha at 1/4 rate",
+               "wrong_start": "start 3 sigma off, `P0 = initial`",
+               "wrong_start_default_P0": "start 3 sigma off, own `P0`"}
+
+
+def render_conditions(data: dict) -> str:
+    c, f = data["conditions"], data["figures"]
+    return (f"Measured by `{data['command']}` on {c['date']}: {f['model']}; {c['run']}; "
+            f"dropout {f['dropout']['length_s']} s from {f['dropout']['start_s']} s, slow outputs every "
+            f"{f['slow_every']}th sample.")
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    import bench
+
+    sys.exit(bench.main(["streams", *sys.argv[1:]]))

@@ -1,11 +1,43 @@
-"""Shared fixtures: one simulated cartpole training run and test run per session."""
+"""Shared fixtures (one simulated cartpole training run and test run per session) and the
+tolerance rule of tests/README.md (:func:`rounding`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from learnest_codegen import get_system
 from learnest_codegen.simulation import simulate
+
+
+def rounding(dtype=np.float64, *, ops: int = 1, cond: float = 1.0) -> float:
+    """The relative tolerance between two computations of one quantity that round differently.
+
+    Two implementations of the same formula (numpy against C, LU against Cholesky, another BLAS,
+    another summation order, a fused multiply-add or not) each land within ``ops * eps * cond``
+    of the exact value: ``ops`` dependent floating-point operations of a backward-stable
+    algorithm, each rounding by at most ``eps`` (the unit roundoff's bound ``n u`` of Higham,
+    *Accuracy and Stability of Numerical Algorithms*, 2nd ed., sections 3.1-3.5, with ``u`` taken
+    as ``eps``), amplified by the condition number ``cond`` of the problem. Two of them differ
+    by at most twice that. ``dtype`` is the precision the computation runs in (float32 and
+    float64 apart: float32's eps is 1.2e-7, float64's 2.2e-16).
+    """
+    return 2.0 * ops * float(np.finfo(dtype).eps) * cond
+
+
+def unscented_rounding(Wm, Wc, dtype=np.float64, *, gain: float = 1.0) -> float:
+    """The relative tolerance, to the largest entry of the compared state or covariance, between
+    two implementations of one unscented-transform step with weights ``Wm``, ``Wc``.
+
+    Each moment is a weighted sum over the ``2n + 1`` sigma points of values no larger than the
+    state's (or covariance's) scale, after a Cholesky factor (``n`` operations into an entry)
+    and a few more operations: ``3n + 2`` in all. The weights' absolute sum is the sum's
+    condition number (at alpha 0.1 and n = 4: W0 = -99 against 12.5, so 199). ``gain`` is the
+    amplification of what follows the transform (a Kalman update's, see tests/test_ukf.py).
+    """
+    n = (len(Wm) - 1) // 2
+    cond = max(np.abs(Wm).sum(), np.abs(Wc).sum()) * gain
+    return rounding(dtype, ops=3 * n + 2, cond=cond)
 
 
 @pytest.fixture(scope="session")
