@@ -246,9 +246,10 @@ def test_thrust_vector_is_body_z_times_throttle():
 
 @pytest.mark.parametrize("change, match", [
     (lambda c: c.pop("imu_acc_y"), "missing columns \\['imu_acc_y'\\]"),
-    (lambda c: c["px"].__setitem__(10, np.nan), "non-finite value in column 'px' at data row 11"),
     (lambda c: c["t"].__setitem__(20, c["t"][19]), "time must increase strictly"),
-    (lambda c: c["t"].__setitem__(slice(400, None), c["t"][400:] + 0.2), "gap of 0.210 s"),
+    # a dropout of 0.21 s in a 4 s flight, cut with 1.5 s either side, leaves too little
+    (lambda c: c["t"].__setitem__(slice(400, None), c["t"][400:] + 0.2),
+     "left once the faulty spans are cut.*dropout.*no data for 0.210 s"),
     (lambda c: [c[m].__setitem__(slice(None), 0.0) for m in nb.MOTORS], "no airborne samples"),
 ])
 def test_malformed_flights_raise_data_error(tmp_path, change, match):
@@ -256,6 +257,18 @@ def test_malformed_flights_raise_data_error(tmp_path, change, match):
     change(cols)
     with pytest.raises(DataError, match=match):
         nb.read_flight(_write(tmp_path / "bad.csv", cols))
+
+
+def test_a_row_with_a_non_finite_value_is_left_out_and_said(tmp_path):
+    """A marker occlusion (NaN) drops the row: resampling bridges it, a finding says so."""
+    cols, *_ = _flight_table(gap_at=None)
+    cols["px"][10] = np.nan
+    flight = nb.read_flight(_write(tmp_path / "occluded.csv", cols))
+    (finding,) = flight.findings
+    assert (finding.check, finding.action) == ("dropout", "kept")
+    assert "1 row(s) with non-finite values" in finding.detail
+    with pytest.raises(DataError, match="non-finite value in column 'px' at data row 11"):
+        nb.read_table(tmp_path / "occluded.csv")
 
 
 def test_non_numeric_and_empty_files(tmp_path):

@@ -297,3 +297,57 @@ QUADROTOR_THRUST_LINEAR = replace(
     params={"c_T": 0.0, "dc_T_z": 0.0, "c_v_xy": 0.0, "c_a_xy": 0.0, "c_v_z": 0.0, "c_a_z": 0.0,
             "c_0_z": 0.0},
 )
+
+
+# -- accelerometer bias ---------------------------------------------------------------------
+#: Process noise of each bias state per RK4 step [m/s^2]: a random walk of 0.01 m/s^2 per
+#: sqrt(s), 0.05 m/s^2 over a 30 s flight; the NanoBench flights' world-frame accelerometer
+#: offsets (0.1-0.4 m/s^2 horizontally, constant within a flight: the accelerometer's mounting
+#: against the motion-capture body frame) are fixed by the position within a few seconds.
+BIAS_PROCESS_STD = 1e-3
+#: Initial std of each bias state [m/s^2]: the largest offset on the NanoBench flights is 0.40.
+BIAS_INITIAL_STD = 0.3
+
+
+def with_accelerometer_bias(system: System, name: str) -> System:
+    """``system`` with three more states ``bx, by, bz`` [m/s^2], an offset of the world-frame
+    accelerometer: ``y_a = a + b``, ``bdot = 0`` (a random walk in the estimators, process
+    noise :data:`BIAS_PROCESS_STD`). Tilting a gravity vector of 9.81 m/s^2 by 1 degree reads
+    0.17 m/s^2 horizontally: a few degrees between the accelerometer and the motion-capture
+    body frame, or a zero offset, shows as a constant world-frame offset while the yaw holds
+    (the NanoBench flights: 0.1-0.4 m/s^2 on x, up to 0.3 on y, per flight). Position fixes
+    ``a`` (its second derivative), the accelerometer fixes ``a + b``: both are observable. The
+    residual acts on ``ax, ay, az`` as in ``system``; the dynamics and their parameters are
+    ``system``'s."""
+    base_dynamics, base_true = system.dynamics, system.true_dynamics or system.dynamics
+
+    def dynamics(ops, x, u, p):
+        return [*base_dynamics(ops, x, u, p), 0.0 * x[9], 0.0 * x[10], 0.0 * x[11]]
+
+    def true_dynamics(ops, x, u, p):
+        return [*base_true(ops, x, u, p), 0.0 * x[9], 0.0 * x[10], 0.0 * x[11]]
+
+    def measurement(ops, x, u, p):
+        return [*x[0:3], x[6] + x[9], x[7] + x[10], x[8] + x[11]]
+
+    noise = system.noise
+    residual = replace(system.residual, states=tuple(system.residual_state_names))
+    return replace(
+        system, name=name,
+        description=system.description + " Accelerometer offset states b (y_a = a + b).",
+        states=(*system.states, *(Signal(f"b{a}", "m/s^2", f"accelerometer offset, world {a}")
+                                  for a in AXES)),
+        dynamics=dynamics, true_dynamics=true_dynamics, measurement=measurement,
+        noise=replace(noise, state_std=(*noise.state_std, 0.05, 0.05, 0.05),
+                      process_std=(*noise.process_std, *(BIAS_PROCESS_STD,) * 3),
+                      initial_std=(*noise.initial_std, *(BIAS_INITIAL_STD,) * 3)),
+        x0=(*system.x0, 0.0, 0.0, 0.0), residual=residual)
+
+
+#: The paper's triple integrator with accelerometer offset states (:func:`with_accelerometer_bias`).
+QUADROTOR_BIAS = with_accelerometer_bias(QUADROTOR_STATE, "quadrotor_bias")
+#: ``quadrotor_linear`` (the fitted prior ``adot = -k_v v - k_a a``) with accelerometer offsets.
+QUADROTOR_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_linear_bias")
+#: ``quadrotor_thrust_linear`` (thrust, drag and lag rows, fitted) with accelerometer offsets.
+QUADROTOR_THRUST_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_THRUST_LINEAR,
+                                                       "quadrotor_thrust_linear_bias")
