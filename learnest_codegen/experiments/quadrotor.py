@@ -159,7 +159,7 @@ def _estimators(model, out: Path, settings: StudySettings, estimators: Sequence[
 
 
 def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings, *, system: System = QUADROTOR,
-           progress: bool = True) -> tuple[dict, dict]:
+           progress: bool = True, parameters: Sequence = ()) -> tuple[dict, dict]:
     """Each of the study's estimators of ``model`` (or ``"nominal"``) with its noise tuned on
     the training flights (:func:`.quadrotor_tuning.tune`), and each one's tuning record."""
     from .quadrotor_tuning import TUNING_VERSION, reuse, tune
@@ -170,7 +170,8 @@ def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings, *, 
     for name in settings.estimators:
         cache = out / name / "tuning.json"
         ident = _hash({"model": _model_hash(model, system), "estimator": name, "outputs": TUNING_OUTPUTS,
-                       "train": [_case_hash(c) for c in train], "version": TUNING_VERSION})
+                       "train": [_case_hash(c) for c in train], "version": TUNING_VERSION,
+                       **({"parameters": [[p, list(v)] for p, v in parameters]} if parameters else {})})
         stored = json.loads(cache.read_text()) if cache.is_file() else {}
         if stored.get("hash") == ident:
             tuning, estimators[name] = reuse(model, name, out / name, stored["record"], system=system,
@@ -180,7 +181,8 @@ def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings, *, 
             continue
         tuning, estimators[name], record[name] = tune(
             model, name, train, out / name, system=system, clamp_inputs=clamp, outputs=TUNING_OUTPUTS,
-            progress=lambda text, n=name: say(progress, f"  tuning {what} {n}: {text}"))
+            progress=lambda text, n=name: say(progress, f"  tuning {what} {n}: {text}"),
+            parameters=parameters)
         _write_json(cache, {"hash": ident, "record": record[name]})
         say(progress, f"  tuned {what} {name}: {tuning.label}, criterion {record[name]['criterion']:.3f}, "
                       f"gate rejects {100 * record[name]['rejected_share']:.2f} % of the training outputs"
@@ -282,7 +284,7 @@ def train_and_test(train: Case | Sequence[Case], tests: Sequence[Case], features
     if settings.tune_noise:
         say(progress, f"{label}, {features}: tuning the noise on the training flights")
         estimators, tuning = _tuned(trained, train, work / "tuning", settings, system=system,
-                                    progress=progress)
+                                    progress=progress, parameters=FEATURES[features].choose)
         # the nominal's builds depend on the fold, not the features: every features' study reuses them
         nominal_estimators, tuning["nominal"] = _tuned("nominal", train, out / "nominal" / "tuning" / label,
                                                        settings, progress=progress)

@@ -24,13 +24,14 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from ..errors import UnknownNameError
-from ..export import DiscreteModel
+from ..export import DiscreteModel, prior_model
 from ..systems import System
 from ..systems.quadrotor import (
     QUADROTOR,
     QUADROTOR_BIAS,
     QUADROTOR_LINEAR,
     QUADROTOR_LINEAR_BIAS,
+    QUADROTOR_LINEAR_BIAS_LAG,
     QUADROTOR_STATE,
     QUADROTOR_THRUST_LINEAR,
     QUADROTOR_THRUST_LINEAR_BIAS,
@@ -47,18 +48,25 @@ class Features:
     """What a study's KNODE model is: the system (its residual's inputs) and the prior
     parameters fitted to the training flights before the net is trained (the grey-box route).
     ``net=False`` and no ``fit_prior``: the system's prior as it is, nothing trained (a
-    control, such as the accelerometer offsets alone)."""
+    control, such as the accelerometer offsets alone). ``fit_on``: the system whose prior is
+    fitted (the parameters then go into ``system``, which has more states than the observer
+    gives: the accelerometer lag); ``choose``: prior parameters chosen with the noise on the
+    training flights (``(name, values)``, :func:`~.quadrotor_tuning.tune`; without the tuning
+    the registered value)."""
 
     system: System
     fit_prior: tuple[str, ...] = ()
     start_at_prior: bool = False
     net: bool = True
+    fit_on: System | None = None
+    choose: tuple[tuple[str, tuple[float, ...]], ...] = ()
 
     @property
     def observer_system(self) -> System:
         """The system the pre-training observer runs on: the triple integrator, with the
         accelerometer offsets when the model has them (``linear_rts`` needs a linear prior)."""
-        return QUADROTOR_BIAS if self.system.nx == QUADROTOR_BIAS.nx else QUADROTOR
+        fitted = self.fit_on or self.system
+        return QUADROTOR_BIAS if fitted.nx == QUADROTOR_BIAS.nx else QUADROTOR
 
     @property
     def trained(self) -> bool:
@@ -68,6 +76,8 @@ class Features:
 _THRUST_SHARED = tuple(n for n in QUADROTOR_THRUST_LINEAR.params if n != "dc_T_z")  # one thrust gain
 _THRUST_Z = tuple(n for n in QUADROTOR_THRUST_LINEAR.params if n != "c_T")  # thrust on z only
 _LINEAR = tuple(QUADROTOR_LINEAR.params)
+#: The accelerometer lags [s] the tuning chooses from (``bias_lag_prior``).
+LAG_GRID_S = (0.01, 0.02, 0.04, 0.08, 0.16)
 FEATURES: dict[str, Features] = {
     "state": Features(QUADROTOR_STATE), "thrust": Features(QUADROTOR),
     "linear": Features(QUADROTOR_LINEAR, _LINEAR, start_at_prior=True),
@@ -83,6 +93,8 @@ FEATURES: dict[str, Features] = {
     "bias_thrust_prior": Features(QUADROTOR_THRUST_LINEAR_BIAS, _THRUST_SHARED, net=False),
     "bias_thrust_prior_axes": Features(QUADROTOR_THRUST_LINEAR_BIAS,
                                        tuple(QUADROTOR_THRUST_LINEAR.params), net=False),
+    "bias_lag_prior": Features(QUADROTOR_LINEAR_BIAS_LAG, _LINEAR, net=False, fit_on=QUADROTOR_LINEAR_BIAS,
+                               choose=(("tau_acc", LAG_GRID_S),)),
 }
 #: The configuration measured best on held-out trajectory types (docs/reports/flights_study.md).
 RECOMMENDED_FEATURES = "bias_prior"
@@ -121,12 +133,11 @@ def trained_model(train: Sequence[Case], features: str, out: Path, settings: Stu
     """The KNODE model trained on ``train`` with ``features``: loaded from ``directory`` when a
     model of the same training is there, else trained (on all the flights at once) and saved.
     A feature that trains nothing (``net=False``, no ``fit_prior``) is its system's prior."""
-    from ..export import prior_model
     from ..learning.model import load_model
     from ..learning.runs import train_on_runs
 
-    system = feature_system(features)
     spec = FEATURES[features]
+    system = spec.fit_on or feature_system(features)
     if not spec.trained:
         return prior_model(system)
     ident = _hash({"train": [c.name for c in train], "samples": [len(c.run) for c in train],
@@ -137,7 +148,7 @@ def trained_model(train: Sequence[Case], features: str, out: Path, settings: Stu
                    **({} if settings.net_must_beat_prior else {"net_must_beat_prior": False})})
     meta = directory / "model.json"
     if meta.is_file() and json.loads(meta.read_text()).get("study_training") == ident:
-        return load_model(directory, system)
+        return _onto(load_model(directory, system), spec)
     import torch
 
     threads = torch.get_num_threads()
@@ -152,7 +163,16 @@ def trained_model(train: Sequence[Case], features: str, out: Path, settings: Stu
         torch.set_num_threads(threads)
     model.meta["study_training"] = ident
     model.save(directory)
-    return model
+    return _onto(model, spec)
+
+
+def _onto(model, spec: Features):
+    """``model``, or with ``spec.fit_on`` the prior of ``spec.system`` with its fitted parameters."""
+    if spec.fit_on is None:
+        return model
+    from ..learning.prior_fit import fitted_system
+
+    return prior_model(fitted_system(spec.system, model.meta.get("prior_params") or {}))
 
 
 def training_record(trained) -> dict:

@@ -143,85 +143,138 @@ def _horizons(dt: float) -> tuple[int, ...]:
     return tuple(sorted({max(1, int(round(h / dt))) for h in HORIZONS_S}))
 
 
+class _Criterion:
+    """The criterion of every noise scale for one model and estimator on the training cases,
+    memoised by the scales' exponents; the estimator is compiled once (its noise is a
+    run-time setting)."""
+
+    def __init__(self, model, name: str, cases: Sequence[Case], out: Path, *, system, clamp_inputs,
+                 outputs: Sequence[str] | None):
+        from ..compilation import estimator_kind
+        from ..pipeline import make_estimator, resolve
+
+        self.model, self.name, self.cases = model, name, cases
+        self.discrete = resolve(model, system, clamp_inputs=clamp_inputs).model
+        sysm = self.discrete.system
+        self.groups = output_groups(sysm)
+        self.outputs = list(outputs or sysm.output_names)
+        self.predicted = [sysm.output_names.index(n) for n in self.outputs]
+        self.horizons = _horizons(sysm.dt)
+        self.stride = max(1, int(round(STRIDE_S / sysm.dt)))
+        self.base = make_estimator(model, name, system=system, out=out, clamp_inputs=clamp_inputs)
+        self.kind = estimator_kind(name)
+        self.scores: dict[tuple[int, ...], float] = {}
+        self.detail: dict[tuple[int, ...], dict] = {}
+
+    def tuning(self, point: tuple[int, ...], level: int = 0) -> Tuning:
+        return Tuning(2.0 ** level, 2.0 ** level, tuple(2.0 ** e for e in point), self.groups)
+
+    def estimator(self, tuning: Tuning):
+        return self.kind.compiled(self.base.directory, settings=tuning.settings(self.name, self.discrete))
+
+    def measure(self, point: tuple[int, ...], level: int = 0) -> dict:
+        """The criterion at ``point`` with every std times ``2 ** level`` (the gate's width)."""
+        from ..evaluation import run_estimator
+
+        estimator = self.estimator(self.tuning(point, level))
+        nx, dt = self.discrete.system.nx, self.discrete.system.dt
+        errors, rejected, samples = [], 0, 0
+        for case in self.cases:
+            try:
+                result = run_estimator(estimator, case.run, start_state(case, nx), self.name)
+            except SolverError:
+                return {"criterion": math.inf, "prediction_mse": {}, "rejected_share": 1.0}
+            errors.append(prediction_errors(self.discrete, result.x_hat, case.run, self.predicted,
+                                            self.horizons, stride=self.stride))
+            rejected += result.rejections
+            samples += int(np.sum(~np.isnan(case.run.y)))
+        mean = {h: float(np.mean([e[h] for e in errors])) for h in self.horizons}
+        finite = all(np.isfinite(v) and v > 0 for v in mean.values())
+        return {"criterion": float(np.mean(np.log(list(mean.values())))) if finite else math.inf,
+                "prediction_mse": {f"{h * dt:g}s": v for h, v in mean.items()},
+                "rejected_share": rejected / max(samples, 1)}
+
+    def __call__(self, point: tuple[int, ...]) -> float:
+        if point not in self.scores:
+            self.detail[point] = self.measure(point)
+            self.scores[point] = self.detail[point]["criterion"]
+        return self.scores[point]
+
+
 def tune(model, name: str, cases: Sequence[Case], out: Path, *, system,
          clamp_inputs: bool | None = None, outputs: Sequence[str] | None = None,
-         progress=None) -> tuple[Tuning, Any, dict]:
+         progress=None, parameters: Sequence[tuple[str, Sequence[float]]] = ()) -> tuple[Tuning, Any, dict]:
     """The :class:`Tuning` whose estimator ``name`` of ``model`` predicts the measurements
     ``outputs`` (names; default every output) of ``cases`` (the training flights) best (see the
     module docstring), that estimator, and the search's record: every point's criterion,
     the chosen point's prediction errors, the gate's rejection share, and ``edge`` (output
-    groups whose scale sits on the widest grid's edge). ``progress(text)`` gets one line per
-    grid pass."""
-    from ..compilation import estimator_kind
-    from ..evaluation import run_estimator
-    from ..pipeline import make_estimator, resolve
+    groups whose scale sits on the widest grid's edge, and parameters on their grid's end).
+    ``progress(text)`` gets one line per grid pass.
 
-    discrete = resolve(model, system, clamp_inputs=clamp_inputs).model
-    sysm = discrete.system
-    groups = output_groups(sysm)
-    names = list(outputs or sysm.output_names)
-    predicted = [sysm.output_names.index(n) for n in names]
-    horizons = _horizons(sysm.dt)
-    base = make_estimator(model, name, system=system, out=out, clamp_inputs=clamp_inputs)
-    kind = estimator_kind(name)
-    scores: dict[tuple[int, ...], float] = {}
-    detail: dict[tuple[int, ...], dict] = {}
+    ``parameters`` (``(name, values)``; ``model`` a prior, a
+    :class:`~learnest_codegen.export.DiscreteModel`) are prior parameters chosen by the same
+    criterion: the scales are searched at the model's own value, each value is scored at those
+    scales, and the scales are refined at the best value (``record["parameters"]``; the
+    estimator returned is that model's)."""
+    criterion = _Criterion(model, name, cases, out, system=system, clamp_inputs=clamp_inputs, outputs=outputs)
+    groups = criterion.groups
+    best = _search(criterion, len(groups), progress)
+    edge = [list(groups[i]) for i, e in enumerate(best) if abs(e) >= EXPONENT_LIMIT]
+    chosen_params, parameter_criteria = {}, {}
+    for pname, values in parameters:
+        from ..export import prior_model
+        from ..learning.prior_fit import fitted_system
 
-    def measure(point: tuple[int, ...], level: int = 0) -> dict:
-        """The criterion at ``point`` with every std times ``2 ** level`` (the gate's width)."""
-        tuning = Tuning(2.0 ** level, 2.0 ** level, tuple(2.0 ** e for e in point), groups)
-        estimator = kind.compiled(base.directory, settings=tuning.settings(name, discrete))
-        errors, rejected, samples = [], 0, 0
-        for case in cases:
-            try:
-                result = run_estimator(estimator, case.run, start_state(case, sysm.nx), name)
-            except SolverError:
-                return {"criterion": math.inf, "prediction_mse": {}, "rejected_share": 1.0}
-            errors.append(prediction_errors(discrete, result.x_hat, case.run, predicted, horizons,
-                                            stride=max(1, int(round(STRIDE_S / sysm.dt)))))
-            rejected += result.rejections
-            samples += int(np.sum(~np.isnan(case.run.y)))
-        mean = {h: float(np.mean([e[h] for e in errors])) for h in horizons}
-        finite = all(np.isfinite(v) and v > 0 for v in mean.values())
-        return {"criterion": float(np.mean(np.log(list(mean.values())))) if finite else math.inf,
-                "prediction_mse": {f"{h * sysm.dt:g}s": v for h, v in mean.items()},
-                "rejected_share": rejected / max(samples, 1)}
-
-    def evaluate(point: tuple[int, ...]) -> float:
-        if point not in scores:
-            detail[point] = measure(point)
-            scores[point] = detail[point]["criterion"]
-        return scores[point]
-
-    best = _search(evaluate, len(groups), progress)
-    edge = [i for i, e in enumerate(best) if abs(e) >= EXPONENT_LIMIT]
+        candidates = {}
+        for value in values:
+            variant = prior_model(fitted_system(criterion.discrete.system, {pname: float(value)}))
+            candidates[float(value)] = _Criterion(variant, name, cases, out / f"{pname}_{value:g}",
+                                                  system=system, clamp_inputs=None, outputs=outputs)
+            parameter_criteria[f"{value:g}"] = candidates[float(value)](best)
+        value = min(candidates, key=lambda v: candidates[v](best))
+        criterion, chosen_params[pname] = candidates[value], value
+        best = _refine(criterion, best)
+        if value in (min(values), max(values)):
+            edge.append([pname])
+        if progress:
+            progress(f"{pname} {value:g} (criterion {criterion(best):.3f}), scales 2**{list(best)}")
     if edge:
-        warnings.warn(f"tuning {name}: the measurement scale of {[list(groups[i]) for i in edge]} sits "
-                      f"on the grid's edge 2**{[best[i] for i in edge]} (widest grid); the noise "
-                      f"model of those outputs may be far off", stacklevel=2)
-    level, info = 0, detail[best]
+        warnings.warn(f"tuning {name}: {edge} sit on their grid's edge (widest grid); the noise model "
+                      f"of those outputs, or those parameters, may be far off", stacklevel=2)
+    level, info = 0, criterion.detail[best]
     while info["rejected_share"] > MAX_REJECTED and level < 10:  # widen the gate, not the estimate
         level += 1
-        info = measure(best, level)
-    chosen = Tuning(2.0 ** level, 2.0 ** level, tuple(2.0 ** e for e in best), groups)
-    estimator = kind.compiled(base.directory, settings=chosen.settings(name, discrete))
+        info = criterion.measure(best, level)
+    chosen = criterion.tuning(best, level)
+    sysm = criterion.discrete.system
     record = {**chosen.to_json(), "criterion": info["criterion"],
               "prediction_mse": info["prediction_mse"], "rejected_share": info["rejected_share"],
-              "gate_widened": level, "edge": [list(groups[i]) for i in edge],
-              "predicted_outputs": names, "horizons_s": [h * sysm.dt for h in horizons],
-              "grid": {"_".join(str(e) for e in p): v for p, v in scores.items()}}
-    return chosen, estimator, record
+              "gate_widened": level, "edge": edge, "predicted_outputs": criterion.outputs,
+              "horizons_s": [h * sysm.dt for h in criterion.horizons],
+              "grid": {"_".join(str(e) for e in p): v for p, v in criterion.scores.items()},
+              **({"parameters": chosen_params, "parameter_criteria": parameter_criteria}
+                 if parameters else {})}
+    return chosen, criterion.estimator(chosen), record
 
 
 def reuse(model, name: str, out: Path, record: dict, *, system, clamp_inputs: bool | None = None):
-    """The :class:`Tuning` of a stored ``record`` (:func:`tune`'s) and its estimator."""
+    """The :class:`Tuning` of a stored ``record`` (:func:`tune`'s) and its estimator (of the
+    model with the record's chosen ``parameters``)."""
     from ..compilation import estimator_kind
     from ..pipeline import make_estimator, resolve
 
-    discrete = resolve(model, system, clamp_inputs=clamp_inputs).model
     tuning = Tuning(record["process_scale"], record["measurement_scale"], tuple(record["measurement_scales"]),
                     tuple(tuple(g) for g in record["groups"]))
-    base = make_estimator(model, name, system=system, out=out, clamp_inputs=clamp_inputs)
+    where = out
+    if record.get("parameters"):
+        from ..export import prior_model
+        from ..learning.prior_fit import fitted_system
+
+        model = prior_model(fitted_system(resolve(model, system).model.system, record["parameters"]))
+        (pname, value), = record["parameters"].items()
+        where, clamp_inputs = out / f"{pname}_{value:g}", None
+    discrete = resolve(model, system, clamp_inputs=clamp_inputs).model
+    base = make_estimator(model, name, system=system, out=where, clamp_inputs=clamp_inputs)
     return tuning, estimator_kind(name).compiled(base.directory, settings=tuning.settings(name, discrete))
 
 
@@ -247,7 +300,14 @@ def _search(evaluate, n: int, progress=None) -> tuple[int, ...]:
             progress(f"grid {'x'.join(str(len(a)) for a in axes)}, best 2**{list(best)}")
         if not widened:
             break
-    while True:  # factor-2 refinement around the best point
+    return _refine(evaluate, best)
+
+
+def _refine(evaluate, best: tuple[int, ...]) -> tuple[int, ...]:
+    """From ``best``, move to the best factor-2 neighbour until none is better."""
+    import itertools
+
+    while True:
         around = [p for p in itertools.product(*[(e - 1, e, e + 1) for e in best])
                   if all(abs(e) <= EXPONENT_LIMIT for e in p)]
         new = min(around, key=evaluate)

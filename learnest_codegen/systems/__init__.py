@@ -21,6 +21,7 @@ from .quadrotor import (
     QUADROTOR_BIAS,
     QUADROTOR_LINEAR,
     QUADROTOR_LINEAR_BIAS,
+    QUADROTOR_LINEAR_BIAS_LAG,
     QUADROTOR_STATE,
     QUADROTOR_THRUST_LINEAR,
     QUADROTOR_THRUST_LINEAR_BIAS,
@@ -32,7 +33,7 @@ SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND
                              QUADROTOR_LINEAR.name: QUADROTOR_LINEAR,
                              QUADROTOR_THRUST_LINEAR.name: QUADROTOR_THRUST_LINEAR, RC_CAR.name: RC_CAR,
                              **{s.name: s for s in (QUADROTOR_BIAS, QUADROTOR_LINEAR_BIAS,
-                                                    QUADROTOR_THRUST_LINEAR_BIAS)}}
+                                                    QUADROTOR_LINEAR_BIAS_LAG, QUADROTOR_THRUST_LINEAR_BIAS)}}
 
 
 def register(system: System) -> System:

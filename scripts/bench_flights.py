@@ -1,0 +1,261 @@
+"""Real Crazyflie flights, leave one trajectory type out: per state group and reference window.
+
+Runs the quadrotor study (``learnest_codegen.experiments.quadrotor``) on the NanoBench flights
+(``$LEARNEST_DATA`` or ``../shared/data``; ``--data``), protocol ``leave-type-out`` (the 9
+circles tested on a model trained on the 8 figure-eights, and the reverse):
+
+* the recommended configuration (``bias_prior``: the fitted prior with accelerometer-offset
+  states) with its noise tuned on the training flights (``--tune-noise``), KNODE-UKF and
+  KNODE-MHE-RTI, each against its nominal estimator as built and tuned the same way;
+* the same without the tuning, and ``linear_prior`` (no offsets) both ways, for comparison;
+* the physics variants and controls with the UKF, tuned: ``bias`` (the offsets alone, nothing
+  fitted), ``bias_thrust_prior`` and ``bias_thrust_prior_axes`` (thrust per battery voltage,
+  motor lag and drag rows fitted), ``bias_linear`` (a net on top);
+* what limits the long windows: per flight, the velocity change a perfect estimate would make
+  (the central-difference velocity itself, scored against each window), and the Vicon noise
+  under the position "errors".
+
+Every figure is per test flight and state group (position, velocity, acceleration) and a
+normalised overall (each group's MSE over the nominal's), at the references
+``sg_0.5s``..``sg_3s`` and ``cd_0.1s``; the onboard EKF's velocity beside. Results are kept in
+``--out`` (default ``build/bench/flights``) and reused while the code and data are unchanged.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import figures
+import numpy as np
+
+MINUTES = 120
+ORDER = 60
+OUT = figures.ROOT / "build" / "bench" / "flights"
+RECOMMENDED = "bias_prior"
+VARIANTS = ("bias", "linear_prior", "bias_thrust_prior", "bias_thrust_prior_axes", "bias_linear")
+REFERENCES = ("cd_0.1s", "sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s")
+GROUPS = ("p", "v", "a", "overall")
+NAMES = {"p": "position", "v": "velocity", "a": "acceleration", "overall": "overall (normalised)"}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--data", default=None,
+                        help="data root (default: $LEARNEST_DATA or ../shared/data)")
+    parser.add_argument("--out", type=Path, default=OUT, help="the studies' folder (results reused)")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="comma-separated features run with the tuned UKF beside the recommended one")
+
+
+def _paired(p) -> dict:
+    return {"mean": p.mean, "median": p.median, "better": p.improved, "flights": p.n,
+            "worst": p.worst, "worst_flight": p.worst_flight}
+
+
+def _tunings(record: dict) -> dict:
+    keep = ("label", "process_scale", "measurement_scale", "measurement_scales", "groups", "criterion",
+            "prediction_mse", "rejected_share", "gate_widened", "edge")
+    out = {est: {k: r[k] for k in keep} for est, r in record.items() if est != "nominal"}
+    out.update({f"nominal {est}": {k: r[k] for k in keep} for est, r in record.get("nominal", {}).items()})
+    return out
+
+
+def _summary(s) -> dict:
+    per_flight = {case: {m: {"by_reference": v.get("by_reference", {}), "rejected": v.get("rejected"),
+                             "rejected_share": v.get("rejected_share")} for m, v in methods.items()}
+                  for case, methods in s.per_case.items()}
+    return {"by_reference": {pair: {ref: {g: _paired(p) for g, p in row.items()} for ref, row in refs.items()}
+                             for pair, refs in s.by_reference.items()},
+            "onboard_velocity": {k: {ref: _paired(p) for ref, p in refs.items()}
+                                 for k, refs in s.onboard.items()},
+            "overall_mse": {k: _paired(groups["all"]) for k, groups in s.paired.items()},
+            "per_flight": per_flight,
+            "tunings": {fold: _tunings(record) for fold, record in s.tunings.items()},
+            "trainings": {fold: {"prior_params": t.get("prior_params"), "net_kept": t.get("net_kept")}
+                          for fold, t in s.trainings.items()}}
+
+
+def _limits(summary: dict, flights: dict) -> dict:
+    """Per nominal estimator and reference: the velocity change of the central-difference
+    velocity itself (a perfect estimate, up to its 1e-6 error) against that estimator."""
+    out = {}
+    nominal_labels = {m for c in summary["per_flight"].values() for m in c if not m.startswith("KNODE")}
+    for label in sorted(nominal_labels - {"onboard EKF"}):
+        out[label] = {}
+        for ref in REFERENCES[1:]:
+            changes = []
+            for name, methods in summary["per_flight"].items():
+                cd, sg = flights[name].references["cd_0.1s"][:, 3:6], flights[name].references[ref][:, 3:6]
+                ok = np.isfinite(cd).all(axis=1)
+                floor = float(np.mean((cd[ok] - sg[ok]) ** 2))
+                changes.append(100 * (1 - floor / methods[label]["by_reference"][ref]["v"]))
+            out[label][ref] = {"mean": float(np.mean(changes)), "min": float(np.min(changes)),
+                               "max": float(np.max(changes))}
+    return out
+
+
+def _vicon_noise(flights: dict) -> dict:
+    """Per flight, the Vicon position noise [mm]: the residual of a local cubic fit over 9
+    samples, corrected for the fit's own share."""
+    from scipy.signal import savgol_filter
+
+    centre = savgol_filter(np.eye(9)[4], 9, 3)[4]
+    out = {}
+    for name, f in flights.items():
+        p = f.run.y[:, :3]
+        r = (p - savgol_filter(p, 9, 3, axis=0))[10:-10]
+        out[name] = float(1e3 * np.sqrt(np.mean(r ** 2) / (1 - centre)))
+    return out
+
+
+def measure(args) -> tuple[dict, dict]:
+    from learnest_codegen.experiments import quadrotor as fs
+    from learnest_codegen.recordings import crazyflie, data_root
+
+    root = data_root(args.data)
+    if root is None:
+        raise SystemExit("no NanoBench flights: pass --data or set $LEARNEST_DATA")
+    findings, skipped = [], {}
+    cases = fs.flight_cases(root, findings=findings, skipped=skipped)
+    cond = figures.conditions(
+        model="per fold, the KNODE model of each features trained on the other trajectory type's flights",
+        run=f"{len(cases)} NanoBench flights, leave-type-out", protocol="leave-type-out",
+        settings="StudySettings() with the estimators named; --tune-noise where 'tuned'")
+    out = Path(args.out)
+    both = ("ukf", "mhe_rti")
+    studies = {}
+    runs = [("tuned", RECOMMENDED, both, True), ("untuned", RECOMMENDED, both, False),
+            ("tuned", "linear_prior", both, True), ("untuned", "linear_prior", both, False),
+            *(("tuned", f, ("ukf",), True) for f in args.variants.split(",") if f and f != "linear_prior")]
+    for tag, features, estimators, tune in runs:
+        settings = fs.StudySettings(estimators=estimators, tune_noise=tune)
+        (summary,) = fs.run_study(cases, out / tag, features=[features], settings=settings,
+                                  protocol="leave-type-out", skipped=skipped, findings=findings)
+        studies[f"{features}/{tag}"] = _summary(summary)
+    flights = {f.name: f for f in (crazyflie.read_flight(p) for p in crazyflie.list_flights(root))}
+    rec = studies[f"{RECOMMENDED}/tuned"]
+    figs = {"recommended": RECOMMENDED, "studies": studies, "limits": _limits(rec, flights),
+            "vicon_noise_mm": _vicon_noise({n: flights[n] for n in rec["per_flight"]}),
+            "findings": [f.to_json() for f in findings], "skipped": skipped,
+            "references": {k: v for k, v in crazyflie.REFERENCES.items()}}
+    return figs, cond
+
+
+# --- views ------------------------------------------------------------------------------------------
+
+
+def _cell(p: dict | None) -> str:
+    if not p:
+        return "-"
+    return f"{p['mean']:+.1f} % ({p['better']}/{p['flights']}, worst {p['worst']:+.1f} %)"
+
+
+def _state_table(study: dict, pair: str) -> list[str]:
+    rows = study["by_reference"].get(pair, {})
+    lines = ["| reference | " + " | ".join(NAMES[g] for g in GROUPS) + " |",
+             "|---" * (len(GROUPS) + 1) + "|"]
+    for ref in REFERENCES:
+        if ref in rows:
+            lines.append(f"| {ref} | " + " | ".join(_cell(rows[ref].get(g)) for g in GROUPS) + " |")
+    return lines
+
+
+def render_headline(data: dict) -> str:
+    """Recommended configuration, tuned: each KNODE estimator against its nominal as built and
+    tuned the same way, per reference and state group."""
+    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    out = []
+    for pair in study["by_reference"]:
+        knode, _, nominal = pair.partition(" vs ")
+        title = f"{knode} against {nominal or knode.removeprefix('KNODE-') + ' as built'}"
+        out += [f"**{title}**", "", *_state_table(study, pair), ""]
+    return "\n".join(out).rstrip()
+
+
+def render_untuned(data: dict) -> str:
+    """The recommended model with the system's hand tuning (no --tune-noise)."""
+    study = data["figures"]["studies"][f"{data['figures']['recommended']}/untuned"]
+    out = []
+    for pair in study["by_reference"]:
+        out += [f"**{pair} against {pair.removeprefix('KNODE-')}, both as built**", "",
+                *_state_table(study, pair), ""]
+    return "\n".join(out).rstrip()
+
+
+def render_onboard(data: dict) -> str:
+    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    labels = list(study["onboard_velocity"])
+    lines = ["| reference | " + " | ".join(f"{k} velocity vs onboard EKF" for k in labels) + " |",
+             "|---" * (len(labels) + 1) + "|"]
+    for ref in REFERENCES:
+        cells = [_cell(study["onboard_velocity"][k].get(ref)) for k in labels]
+        lines.append(f"| {ref} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def render_variants(data: dict) -> str:
+    """Every tuned features' KNODE-UKF against the UKF tuned the same way: velocity at each
+    reference, and acceleration and the normalised overall at 1 s."""
+    studies = data["figures"]["studies"]
+    pair = "KNODE-UKF vs UKF (tuned)"
+    head = ["features", *(f"velocity {r}" for r in REFERENCES), "acceleration sg_1s", "overall sg_1s"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for key, study in studies.items():
+        features, tag = key.split("/")
+        if tag != "tuned" or pair not in study["by_reference"]:
+            continue
+        refs = study["by_reference"][pair]
+        cells = [f"{refs[r]['v']['mean']:+.1f} % ({refs[r]['v']['better']}/{refs[r]['v']['flights']})"
+                 for r in REFERENCES]
+        cells += [f"{refs['sg_1s'][g]['mean']:+.1f} % (worst {refs['sg_1s'][g]['worst']:+.1f} %)"
+                  for g in ("a", "overall")]
+        lines.append(f"| {features} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def render_limits(data: dict) -> str:
+    """The velocity change a perfect estimate would make against each nominal estimator."""
+    limits = data["figures"]["limits"]
+    lines = ["| against | " + " | ".join(REFERENCES[1:]) + " |", "|---" * len(REFERENCES) + "|"]
+    for label, refs in limits.items():
+        cells = [f"{refs[r]['mean']:+.1f} % ({refs[r]['min']:+.1f} to {refs[r]['max']:+.1f} %)"
+                 for r in REFERENCES[1:]]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def render_tunings(data: dict) -> str:
+    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    lines = ["| fold | estimator | process | position | accelerometer | criterion | gate rejects | "
+             "on the edge |", "|---|---|---|---|---|---|---|---|"]
+    for fold, ests in study["tunings"].items():
+        for est, r in ests.items():
+            scales = [r["measurement_scale"] * s for s in r["measurement_scales"]]
+            lines.append(f"| {fold} | {'KNODE ' + est if not est.startswith('nominal') else est} | "
+                         f"x{r['process_scale']:g} | x{scales[0]:.3g} | x{scales[1]:.3g} | "
+                         f"{r['criterion']:.3f} | {100 * r['rejected_share']:.2f} % | "
+                         f"{', '.join('/'.join(g) for g in r['edge']) or 'no'} |")
+    return "\n".join(lines)
+
+
+def render_per_flight(data: dict) -> str:
+    """Per test flight: velocity MSE against the central differences and acceleration MSE
+    against the 1 s fit, each estimator of the recommended tuned study, and the onboard EKF."""
+    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    flights = study["per_flight"]
+    methods = [m for m in next(iter(flights.values())) if m != "onboard EKF"] + ["onboard EKF"]
+    lines = ["| flight | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for name, ms in flights.items():
+        cells = []
+        for m in methods:
+            refs = ms[m]["by_reference"]
+            v, a = refs["cd_0.1s"]["v"], refs["sg_1s"].get("a")
+            cells.append(f"{v:.2e}" + (f"; {a:.3f}" if a is not None and m != "onboard EKF" else ""))
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def render_checks(data: dict) -> str:
+    from learnest_codegen.recordings.checks import Finding
+
+    found = data["figures"]["findings"]
+    return "\n".join(f"- {Finding(**f).line()}" for f in found) or "- nothing found"
