@@ -4,13 +4,14 @@ Runs the quadrotor study (``learnest_codegen.experiments.quadrotor``) on the Nan
 (``$LEARNEST_DATA`` or ``../shared/data``; ``--data``), protocol ``leave-type-out`` (the 9
 circles tested on a model trained on the 8 figure-eights, and the reverse):
 
-* the recommended configuration (``bias_prior``: the fitted prior with accelerometer-offset
-  states) with its noise tuned on the training flights (``--tune-noise``), KNODE-UKF and
-  KNODE-MHE-RTI, each against its nominal estimator as built and tuned the same way;
-* the same without the tuning, and ``linear_prior`` (no offsets) both ways, for comparison;
-* the physics variants and controls with the UKF, tuned: ``bias`` (the offsets alone, nothing
-  fitted), ``bias_thrust_prior`` and ``bias_thrust_prior_axes`` (thrust per battery voltage,
-  motor lag and drag rows fitted), ``bias_linear`` (a net on top);
+* the recommended configuration (``bias_lag_prior``: the fitted prior with accelerometer-offset
+  states and the accelerometer read through a lag) with its noise and lag chosen on the
+  training flights (``--tune-noise``), KNODE-UKF and KNODE-MHE-RTI, each against its nominal
+  estimator as built and tuned the same way; ``bias_prior`` (no lag) the same way;
+* the same without the tuning, and ``linear_prior`` (no offsets), for comparison;
+* the physics variants and controls with the UKF, tuned: ``linear_prior``, ``bias`` (the
+  offsets alone, nothing fitted), ``bias_thrust_prior`` and ``bias_thrust_prior_axes``
+  (thrust per battery voltage, motor lag and drag rows fitted), ``bias_linear`` (a net on top);
 * what limits the long windows: per flight, the velocity change a perfect estimate would make
   (the central-difference velocity itself, scored against each window), and the Vicon noise
   under the position "errors".
@@ -31,8 +32,9 @@ import numpy as np
 MINUTES = 120
 ORDER = 60
 OUT = figures.ROOT / "build" / "bench" / "flights"
-RECOMMENDED = "bias_prior"
-VARIANTS = ("bias", "linear_prior", "bias_thrust_prior", "bias_thrust_prior_axes", "bias_linear")
+RECOMMENDED = "bias_lag_prior"
+COMPARED = ("bias_prior",)  # run like the recommended one, both estimators, tuned and not
+VARIANTS = ("linear_prior", "bias", "bias_thrust_prior", "bias_thrust_prior_axes", "bias_linear")
 REFERENCES = ("cd_0.1s", "sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s")
 GROUPS = ("p", "v", "a", "overall")
 NAMES = {"p": "position", "v": "velocity", "a": "acceleration", "overall": "overall (normalised)"}
@@ -53,9 +55,10 @@ def _paired(p) -> dict:
 
 def _tunings(record: dict) -> dict:
     keep = ("label", "process_scale", "measurement_scale", "measurement_scales", "groups", "criterion",
-            "prediction_mse", "rejected_share", "gate_widened", "edge")
-    out = {est: {k: r[k] for k in keep} for est, r in record.items() if est != "nominal"}
-    out.update({f"nominal {est}": {k: r[k] for k in keep} for est, r in record.get("nominal", {}).items()})
+            "prediction_mse", "rejected_share", "gate_widened", "edge", "parameters", "parameter_criteria")
+    out = {est: {k: r[k] for k in keep if k in r} for est, r in record.items() if est != "nominal"}
+    for est, r in record.get("nominal", {}).items():
+        out[f"nominal {est}"] = {k: r[k] for k in keep if k in r}
     return out
 
 
@@ -123,9 +126,9 @@ def measure(args) -> tuple[dict, dict]:
     out = Path(args.out)
     both = ("ukf", "mhe_rti")
     studies = {}
-    runs = [("tuned", RECOMMENDED, both, True), ("untuned", RECOMMENDED, both, False),
-            ("tuned", "linear_prior", both, True), ("untuned", "linear_prior", both, False),
-            *(("tuned", f, ("ukf",), True) for f in args.variants.split(",") if f and f != "linear_prior")]
+    runs = [*(("tuned", f, both, True) for f in (RECOMMENDED, *COMPARED)),
+            *(("untuned", f, both, False) for f in (RECOMMENDED, *COMPARED, "linear_prior")),
+            *(("tuned", f, ("ukf",), True) for f in args.variants.split(",") if f)]
     for tag, features, estimators, tune in runs:
         settings = fs.StudySettings(estimators=estimators, tune_noise=tune)
         (summary,) = fs.run_study(cases, out / tag, features=[features], settings=settings,
@@ -133,11 +136,32 @@ def measure(args) -> tuple[dict, dict]:
         studies[f"{features}/{tag}"] = _summary(summary)
     flights = {f.name: f for f in (crazyflie.read_flight(p) for p in crazyflie.list_flights(root))}
     rec = studies[f"{RECOMMENDED}/tuned"]
-    figs = {"recommended": RECOMMENDED, "studies": studies, "limits": _limits(rec, flights),
+    limits = _limits(rec, flights)
+    figs = {"recommended": RECOMMENDED, "headline": _slugs(rec, limits), "studies": studies, "limits": limits,
             "vicon_noise_mm": _vicon_noise({n: flights[n] for n in rec["per_flight"]}),
             "findings": [f.to_json() for f in findings], "skipped": skipped,
             "references": {k: v for k, v in crazyflie.REFERENCES.items()}}
     return figs, cond
+
+
+def _slug(text: str) -> str:
+    """``"KNODE-MHE-RTI vs MHE-RTI (tuned)"`` -> ``"mhe_rti_vs_tuned"``, ``"sg_1.5s"`` -> ``"sg15"``."""
+    if text.startswith("sg_") or text.startswith("cd_"):
+        return text[:2] if text.startswith("cd") else "sg" + text[3:-1].replace(".", "")
+    knode, _, nominal = text.partition(" vs ")
+    est = knode.removeprefix("KNODE-").lower().replace("-", "_")
+    return f"{est}_vs_{'tuned' if nominal else 'built'}" if knode.startswith("KNODE") else \
+        text.lower().replace("-", "_").replace(" (tuned)", "_tuned").replace(" ", "_")
+
+
+def _slugs(study: dict, limits: dict) -> dict:
+    """The recommended study's figures under plain keys, for the pages' inline values."""
+    out = {_slug(pair): {_slug(ref): row for ref, row in refs.items()}
+           for pair, refs in study["by_reference"].items()}
+    out["onboard"] = {_slug(k).removesuffix("_vs_built"): {_slug(r): v for r, v in refs.items()}
+                      for k, refs in study["onboard_velocity"].items()}
+    out["limits"] = {_slug(k): {_slug(r): v for r, v in refs.items()} for k, refs in limits.items()}
+    return out
 
 
 # --- views ------------------------------------------------------------------------------------------
@@ -225,15 +249,17 @@ def render_limits(data: dict) -> str:
 
 def render_tunings(data: dict) -> str:
     study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
-    lines = ["| fold | estimator | process | position | accelerometer | criterion | gate rejects | "
-             "on the edge |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| fold | estimator | process | position | accelerometer | accelerometer lag | criterion | "
+             "gate rejects | on the edge |", "|---|---|---|---|---|---|---|---|---|"]
     for fold, ests in study["tunings"].items():
         for est, r in ests.items():
             scales = [r["measurement_scale"] * s for s in r["measurement_scales"]]
+            lag = r.get("parameters", {}).get("tau_acc")
+            edge = ", ".join("/".join(g) for g in r["edge"]) or "no"
             lines.append(f"| {fold} | {'KNODE ' + est if not est.startswith('nominal') else est} | "
                          f"x{r['process_scale']:g} | x{scales[0]:.3g} | x{scales[1]:.3g} | "
-                         f"{r['criterion']:.3f} | {100 * r['rejected_share']:.2f} % | "
-                         f"{', '.join('/'.join(g) for g in r['edge']) or 'no'} |")
+                         f"{'-' if lag is None else f'{1000 * lag:.0f} ms'} | {r['criterion']:.3f} | "
+                         f"{100 * r['rejected_share']:.2f} % | {edge} |")
     return "\n".join(lines)
 
 
@@ -259,3 +285,18 @@ def render_checks(data: dict) -> str:
 
     found = data["figures"]["findings"]
     return "\n".join(f"- {Finding(**f).line()}" for f in found) or "- nothing found"
+
+
+def render_position(data: dict) -> str:
+    """Per test flight: the Vicon position noise (std) and each estimator's position RMS
+    deviation from the Vicon position, which is the position reference itself."""
+    figs = data["figures"]
+    study = figs["studies"][f"{figs['recommended']}/tuned"]
+    flights = study["per_flight"]
+    methods = [m for m in next(iter(flights.values())) if m != "onboard EKF"]
+    lines = ["| flight | Vicon noise [mm] | " + " | ".join(f"{m} [mm]" for m in methods) + " |",
+             "|---" * (len(methods) + 2) + "|"]
+    for name, ms in flights.items():
+        cells = [f"{1e3 * np.sqrt(ms[m]['by_reference']['cd_0.1s']['p']):.3f}" for m in methods]
+        lines.append(f"| {name} | {figs['vicon_noise_mm'][name]:.3f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

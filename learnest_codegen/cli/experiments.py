@@ -150,7 +150,8 @@ RECOMMENDED = {"features": "bias_prior", "estimators": "ukf,mhe_rti"}
                    f"--train/--test")
 @click.option("--features", default=None,
               help="comma-separated (default: state,thrust, the paper's and its thrust variant; "
-                   "--recommended: bias_prior): state (residual on v, a: system quadrotor_state), "
+                   f"--recommended: {RECOMMENDED['features']}): state (residual on v, a: system "
+                   "quadrotor_state), "
                    "thrust (v, a, thrust, vbat: system quadrotor), linear (prior A x with "
                    "acceleration rows fitted to the training flights, residual on v, a: system "
                    "quadrotor_linear), linear_prior (that fitted prior alone, no net), "
@@ -158,8 +159,9 @@ RECOMMENDED = {"features": "bias_prior", "estimators": "ukf,mhe_rti"}
                    "command: system quadrotor_thrust_linear), thrust_linear (thrust_prior and a "
                    "residual on v, a); bias (the triple integrator with accelerometer offset states), "
                    "bias_prior, bias_linear, bias_thrust_prior, bias_thrust_prior_axes (linear_prior, "
-                   "linear, thrust_prior, thrust_prior_axes with the offsets); see "
-                   "docs/reports/flights_study.md")
+                   "linear, thrust_prior, thrust_prior_axes with the offsets); bias_lag, bias_lag_prior "
+                   "(bias, bias_prior with the accelerometer read through a lag, chosen with "
+                   "--tune-noise); see docs/reports/flights_study.md")
 @click.option("--matrix", default="", show_default=True,
               help="single protocol: more training flights, tested with the UKF only (comma-separated, "
                    "or 'default' for a slow and a fast circle and figure-eight)")

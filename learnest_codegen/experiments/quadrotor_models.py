@@ -11,7 +11,8 @@ vertical gain fitted apart), ``thrust_prior_z`` (the thrust on the vertical only
 with the accelerometer's world-frame offset as three more states
 (:func:`~learnest_codegen.systems.quadrotor.with_accelerometer_bias`): ``bias`` (the paper's
 triple integrator with the offsets, nothing fitted: a control), ``bias_prior``, ``bias_linear``,
-``bias_thrust_prior``, ``bias_thrust_prior_axes``.
+``bias_thrust_prior``, ``bias_thrust_prior_axes``; ``bias_lag`` and ``bias_lag_prior`` also read
+the accelerometer through a first-order lag whose time constant the tuning chooses.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from ..systems import System
 from ..systems.quadrotor import (
     QUADROTOR,
     QUADROTOR_BIAS,
+    QUADROTOR_BIAS_LAG,
     QUADROTOR_LINEAR,
     QUADROTOR_LINEAR_BIAS,
     QUADROTOR_LINEAR_BIAS_LAG,
@@ -93,6 +95,7 @@ FEATURES: dict[str, Features] = {
     "bias_thrust_prior": Features(QUADROTOR_THRUST_LINEAR_BIAS, _THRUST_SHARED, net=False),
     "bias_thrust_prior_axes": Features(QUADROTOR_THRUST_LINEAR_BIAS,
                                        tuple(QUADROTOR_THRUST_LINEAR.params), net=False),
+    "bias_lag": Features(QUADROTOR_BIAS_LAG, net=False, choose=(("tau_acc", LAG_GRID_S),)),
     "bias_lag_prior": Features(QUADROTOR_LINEAR_BIAS_LAG, _LINEAR, net=False, fit_on=QUADROTOR_LINEAR_BIAS,
                                choose=(("tau_acc", LAG_GRID_S),)),
 }

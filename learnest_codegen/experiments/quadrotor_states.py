@@ -23,14 +23,22 @@ COLUMNS = (*GROUP_NAMES, OVERALL)
 
 
 def references_of(per_case: dict[str, dict[str, dict]]) -> list[str]:
-    """The references every scored method of every flight has, in their stored order."""
-    names: list[str] = []
-    for methods in per_case.values():
-        for scores in methods.values():
-            for name in scores.get("by_reference", {}):
-                if name not in names:
-                    names.append(name)
-    return names
+    """The references the flights are scored against: the central differences first, then the
+    Savitzky-Golay windows from the shortest, then any other (``truth`` in simulation)."""
+    names = {name for methods in per_case.values() for scores in methods.values()
+             for name in scores.get("by_reference", {})}
+
+    def order(name: str):
+        if name.startswith("cd_"):
+            return (0, 0.0, name)
+        if name.startswith("sg_") and name.endswith("s"):
+            try:
+                return (1, float(name[3:-1]), name)
+            except ValueError:
+                pass
+        return (2, 0.0, name)
+
+    return sorted(names, key=order)
 
 
 def _group(scores: dict, reference: str, group: str) -> float:
@@ -84,8 +92,8 @@ def state_tables(summary) -> list[str]:
         lines += [f"#### {key}: {summary.train}, features {summary.features!r}", "",
                   "| reference | " + " | ".join(GROUP_NAMES[g] if g in GROUP_NAMES else "overall (normalised)"
                                                for g in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
-        for ref, row in refs.items():
-            lines.append(f"| {ref} | " + " | ".join(_cell(row.get(g)) for g in COLUMNS) + " |")
+        for ref in sorted(refs, key=references_of(summary.per_case).index):
+            lines.append(f"| {ref} | " + " | ".join(_cell(refs[ref].get(g)) for g in COLUMNS) + " |")
         lines.append("")
     if summary.onboard:
         onboard = summary.onboard

@@ -19,6 +19,7 @@ from .ground_robot import GROUND_ROBOT
 from .quadrotor import (
     QUADROTOR,
     QUADROTOR_BIAS,
+    QUADROTOR_BIAS_LAG,
     QUADROTOR_LINEAR,
     QUADROTOR_LINEAR_BIAS,
     QUADROTOR_LINEAR_BIAS_LAG,
@@ -32,7 +33,7 @@ SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND
                              QUADROTOR.name: QUADROTOR, QUADROTOR_STATE.name: QUADROTOR_STATE,
                              QUADROTOR_LINEAR.name: QUADROTOR_LINEAR,
                              QUADROTOR_THRUST_LINEAR.name: QUADROTOR_THRUST_LINEAR, RC_CAR.name: RC_CAR,
-                             **{s.name: s for s in (QUADROTOR_BIAS, QUADROTOR_LINEAR_BIAS,
+                             **{s.name: s for s in (QUADROTOR_BIAS, QUADROTOR_BIAS_LAG, QUADROTOR_LINEAR_BIAS,
                                                     QUADROTOR_LINEAR_BIAS_LAG, QUADROTOR_THRUST_LINEAR_BIAS)}}
 
 

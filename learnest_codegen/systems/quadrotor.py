@@ -381,6 +381,9 @@ QUADROTOR_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_lin
 #: ``quadrotor_thrust_linear`` (thrust, drag and lag rows, fitted) with accelerometer offsets.
 QUADROTOR_THRUST_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_THRUST_LINEAR,
                                                        "quadrotor_thrust_linear_bias")
+#: ``quadrotor_bias`` (the paper's triple integrator with offsets) whose accelerometer reads the
+#: acceleration through a first-order lag.
+QUADROTOR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_STATE, "quadrotor_bias_lag", lag_s=ACCEL_LAG_S)
 #: ``quadrotor_linear_bias`` whose accelerometer reads the acceleration through a first-order lag.
 QUADROTOR_LINEAR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_linear_bias_lag",
                                                     lag_s=ACCEL_LAG_S)
