@@ -18,6 +18,7 @@ the accelerometer through a first-order lag whose time constant the tuning choos
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -126,7 +127,9 @@ def observations(cases: Sequence[Case], out: Path, settings: StudySettings,
                     continue
         zeta = observe(case.run, system, settings.observer).zeta
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, zeta=zeta, ident=ident)
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.npz")  # whole or not at all: studies share it
+        np.savez(tmp, zeta=zeta, ident=ident)
+        os.replace(tmp, path)
         zetas.append(zeta)
     return zetas
 

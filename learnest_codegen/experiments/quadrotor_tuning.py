@@ -24,9 +24,10 @@ much as the copy does):
   widens the grid that way (up to :data:`EXPONENT_LIMIT`) and, if still on the edge, is
   reported (``edge`` in the record, a warning).
 * **The gate.** The innovation gate reads the scales too (a larger measurement std widens
-  it). When the chosen scales make the gate reject more than :data:`MAX_REJECTED` of the
-  training flights' outputs, every std is doubled (the estimate stays, the gate widens) until
-  it does not; the record keeps the share rejected.
+  it). Every point of the grid is scored with the narrowest gate that rejects at most
+  :data:`MAX_REJECTED` of the training flights' outputs: when it rejects more, every std is
+  doubled (the estimate stays, the gate widens) until it does not, so no point wins by
+  discarding measurements. The record keeps the share rejected and the doublings.
 
 Measured: ``docs/reports/flights_study.md``.
 """
@@ -53,10 +54,11 @@ EXPONENT_LIMIT = 16
 #: Spacing of the estimates the predictions start from [s] (every sample would cost five
 #: times as much for the same criterion: neighbouring starts share their errors).
 STRIDE_S = 0.05
-#: The largest share of training outputs the chosen tuning's gate may reject.
-MAX_REJECTED = 0.01
+#: The largest share of training outputs a tuning's gate may reject, and how many times every
+#: std may be doubled to keep it there (the estimate stays, the gate widens).
+MAX_REJECTED, MAX_WIDENINGS = 0.01, 10
 #: Changes with the criterion or the search (a stored tuning of another version is redone).
-TUNING_VERSION = 2
+TUNING_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -194,9 +196,18 @@ class _Criterion:
                 "prediction_mse": {f"{h * dt:g}s": v for h, v in mean.items()},
                 "rejected_share": rejected / max(samples, 1)}
 
+    def sane(self, point: tuple[int, ...]) -> dict:
+        """:meth:`measure` at the narrowest gate (every std doubled ``level`` times) that rejects
+        at most :data:`MAX_REJECTED` of the outputs: every point is scored as it would be used."""
+        for level in range(MAX_WIDENINGS + 1):
+            info = {**self.measure(point, level), "level": level}
+            if info["rejected_share"] <= MAX_REJECTED:
+                break
+        return info
+
     def __call__(self, point: tuple[int, ...]) -> float:
         if point not in self.scores:
-            self.detail[point] = self.measure(point)
+            self.detail[point] = self.sane(point)
             self.scores[point] = self.detail[point]["criterion"]
         return self.scores[point]
 
@@ -241,10 +252,9 @@ def tune(model, name: str, cases: Sequence[Case], out: Path, *, system,
     if edge:
         warnings.warn(f"tuning {name}: {edge} sit on their grid's edge (widest grid); the noise model "
                       f"of those outputs, or those parameters, may be far off", stacklevel=2)
-    level, info = 0, criterion.detail[best]
-    while info["rejected_share"] > MAX_REJECTED and level < 10:  # widen the gate, not the estimate
-        level += 1
-        info = criterion.measure(best, level)
+    criterion(best)
+    info = criterion.detail[best]
+    level = info["level"]
     chosen = criterion.tuning(best, level)
     sysm = criterion.discrete.system
     record = {**chosen.to_json(), "criterion": info["criterion"],
