@@ -119,7 +119,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
 
 #: ``reproduce quadrotor``'s configurations: the paper's (the defaults) and the best measured.
 PAPER = {"features": "state,thrust", "estimators": "mhe,ukf"}
-RECOMMENDED = {"features": "bias_prior", "estimators": "ukf,mhe_rti"}
+RECOMMENDED = {"features": "bias_lag_prior", "estimators": "ukf,mhe_rti"}
 
 
 @reproduce.command("quadrotor")

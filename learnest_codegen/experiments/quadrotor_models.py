@@ -101,7 +101,7 @@ FEATURES: dict[str, Features] = {
                                choose=(("tau_acc", LAG_GRID_S),)),
 }
 #: The configuration measured best on held-out trajectory types (docs/reports/flights_study.md).
-RECOMMENDED_FEATURES = "bias_prior"
+RECOMMENDED_FEATURES = "bias_lag_prior"
 def feature_system(features: str) -> System:
     """The quadrotor system whose residual sees the named features (see :data:`FEATURES`)."""
     if features not in FEATURES:
