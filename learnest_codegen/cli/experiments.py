@@ -215,10 +215,12 @@ def quadrotor(data, simulated, protocol, train_names, test_set, all_train, recom
 
     split = lambda text: [p.strip() for p in text.split(",") if p.strip()]  # noqa: E731
     skipped, findings = None, []
-    if test_set is not None and (simulated or protocol != "single" or all_train or matrix or not train_names):
-        raise click.UsageError("--test names the test set of one model trained on --train (flight "
-                               "folders, globs or files); it takes no --protocol, --all-train, --matrix "
-                               "or --simulated")
+    if test_set is not None and not train_names:
+        raise click.UsageError("--test needs --train: the training set (flight folders, globs or files) "
+                               "of the one model tested on --test")
+    if test_set is not None and (simulated or protocol != "single" or all_train or matrix):
+        raise click.UsageError("--train SET --test SET trains one model and tests it; it takes no "
+                               "--protocol, --all-train, --matrix or --simulated")
     if simulated:
         cases, default = fs.simulated_cases(range(simulated)), "sim_seed0"
     elif test_set is not None:
