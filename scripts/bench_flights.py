@@ -4,15 +4,17 @@ Runs the quadrotor study (``learnest_codegen.experiments.quadrotor``) on the Nan
 (``$LEARNEST_DATA`` or ``../shared/data``; ``--data``), protocol ``leave-type-out`` (the 9
 circles tested on a model trained on the 8 figure-eights, and the reverse):
 
-* the recommended configuration (``bias_lag_prior``: the fitted prior with accelerometer-offset
-  states and the accelerometer read through a lag) with its noise and lag chosen on the
-  training flights (``--tune-noise``), KNODE-UKF and KNODE-MHE-RTI, each against its nominal
-  estimator as built and tuned the same way; ``bias_lag`` (no fitted prior) and ``bias_prior``
-  (no lag) the same way;
-* the same without the tuning, and ``linear_prior`` (no offsets), for comparison;
-* the physics variants and controls with the UKF, tuned: ``linear_prior``, ``bias`` (the
-  offsets alone, nothing fitted), ``bias_thrust_prior`` and ``bias_thrust_prior_axes``
-  (thrust per battery voltage, motor lag and drag rows fitted), ``bias_linear`` (a net on top);
+* the recommended configuration (``bias_lag_prior``: the fitted prior with states for the
+  accelerometer's offset and lag) with the system's noise, KNODE-UKF and KNODE-MHE-RTI, each
+  against its nominal estimator as built (which is also "tuned the same way": neither is);
+  ``bias_lag`` (no fitted prior), ``bias_prior`` (no lag) and ``linear_prior`` (no sensor
+  states) the same way;
+* the same models with their noise (and lag) chosen on the training flights
+  (``--tune-noise``), against the nominal estimators as built and tuned the same way
+  (``linear_prior``: UKF only);
+* the physics variants and controls with the UKF, tuned: ``bias`` (the offsets alone, nothing
+  fitted), ``bias_thrust_prior`` and ``bias_thrust_prior_axes`` (thrust per battery voltage,
+  motor lag and drag rows fitted), ``bias_linear`` (a net on top of ``bias_prior``);
 * what limits the long windows: per flight, the velocity change a perfect estimate would make
   (the central-difference velocity itself, scored against each window), and the Vicon noise
   under the position "errors".
@@ -33,7 +35,7 @@ import numpy as np
 MINUTES = 120
 ORDER = 60
 OUT = figures.ROOT / "build" / "bench" / "flights"
-RECOMMENDED = "bias_lag_prior"
+RECOMMENDED, RECOMMENDED_TAG = "bias_lag_prior", "untuned"
 COMPARED = ("bias_lag", "bias_prior")  # run like the recommended one: both estimators, tuned and not
 VARIANTS = ("linear_prior", "bias", "bias_thrust_prior", "bias_thrust_prior_axes", "bias_linear")
 REFERENCES = ("cd_0.1s", "sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s")
@@ -167,11 +169,12 @@ def measure(args) -> tuple[dict, dict]:
                                   protocol="leave-type-out", skipped=skipped, findings=findings)
         studies[f"{features}/{tag}"] = _summary(summary)
     flights = {f.name: f for f in (crazyflie.read_flight(p) for p in crazyflie.list_flights(root))}
-    rec = studies[f"{RECOMMENDED}/tuned"]
-    limits = _limits(rec, flights)
-    figs = {"recommended": RECOMMENDED, "headline": _slugs(rec, limits), "studies": studies, "limits": limits,
+    rec, tuned = studies[f"{RECOMMENDED}/{RECOMMENDED_TAG}"], studies[f"{RECOMMENDED}/tuned"]
+    limits = _limits(tuned, flights)
+    figs = {"recommended": RECOMMENDED, "recommended_tag": RECOMMENDED_TAG, "headline": _slugs(rec, limits),
+            "tuned_headline": _slugs(tuned, limits), "studies": studies, "limits": limits,
             "vicon_noise_mm": _vicon_noise({n: flights[n] for n in rec["per_flight"]}),
-            "facts": _facts(flights, rec),
+            "facts": _facts(flights, tuned),
             "findings": [f.to_json() for f in findings], "skipped": skipped,
             "references": {k: v for k, v in crazyflie.REFERENCES.items()}}
     return figs, cond
@@ -216,10 +219,7 @@ def _state_table(study: dict, pair: str) -> list[str]:
     return lines
 
 
-def render_headline(data: dict) -> str:
-    """Recommended configuration, tuned: each KNODE estimator against its nominal as built and
-    tuned the same way, per reference and state group."""
-    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+def _pairs(study: dict) -> str:
     out = []
     for pair in study["by_reference"]:
         knode, _, nominal = pair.partition(" vs ")
@@ -228,18 +228,46 @@ def render_headline(data: dict) -> str:
     return "\n".join(out).rstrip()
 
 
-def render_untuned(data: dict) -> str:
-    """The recommended model with the system's hand tuning (no --tune-noise)."""
-    study = data["figures"]["studies"][f"{data['figures']['recommended']}/untuned"]
-    out = []
-    for pair in study["by_reference"]:
-        out += [f"**{pair} against {pair.removeprefix('KNODE-')}, both as built**", "",
-                *_state_table(study, pair), ""]
-    return "\n".join(out).rstrip()
+def _recommended(data: dict) -> dict:
+    figs = data["figures"]
+    return figs["studies"][f"{figs['recommended']}/{figs['recommended_tag']}"]
+
+
+def render_headline(data: dict) -> str:
+    """The recommended configuration: each KNODE estimator against its nominal estimator, per
+    reference and state group."""
+    return _pairs(_recommended(data))
+
+
+def render_tuned(data: dict) -> str:
+    """The recommended model with its noise and lag tuned: against the nominal estimators as
+    built and tuned the same way."""
+    return _pairs(data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"])
+
+
+def render_untuned_models(data: dict) -> str:
+    """Every model with the system's noise, against the nominal estimators as built: velocity
+    at every reference (mean, flights better), the worst flight of position and acceleration
+    over the references, and the normalised overall's lowest mean."""
+    head = ["model", "estimator", *(f"velocity {r}" for r in REFERENCES), "position worst",
+            "acceleration worst", "overall lowest mean"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for key, study in data["figures"]["studies"].items():
+        features, tag = key.split("/")
+        if tag != "untuned":
+            continue
+        for pair, refs in study["by_reference"].items():
+            cells = [f"{refs[r]['v']['mean']:+.1f} % ({refs[r]['v']['better']}/{refs[r]['v']['flights']})"
+                     for r in REFERENCES]
+            worst = {g: min(refs[r][g]["worst"] for r in REFERENCES if g in refs[r]) for g in ("p", "a")}
+            lowest = min(refs[r]["overall"]["mean"] for r in REFERENCES)
+            lines.append(f"| {features} | {pair.removeprefix('KNODE-')} | " + " | ".join(cells)
+                         + f" | {worst['p']:+.1f} % | {worst['a']:+.1f} % | {lowest:+.1f} % |")
+    return "\n".join(lines)
 
 
 def render_onboard(data: dict) -> str:
-    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    study = _recommended(data)
     labels = list(study["onboard_velocity"])
     lines = ["| reference | " + " | ".join(f"{k} velocity vs onboard EKF" for k in labels) + " |",
              "|---" * (len(labels) + 1) + "|"]
@@ -299,7 +327,7 @@ def render_tunings(data: dict) -> str:
 def render_per_flight(data: dict) -> str:
     """Per test flight: velocity MSE against the central differences and acceleration MSE
     against the 1 s fit, each estimator of the recommended tuned study, and the onboard EKF."""
-    study = data["figures"]["studies"][f"{data['figures']['recommended']}/tuned"]
+    study = _recommended(data)
     flights = study["per_flight"]
     methods = [m for m in next(iter(flights.values())) if m != "onboard EKF"] + ["onboard EKF"]
     lines = ["| flight | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
@@ -333,3 +361,16 @@ def render_position(data: dict) -> str:
         cells = [f"{1e3 * np.sqrt(ms[m]['by_reference']['cd_0.1s']['p']):.3f}" for m in methods]
         lines.append(f"| {name} | {figs['vicon_noise_mm'][name]:.3f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def render_every_tuning(data: dict) -> str:
+    """The per-state table of every tuned model against its nominal estimator tuned the same way."""
+    out = []
+    for key, study in data["figures"]["studies"].items():
+        features, tag = key.split("/")
+        if tag != "tuned":
+            continue
+        for pair in study["by_reference"]:
+            if " vs " in pair:
+                out += [f"**{features}: {pair}**", "", *_state_table(study, pair), ""]
+    return "\n".join(out).rstrip()

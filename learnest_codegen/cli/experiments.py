@@ -119,7 +119,7 @@ def table1(tasks, seeds, epochs, refine, duration, jobs, executor, backend, out,
 
 #: ``reproduce quadrotor``'s configurations: the paper's (the defaults) and the best measured.
 PAPER = {"features": "state,thrust", "estimators": "mhe,ukf"}
-RECOMMENDED = {"features": "bias_lag_prior", "estimators": "ukf,mhe_rti"}
+RECOMMENDED = {"features": "bias_lag_prior", "estimators": "ukf,mhe_rti", "tune_noise": False}
 
 
 @reproduce.command("quadrotor")
@@ -145,9 +145,10 @@ RECOMMENDED = {"features": "bias_lag_prior", "estimators": "ukf,mhe_rti"}
               help="single protocol: repeat with every flight as the training flight")
 @click.option("--recommended", is_flag=True,
               help=f"the configuration measured best on held-out trajectory types: features "
-                   f"{RECOMMENDED['features']}, estimators {RECOMMENDED['estimators']}, --tune-noise "
-                   f"(docs/reports/flights_study.md); use it with --protocol leave-type-out or "
-                   f"--train/--test")
+                   f"{RECOMMENDED['features']} (accelerometer offset and lag states, fitted prior), "
+                   f"estimators {RECOMMENDED['estimators']}, the system's noise (add --tune-noise to "
+                   f"choose it on the training flights; docs/reports/flights_study.md); use it with "
+                   f"--protocol leave-type-out or --train/--test")
 @click.option("--features", default=None,
               help="comma-separated (default: state,thrust, the paper's and its thrust variant; "
                    f"--recommended: {RECOMMENDED['features']}): state (residual on v, a: system "
@@ -248,7 +249,7 @@ def quadrotor(data, simulated, protocol, train_names, test_set, all_train, recom
                                 observer=observer,
                                 estimators=tuple(split(estimators or chosen["estimators"])),
                                 clamp_inputs=clamp_inputs, net_must_beat_prior=not always_keep_net,
-                                tune_noise=tune_noise or recommended)
+                                tune_noise=tune_noise or (recommended and RECOMMENDED["tune_noise"]))
     matrix = list(fs.DEFAULT_MATRIX) if matrix.strip() == "default" else split(matrix)
     summaries = fs.run_study(cases, out, train=train if protocol in ("single", "train-test") else (),
                              features=split(features or chosen["features"]), settings=settings,
