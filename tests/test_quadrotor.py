@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from learnest_codegen.errors import DataError, SettingsError, UnknownNameError
 from learnest_codegen.experiments import quadrotor as fs
+from learnest_codegen.experiments.quadrotor_cases import GROUP_INDICES
 from learnest_codegen.recordings import crazyflie as nb
 from learnest_codegen.recordings import data_root
 from learnest_codegen.simulation import simulate
@@ -246,9 +247,10 @@ def test_thrust_vector_is_body_z_times_throttle():
 
 @pytest.mark.parametrize("change, match", [
     (lambda c: c.pop("imu_acc_y"), "missing columns \\['imu_acc_y'\\]"),
-    (lambda c: c["px"].__setitem__(10, np.nan), "non-finite value in column 'px' at data row 11"),
     (lambda c: c["t"].__setitem__(20, c["t"][19]), "time must increase strictly"),
-    (lambda c: c["t"].__setitem__(slice(400, None), c["t"][400:] + 0.2), "gap of 0.210 s"),
+    # a dropout of 0.21 s in a 4 s flight, cut with 1.5 s either side, leaves too little
+    (lambda c: c["t"].__setitem__(slice(400, None), c["t"][400:] + 0.2),
+     "left once the faulty spans are cut.*dropout.*no data for 0.210 s"),
     (lambda c: [c[m].__setitem__(slice(None), 0.0) for m in nb.MOTORS], "no airborne samples"),
 ])
 def test_malformed_flights_raise_data_error(tmp_path, change, match):
@@ -256,6 +258,18 @@ def test_malformed_flights_raise_data_error(tmp_path, change, match):
     change(cols)
     with pytest.raises(DataError, match=match):
         nb.read_flight(_write(tmp_path / "bad.csv", cols))
+
+
+def test_a_row_with_a_non_finite_value_is_left_out_and_said(tmp_path):
+    """A marker occlusion (NaN) drops the row: resampling bridges it, a finding says so."""
+    cols, *_ = _flight_table(gap_at=None)
+    cols["px"][10] = np.nan
+    flight = nb.read_flight(_write(tmp_path / "occluded.csv", cols))
+    (finding,) = flight.findings
+    assert (finding.check, finding.action) == ("dropout", "kept")
+    assert "1 row(s) with non-finite values" in finding.detail
+    with pytest.raises(DataError, match="non-finite value in column 'px' at data row 11"):
+        nb.read_table(tmp_path / "occluded.csv")
 
 
 def test_non_numeric_and_empty_files(tmp_path):
@@ -453,3 +467,138 @@ def test_real_flights_knode_beats_nominal(tmp_path):
                               progress=False)
     assert summary.medians["KNODE-UKF"] < summary.medians["UKF"]
     assert summary.medians["KNODE-MHE"] < summary.medians["MHE"]
+
+
+# --- references, per-state scores and the accelerometer offset ------------------------------------
+
+
+def test_central_velocity_and_the_windowed_references_are_exact_on_quadratics():
+    """Central differences are exact on a quadratic (and off by p''' h^2 / 6 on a cubic); every
+    Savitzky-Golay window of :func:`references` is exact on a quadratic; the central-difference
+    reference has no acceleration (NaN)."""
+    t = np.arange(1200) * DT
+    c = np.array([[0.3, -1.0, 0.5], [2.0, 0.1, -0.7], [1.0, 0.0, 0.2]])
+    p = c[0] + np.outer(t, c[1]) + np.outer(t**2, c[2])
+    v = c[1] + 2 * np.outer(t, c[2])
+    cd = nb.central_velocity(p, DT)
+    np.testing.assert_allclose(cd[5:-5], v[5:-5], atol=1e-10)
+    assert np.isnan(cd[:5]).all() and np.isnan(cd[-5:]).all()
+    cubic = np.stack([t**3] * 3, 1)
+    h = 0.05  # the half window
+    want = np.broadcast_to(3 * t[5:-5, None] ** 2 + h**2, (len(t) - 10, 3))
+    np.testing.assert_allclose(nb.central_velocity(cubic, DT)[5:-5], want, atol=1e-9)
+    refs = nb.references(p, DT)
+    assert list(refs) == ["sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s", "cd_0.1s"]
+    inner = slice(200, -200)
+    for name, ref in refs.items():
+        np.testing.assert_allclose(ref[:, :3], p, atol=0)
+        np.testing.assert_allclose(ref[inner, 3:6], v[inner], atol=1e-8, err_msg=name)
+        if name.startswith("sg"):
+            np.testing.assert_allclose(ref[inner, 6:], np.broadcast_to(2 * c[2], ref[inner, 6:].shape),
+                                       atol=1e-7, err_msg=name)
+        else:
+            assert np.isnan(ref[:, 6:]).all()
+
+
+def test_group_scores_and_the_normalised_change():
+    from learnest_codegen.evaluation import group_mse, normalised_change, state_groups
+    from learnest_codegen.systems.quadrotor import QUADROTOR_BIAS
+
+    assert state_groups(SYS) == {"m": [0, 1, 2], "m/s": [3, 4, 5], "m/s^2": [6, 7, 8]}
+    assert state_groups(QUADROTOR_BIAS)["m/s^2"] == [6, 7, 8, 9, 10, 11]
+    rng = np.random.default_rng(3)
+    x, ref = rng.normal(size=(50, 9)), rng.normal(size=(50, 9))
+    ref[:10, 3] = np.nan  # no reference there
+    ref[:, 6:] = np.nan  # no acceleration reference at all
+    got = group_mse(x, ref, GROUP_INDICES)
+    assert set(got) == {"p", "v"}
+    ok = ~np.isnan(ref[:, 3:6])
+    assert got["v"] == pytest.approx(np.mean((x[:, 3:6][ok] - ref[:, 3:6][ok]) ** 2), rel=1e-14)
+    # every group weighs the same: halving one group's MSE and doubling another's is no change
+    assert normalised_change({"p": 0.5, "v": 2.0, "a": 1.0}, {"p": 1.0, "v": 1.0, "a": 1.0}) == \
+        pytest.approx(100 * (1 - (0.5 + 2.0 + 1.0) / 3))
+    assert normalised_change({"p": 1e-9, "v": 1.0}, {"p": 2e-9, "v": 1.0}) == pytest.approx(25.0)
+
+
+def test_the_offset_ukf_is_the_kalman_filter_and_finds_the_offset(tmp_path):
+    """``quadrotor_bias`` is linear: its compiled UKF equals a hand-written Kalman filter of
+    the same model (to 1e-9 of the states' scale), and on a simulated run whose accelerometer
+    reads 0.3 m/s^2 high on x and 0.2 low on y it estimates the offset to 0.03 m/s^2 after 5 s."""
+    from learnest_codegen.pipeline import make_estimator
+    from learnest_codegen.systems.quadrotor import QUADROTOR_BIAS
+
+    run = simulate(SYS, 4, duration=10.0)
+    offset = np.array([0.3, -0.2, 0.0])
+    y = run.y.copy()
+    y[:, 3:] += offset
+    biased = replace(run, y=y)
+    ukf = make_estimator("nominal", "ukf", system=QUADROTOR_BIAS, out=tmp_path)
+    x0 = np.concatenate([fs.initial_state(biased), np.zeros(3)])
+    x_hat = ukf.run(biased.u, biased.y, x0)
+    assert ukf.rejections == 0
+    n, noise, dt = 12, QUADROTOR_BIAS.noise, SYS.dt
+    A = np.zeros((n, n))
+    A[0:3, 3:6] = A[3:6, 6:9] = np.eye(3)
+    h = dt * A
+    F = np.eye(n) + h + h @ h / 2 + h @ h @ h / 6 + h @ h @ h @ h / 24
+    H = np.zeros((6, n))
+    H[0:3, 0:3] = H[3:6, 6:9] = H[3:6, 9:12] = np.eye(3)
+    Q, R = np.diag(np.square(noise.process_std)), np.diag(np.square(noise.measurement_std))
+    x, P = x0.copy(), np.diag(np.square(noise.initial_std))
+    for k, yk in enumerate(biased.y):
+        if k:
+            x, P = F @ x, F @ P @ F.T + Q
+        S = H @ P @ H.T + R
+        K = np.linalg.solve(S, H @ P).T
+        x, P = x + K @ (yk - H @ x), P - K @ S @ K.T
+        np.testing.assert_allclose(x_hat[k], x, atol=1e-9 * (1 + np.abs(x)).max())
+    late = biased.t > 5.0
+    np.testing.assert_allclose(x_hat[late][:, 9:12].mean(axis=0), offset, atol=0.03)
+
+
+def test_the_lagged_accelerometer_model_in_closed_form():
+    """``quadrotor_linear_bias_lag``: the linear prior's rows, ``bdot = 0``, ``mdot = (a - m) /
+    tau_acc``, ``y_a = m + b``; numpy, torch and CasADi agree (the load-time check)."""
+    from learnest_codegen.learning.prior_fit import fitted_system
+    from learnest_codegen.systems.check import check_system
+    from learnest_codegen.systems.quadrotor import QUADROTOR_LINEAR_BIAS_LAG
+
+    system = fitted_system(QUADROTOR_LINEAR_BIAS_LAG, {"k_v_xy": 1.5, "k_a_xy": 0.1, "k_v_z": 2.0,
+                                                       "k_a_z": -0.05, "tau_acc": 0.04})
+    check_system(system, "fitted quadrotor_linear_bias_lag")
+    rng = np.random.default_rng(5)
+    x, u = rng.normal(size=(30, 15)), rng.normal(size=(30, 4))
+    f = system.f(x, u)
+    k_v, k_a = np.array([1.5, 1.5, 2.0]), np.array([0.1, 0.1, -0.05])
+    np.testing.assert_allclose(f[:, :6], x[:, 3:9], rtol=0, atol=0)
+    np.testing.assert_allclose(f[:, 6:9], -k_v * x[:, 3:6] - k_a * x[:, 6:9], rtol=1e-14)
+    np.testing.assert_allclose(f[:, 9:12], 0.0, atol=0)
+    np.testing.assert_allclose(f[:, 12:15], (x[:, 6:9] - x[:, 12:15]) / 0.04, rtol=1e-14)
+    np.testing.assert_allclose(system.h(x[0], u[0]), [*x[0, :3], *(x[0, 12:15] + x[0, 9:12])], rtol=1e-15)
+
+
+def test_a_prior_parameter_is_chosen_by_the_same_criterion(tmp_path, monkeypatch):
+    """``tune(parameters=...)``: each value of the accelerometer lag is scored at the scales
+    found for the registered one, the best is kept (the record's lowest), and the estimator
+    returned is that model's (its criterion the record's)."""
+    from learnest_codegen.evaluation import run_estimator
+    from learnest_codegen.experiments import quadrotor_tuning as qt
+    from learnest_codegen.export import prior_model
+    from learnest_codegen.systems.quadrotor import QUADROTOR_LINEAR_BIAS_LAG
+
+    monkeypatch.setattr(qt, "COARSE_EXPONENTS", (-2, 0))
+    monkeypatch.setattr(qt, "EXPONENT_LIMIT", 3)
+    case = fs.simulated_cases([1], duration=4.0)[0]
+    model = prior_model(QUADROTOR_LINEAR_BIAS_LAG)
+    with pytest.warns(UserWarning, match="grid's edge"):  # two values: the choice is always an end
+        tuning, estimator, record = qt.tune(model, "ukf", [case], tmp_path, system=QUADROTOR_LINEAR_BIAS_LAG,
+                                            outputs=["px", "py", "pz"],
+                                            parameters=[("tau_acc", (0.01, 0.04))])
+    crit = record["parameter_criteria"]
+    assert set(crit) == {"0.01", "0.04"}
+    assert record["parameters"]["tau_acc"] == float(min(crit, key=crit.get))
+    assert ["tau_acc"] in record["edge"]
+    again = qt.reuse(model, "ukf", tmp_path, record, system=QUADROTOR_LINEAR_BIAS_LAG)[1]
+    x0 = qt.start_state(case, 15)
+    np.testing.assert_array_equal(run_estimator(again, case.run, x0, "u").x_hat,
+                                  run_estimator(estimator, case.run, x0, "u").x_hat)

@@ -1,6 +1,6 @@
 """The ``learnest`` command line (and ``learnest-compile``): one module per group of commands.
 
-Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``demo``, ``reproduce table1``,
+Commands: ``simulate``, ``train``, ``compile``, ``estimate``, ``evaluate``, ``demo``, ``reproduce table1``,
 ``reproduce quadrotor``, ``diagnose``.
 Every ``--system`` accepts a built-in name or the path of a Python file defining ``SYSTEM``.
 Errors a user can cause (the package's :class:`LearnestError`, missing or unwritable files,
@@ -15,7 +15,7 @@ import click
 
 from .common import USER_ERRORS as USER_ERRORS
 from .diagnose import diagnose
-from .estimation import compile_cmd, compile_standalone, estimate
+from .estimation import compile_cmd, compile_standalone, estimate, evaluate
 from .experiments import demo, reproduce
 from .modelling import simulate, train
 
@@ -26,7 +26,7 @@ def cli() -> None:
     """Learned (KNODE) dynamics models to compiled C state estimators (MHE, UKF)."""
 
 
-for _command in (simulate, train, compile_cmd, estimate, demo, reproduce, diagnose):
+for _command in (simulate, train, compile_cmd, estimate, evaluate, demo, reproduce, diagnose):
     cli.add_command(_command)
 
 

@@ -143,8 +143,9 @@ ON_DEMAND = ".learnest_compiled"
 @click.command()
 @click.option("--system", "system_name", default=None,
               help=SYSTEM_HELP + " (default: the one --model or --compiled records; cartpole otherwise)")
-@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True,
-              help="run CSV (empty y_ cells: missing measurements)")
+@click.option("--data", multiple=True, required=True,
+              help="run CSV (empty y_ cells: missing measurements); give --data several times, a "
+                   "folder or a glob to estimate many runs (then --out is a folder)")
 @click.option("--estimator", type=click.Choice(ESTIMATOR_CHOICES), required=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
@@ -161,7 +162,8 @@ ON_DEMAND = ".learnest_compiled"
               help="covariance of the initial guess: 'initial' (the system's initial_std**2), "
                    "one variance per state (the diagonal) or nx*nx entries row by row (default: "
                    "the estimator's own: UKF initial_std**2, MHE the steady-state arrival)")
-@click.option("--out", type=click.Path(dir_okay=False), required=True, help="estimates CSV to write")
+@click.option("--out", type=click.Path(), required=True,
+              help="estimates CSV to write; with many runs a folder, one <run>.csv each")
 @CLAMP_INPUTS
 @with_gate_options
 @RESAMPLE
@@ -170,7 +172,7 @@ ON_DEMAND = ".learnest_compiled"
 def estimate(system_name, data, estimator, model, backend, compiled, precision, horizon, x0_text,
              P0_text, out, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation, resample,
              force) -> None:
-    """Run an estimator over a run; write t and one xhat_<state> column per state.
+    """Run an estimator over a run (or many); write t and one xhat_<state> column per state.
 
     With a model directory (--model) or a compiled folder (--compiled) the system is the one it
     records. When the run holds the truth, the summary gives the MSE over all states and the RMS
@@ -180,6 +182,29 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
     share of samples whose estimates and inputs lie outside the range the net was trained on.
     Without --compiled the C backend compiles the estimator into .learnest_compiled/ beside
     --out (one line on stderr says where; an unchanged build is reused)."""
+    from ..recordings.runs import run_paths
+
+    paths = run_paths(data)
+    if len(paths) == 1 and not Path(out).is_dir():
+        _estimate_run(system_name, str(paths[0]), estimator, model, backend, compiled, precision, horizon,
+                      x0_text, P0_text, out, clamp_inputs, gate_threshold, gate_recover_after,
+                      gate_inflation, resample, force)
+        return
+    if Path(out).exists() and not Path(out).is_dir():
+        raise click.UsageError(f"--out {out}: with {len(paths)} runs, --out is a folder (one <run>.csv each)")
+    Path(out).mkdir(parents=True, exist_ok=True)
+    stems = [p.stem for p in paths]
+    for path in paths:
+        name = path.stem if stems.count(path.stem) == 1 else f"{path.parent.name}_{path.stem}"
+        _estimate_run(system_name, str(path), estimator, model, backend, compiled, precision, horizon,
+                      x0_text, P0_text, str(Path(out) / f"{name}.csv"), clamp_inputs, gate_threshold,
+                      gate_recover_after, gate_inflation, resample, force)
+
+
+def _estimate_run(system_name, data, estimator, model, backend, compiled, precision, horizon, x0_text,
+                  P0_text, out, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation,
+                  resample, force) -> None:
+    """One run of :func:`estimate`."""
     from ..compilation import check_horizon, estimator_kind, precision_problem
 
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
@@ -262,3 +287,120 @@ def estimate(system_name, data, estimator, model, backend, compiled, precision, 
         rms = np.sqrt(np.mean((result.x_hat - run.x) ** 2, axis=0))
         click.echo("RMS error per state: " + ", ".join(
             f"{s.name} {e:.3g} {s.unit}".rstrip() for s, e in zip(system.states, rms)))
+
+
+def _references(references: tuple[str, ...], names: list[str], runs, system) -> list:
+    """Per run, its reference states ``(T, nx)``: the ``--reference`` files (one per run, in
+    order, or a folder holding ``<run name>.csv``), else the run's truth columns."""
+    from pathlib import Path
+
+    from ..recordings.runs import read_reference
+
+    if not references:
+        missing = [n for n, r in zip(names, runs) if r.x is None]
+        if missing:
+            raise click.UsageError(f"runs {missing} hold no truth (x_ columns); give --reference (a CSV of "
+                                   "t and x_<state> columns per run, or a folder of them named as the runs)")
+        return [r.x for r in runs]
+    if len(references) == 1 and Path(references[0]).is_dir():
+        files = [Path(references[0]) / f"{Path(n).name}.csv" for n in names]
+    elif len(references) == len(runs):
+        files = [Path(r) for r in references]
+    else:
+        raise click.UsageError(f"{len(references)} --reference for {len(runs)} runs: give one per run "
+                               "(in the order of --data) or one folder")
+    return [read_reference(f, system, r.t) for f, r in zip(files, runs)]
+
+
+def _paired_summary(per_run: dict, groups: list[str]) -> dict:
+    """Per group (and ``overall``): the mean change over the runs, the runs better, the worst."""
+    summary = {}
+    for g in groups:
+        changes = {}
+        for name, r in per_run.items():
+            if g == "overall":
+                changes[name] = r["overall_change"]
+            elif g in r["model"] and r["against"].get(g, 0) > 0:
+                changes[name] = 100 * (r["against"][g] - r["model"][g]) / r["against"][g]
+        if changes:
+            worst = min(changes, key=changes.get)
+            summary[g] = {"mean": float(np.mean(list(changes.values()))), "runs": len(changes),
+                          "better": int(sum(v > 0 for v in changes.values())), "worst": changes[worst],
+                          "worst_run": worst}
+    return summary
+
+
+@click.command()
+@click.option("--system", "system_name", default=None,
+              help=SYSTEM_HELP + " (default: the one --model records; cartpole otherwise)")
+@click.option("--data", multiple=True, required=True,
+              help="run CSV; give --data several times, a folder or a glob to evaluate many runs")
+@click.option("--reference", "references", multiple=True,
+              help="reference states of a run: a CSV of t and any x_<state> columns (empty cells: "
+                   "no reference there), one per --data in order, or a folder of <run>.csv "
+                   "(default: the runs' x_ columns)")
+@click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
+              default=("ukf",), show_default=True, help=ESTIMATOR_HELP)
+@click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
+@click.option("--against", default="nominal", show_default=True,
+              help="the estimator model each run's change is measured against (nominal, true or a "
+                   "model directory)")
+@click.option("--build", type=click.Path(file_okay=False), default=".learnest_compiled", show_default=True,
+              help="folder for the compiled estimators (reused while a model is unchanged)")
+@click.option("--out", type=click.Path(dir_okay=False), default=None,
+              help="write every figure as JSON here")
+@RESAMPLE
+@FORCE
+@friendly
+def evaluate(system_name, data, references, estimators, model, against, build, out, resample, force) -> None:
+    """Score estimators of a model on many runs, per state group, against the same estimators
+    of another model (default: the nominal prior).
+
+    States are grouped by unit (position, velocity, ...); per run and group the MSE against
+    the reference and the change 100 (MSE against - MSE model) / MSE against (positive: the
+    model is better), and a normalised overall change in which every group weighs the same
+    (each group's MSE over the --against estimator's). Over the runs: the mean change, the runs
+    better and the worst run, per group. A run that repeats another's data is counted once."""
+    from ..evaluation import format_table, group_mse, normalised_change, run_estimator, state_groups
+    from ..outputs import atomic_file, claim_output
+    from ..pipeline import make_estimator, resolve
+    from ..recordings.runs import read_runs, run_paths
+
+    paths = run_paths(data)
+    if out is not None:
+        claim_output(out, inputs=tuple(str(p) for p in paths), force=force)
+    system = resolve_system(system_name, model if model not in ("nominal", "true") else
+                            (against if against not in ("nominal", "true") else None))
+    names, runs, findings = read_runs(paths, system, resample_runs=resample)
+    refs = _references(references, names, runs, system)
+    groups = state_groups(system)
+    models = {"model": resolve(model, system), "against": resolve(against, system)}
+    rows, report = [], {"runs": names, "groups": {g: [system.state_names[i] for i in idx]
+                                                   for g, idx in groups.items()},
+                        "findings": [f.to_json() for f in findings], "estimators": {}}
+    for est in estimators:
+        built = {k: make_estimator(m, est, system=system, out=build) for k, m in models.items()}
+        per_run = {}
+        for name, run, ref in zip(names, runs, refs):
+            x0 = np.asarray(system.x0, float)
+            mses = {k: group_mse(run_estimator(e, run, x0, f"{est}:{k}").x_hat, ref, groups)
+                    for k, e in built.items()}
+            per_run[name] = {**mses, "overall_change": normalised_change(mses["model"], mses["against"])}
+        summary = _paired_summary(per_run, [*groups, "overall"])
+        for g, v in summary.items():
+            label = g if g == "overall" else f"{g} ({', '.join(report['groups'][g])})"
+            rows.append({"estimator": est, "group": label, "mean": v["mean"],
+                         "better": f"{v['better']}/{v['runs']}",
+                         "worst": f"{v['worst']:+.1f} % ({v['worst_run']})"})
+        report["estimators"][est] = {"per_run": per_run, "summary": summary}
+    click.echo(f"{model} against {against} on {len(runs)} run(s); change = 100 (MSE {against} - MSE "
+               f"{model}) / MSE {against}, positive is better; overall: every state group weighs the same")
+    click.echo(format_table(rows, [("estimator", "estimator", ""), ("group", "state group", ""),
+                                   ("mean", "mean change [%]", "+.1f"), ("better", "runs better", ""),
+                                   ("worst", "worst run", "")]))
+    if out is not None:
+        import json
+
+        with atomic_file(out) as tmp:
+            tmp.write_text(json.dumps(report, indent=1, allow_nan=True))
+        click.echo(f"wrote {out}")

@@ -32,7 +32,10 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
 
 @click.command()
 @click.option("--system", "system_name", default="cartpole", show_default=True, help=SYSTEM_HELP)
-@click.option("--data", type=click.Path(exists=True, dir_okay=False), required=True, help="training run CSV")
+@click.option("--data", multiple=True, required=True,
+              help="training run CSV; give --data several times, a folder or a glob ('logs/*.csv') "
+                   "to train one model on many runs (each recording once: a copy of another is "
+                   "left out, and said)")
 @click.option("--out", type=click.Path(file_okay=False), required=True, help="model directory to write")
 @click.option("--epochs", default=_TRAIN.epochs, show_default=True)
 @click.option("--lr", "learning_rate", default=_TRAIN.learning_rate, show_default=True,
@@ -74,31 +77,49 @@ def simulate(system_name: str, seed: int, duration: float | None, out: str, forc
 def train(system_name, data, out, epochs, learning_rate, batch_size, hidden, layers, activation,
           observer, full_state, refine, validation_fraction, restarts, weight_decay, final_learning_rate,
           weight_average, seed, quiet, resample, force) -> None:
-    """Train the KNODE residual network on a run and write a model directory.
+    """Train the KNODE residual network on one run or many and write a model directory.
 
     The option defaults are the one default training, ``DEFAULT_TRAINING``
-    (learnest_codegen.config), the same as the library's ``ln.train``. The model records its
-    system, so later commands need no --system. On stderr: the recipe first, the observer chosen,
-    then one line per training (the first, then each refinement round) with its best epoch,
-    validation loss and the time so far; --quiet leaves only the result line."""
+    (learnest_codegen.config), the same as the library's ``ln.train``. With many runs one model
+    is trained on all of them: each run is observed on its own, and each holds out its own final
+    part for early stopping. The model records its system, so later commands need no --system.
+    On stderr: the recipe first, the observer chosen, then one line per training (the first, then
+    each refinement round) with its best epoch, validation loss and the time so far; --quiet
+    leaves only the result line."""
     from dataclasses import replace
 
     from ..config import NetworkSettings
     from ..learning.training import train_on_run
     from ..outputs import atomic_dir, claim_output
+    from ..recordings.runs import read_runs, run_paths
 
-    claim_output(out, inputs=(data,), force=force, kind="dir")
+    paths = run_paths(data)
+    claim_output(out, inputs=tuple(str(p) for p in paths), force=force, kind="dir")
     system = system_named(system_name)
-    run = read_run(data, system, resample, measured=not full_state)  # full states need no y
+    if len(paths) > 1 and full_state:
+        raise click.UsageError("--full-state trains on one run; give one --data")
+    if len(paths) == 1:  # full states need no y
+        runs, names = [read_run(str(paths[0]), system, resample, measured=not full_state)], [paths[0].stem]
+    else:
+        names, runs, _ = read_runs(paths, system, resample_runs=resample)
     settings = replace(_TRAIN, epochs=epochs, learning_rate=learning_rate, batch_size=batch_size, seed=seed,
                        network=NetworkSettings(layers, hidden, activation),
                        validation_fraction=validation_fraction, refine=refine, restarts=restarts,
                        weight_decay=weight_decay, final_learning_rate=final_learning_rate,
                        weight_average=weight_average)
     if not quiet:
-        click.echo(recipe_line(settings, system.name, data, len(run), observer, full_state), err=True)
-    model = train_on_run(run, system, settings, observer=observer, full_state=full_state,
-                         progress=not quiet)
+        click.echo(recipe_line(settings, system.name, ", ".join(map(str, data)), sum(len(r) for r in runs),
+                               observer, full_state),
+                   err=True)
+    if len(runs) == 1:
+        model = train_on_run(runs[0], system, settings, observer=observer, full_state=full_state,
+                             progress=not quiet)
+    else:
+        from ..learning.runs import train_on_runs
+
+        if not quiet:
+            click.echo(f"training one model on {len(runs)} runs: {', '.join(names)}", err=True)
+        model = train_on_runs(runs, system, settings, names=names, observer=observer, progress=not quiet)
     with atomic_dir(out) as tmp:
         model.save(tmp)
     click.echo(f"wrote {out}: final loss {model.meta['final_loss']:.4e} "

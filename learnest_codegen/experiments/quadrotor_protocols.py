@@ -2,7 +2,10 @@
 
 Each protocol of :data:`PROTOCOLS` is a list of :class:`Fold` (training flights, test flights):
 
-* ``single``: each named flight against every other flight (the paper's protocol);
+* ``single``: each named flight against every other flight (the paper's protocol), one
+  model per named flight;
+* ``train-test``: one model trained on all the named flights, tested on every other flight
+  (``learnest reproduce quadrotor --train DIR1 --test DIR2``);
 * ``leave-type-out``: the flights of one trajectory type against the model trained on all
   flights of the other types (circles -> figure-eights and the reverse);
 * ``leave-one-out``: every flight against the model trained on all the others.
@@ -34,6 +37,15 @@ def _single(cases: Sequence[Case], train: Sequence[str]) -> list[Fold]:
             for name in train]
 
 
+def _train_test(cases: Sequence[Case], train: Sequence[str]) -> list[Fold]:
+    if not train:
+        raise DataError("train-test needs the training flights (--train)")
+    tests = tuple(c for c in cases if c.name not in train)
+    if not tests:
+        raise DataError("train-test: every flight is a training flight; name test flights (--test)")
+    return [Fold("train_set", tuple(c for c in cases if c.name in train), tests)]
+
+
 def _leave_type_out(cases: Sequence[Case], train: Sequence[str]) -> list[Fold]:
     types = sorted({trajectory_type(c.name) for c in cases})
     if len(types) < 2:
@@ -47,11 +59,13 @@ def _leave_one_out(cases: Sequence[Case], train: Sequence[str]) -> list[Fold]:
 
 
 PROTOCOLS: dict[str, Callable[[Sequence[Case], Sequence[str]], list[Fold]]] = {
-    "single": _single, "leave-type-out": _leave_type_out, "leave-one-out": _leave_one_out}
+    "single": _single, "train-test": _train_test, "leave-type-out": _leave_type_out,
+    "leave-one-out": _leave_one_out}
 
 
 def folds(cases: Sequence[Case], protocol: str, train: Sequence[str] = ()) -> list[Fold]:
-    """The folds of a protocol of :data:`PROTOCOLS` (``train`` names the flights of ``single``)."""
+    """The folds of a protocol of :data:`PROTOCOLS` (``train`` names the flights of ``single``
+    and ``train-test``)."""
     if protocol not in PROTOCOLS:
         raise UnknownNameError(f"unknown protocol {protocol!r}; choose from {list(PROTOCOLS)}")
     names = [c.name for c in cases]
@@ -63,11 +77,15 @@ def folds(cases: Sequence[Case], protocol: str, train: Sequence[str] = ()) -> li
 
 def pooled(results: Sequence[dict], name: str) -> dict:
     """The folds' results as one study named ``name`` (each test flight once)."""
-    cases, trained_on = {}, {}
+    cases, trained_on, tunings, training = {}, {}, {}, {}
     for r in results:
+        if r.get("tuning"):
+            tunings[r["train"]] = r["tuning"]
+        training[r["train"]] = r.get("training", {})
         for case, methods_ in r["cases"].items():
             if case in cases:
                 raise DataError(f"{name}: test flight {case} appears in two folds")
             cases[case] = methods_
             trained_on[case] = r["train_cases"]
-    return {"train": name, "features": results[0]["features"], "cases": cases, "trained_on": trained_on}
+    return {"train": name, "features": results[0]["features"], "cases": cases, "trained_on": trained_on,
+            "tunings": tunings, "trainings": training}

@@ -10,7 +10,7 @@ type and overall, beside the median. Measured results: ``docs/reports/flights.md
 from __future__ import annotations
 
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -95,6 +95,11 @@ class Summary:
     paired : pair key (:func:`pair_key`: the KNODE label, or "KNODE vs nominal" for another
         nominal estimator than its own) -> group (``"all"`` and each trajectory type) -> :class:`Paired`.
     trained_on : test flight -> the flights its model was trained on.
+    by_reference : pair key -> reference -> state group (``p``, ``v``, ``a``) or ``overall``
+        (normalised) -> :class:`Paired` over all test flights (:mod:`.quadrotor_states`).
+    onboard : KNODE label -> reference -> :class:`Paired` velocity change against the onboard EKF.
+    tunings : fold -> the tuning records of its KNODE and nominal estimators.
+    trainings : fold -> the model's training record (fitted prior parameters, net kept).
     """
 
     train: str
@@ -104,6 +109,10 @@ class Summary:
     velocity_medians: dict[str, float]
     paired: dict[str, dict[str, Paired]]
     trained_on: dict[str, list[str]]
+    by_reference: dict = field(default_factory=dict)
+    onboard: dict = field(default_factory=dict)
+    tunings: dict = field(default_factory=dict)
+    trainings: dict = field(default_factory=dict)
 
     @property
     def improvement(self) -> dict[str, float]:
@@ -149,7 +158,16 @@ def summarise(nominal: dict[str, dict], knode: dict, pairs: Sequence[tuple[str, 
                          for g, names in groups.items()}
     trained_on = knode.get("trained_on") or {c: list(knode.get("train_cases", [knode["train"]]))
                                              for c in per_case}
-    return Summary(knode["train"], knode["features"], per_case, medians, velocity, paired, trained_on)
+    from .quadrotor_states import by_reference, onboard_velocity
+
+    states = {pair_key(k, n): by_reference(per_case, k, n, Paired.of) for k, n in pairs
+              if k in medians and n in medians}
+    onboard = ({k: onboard_velocity(per_case, k, ONBOARD, Paired.of) for k, _ in pairs if k in medians}
+               if ONBOARD in labels else {})
+    tunings = knode.get("tunings") or ({knode["train"]: knode["tuning"]} if knode.get("tuning") else {})
+    trainings = knode.get("trainings") or {knode["train"]: knode.get("training", {})}
+    return Summary(knode["train"], knode["features"], per_case, medians, velocity, paired, trained_on,
+                   states, onboard, tunings, trainings)
 
 
 def _cell(methods: dict, label: str) -> str:
@@ -198,21 +216,37 @@ def paired_table(summaries: Sequence[Summary]) -> list[str]:
 
 
 def markdown(summaries: Sequence[Summary], matrix: Sequence[Summary] = (),
-             paper: dict[str, float] | None = None, skipped: dict[str, str] | None = None) -> str:
-    """The report: the paired headline of every study (and of the training-flight ``matrix``),
-    then each study's per-flight table."""
+             paper: dict[str, float] | None = None, skipped: dict[str, str] | None = None,
+             findings: Sequence[dict] = ()) -> str:
+    """The report: per state group and reference, the paired changes of every study (and
+    the velocity against the onboard EKF), the tunings chosen, the paired headline of the
+    overall MSE (and of the training-flight ``matrix``), each study's per-flight table, and
+    what the recording checks found."""
+    from ..recordings.references import REFERENCES
+    from .quadrotor_states import findings_lines, state_tables, tuning_table
+
     note = ""
     if paper:
         note = " (the paper's median-MSE change on flights of the training type: " + ", ".join(
             f"{k} {v:+.1f} %" for k, v in paper.items()) + ")"
-    lines = ["### Paired per-flight change of KNODE against its nominal estimator" + note, "",
+    refs = {r for s in summaries for v in s.by_reference.values() for r in v}
+    lines = ["### Per state group and reference", "",
+             "Per test flight and state group, change = 100 (MSE nominal - MSE KNODE) / MSE nominal "
+             "(positive is better); overall (normalised) = 100 (1 - mean over the groups of MSE KNODE / "
+             "MSE nominal), every group weighing the same. Each cell: the mean over the flights "
+             "(flights better / flights, worst flight). References: "
+             + "; ".join(f"{k}: {v}" for k, v in REFERENCES.items() if k in refs) + ".", ""]
+    for s in summaries:
+        lines += state_tables(s)
+    lines += tuning_table(summaries)
+    lines += ["### Paired per-flight change of KNODE against its nominal estimator (overall MSE, "
+              "the paper's reference)" + note, "",
              "Change = 100 (MSE nominal - MSE KNODE) / MSE nominal on the same flight; "
              "positive is better.", "", *paired_table([*summaries, *matrix]), "",
              "### Per test flight", ""]
     for s in summaries:
         lines += case_table(s)
-    if skipped:
-        lines += ["### Recordings left out", "", *(f"- {k}: {v}" for k, v in skipped.items()), ""]
+    lines += findings_lines(findings, skipped)
     return "\n".join(lines) + "\n"
 
 

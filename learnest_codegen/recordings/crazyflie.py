@@ -13,12 +13,17 @@ agrees with Vicon to a few cm; its acceleration is gravity-free). Beside it lies
 1. **Timing.** The nominal period is the median sample interval. Jitter (the std of the
    intervals) is reported; a missing sample (an interval of up to ``max_gap_s``) is filled by
    resampling every channel onto the uniform grid (linear interpolation; the attitude by
-   spherical linear interpolation). A longer gap raises :class:`~learnest_codegen.errors.DataError`.
-2. **Trimming.** Take-off and landing are cut: the flight is the span in which the motors run
-   and the vehicle is more than ``trim_height_m`` above the ground level (the median Vicon
-   height of the motors-off samples at the start); of several such stretches (a touch-and-go:
-   ``B2_circle_fast_rep1``) the longest. A flight whose onboard data turn
-   implausible (a brown-out) ends 1 s before that.
+   spherical linear interpolation). A longer gap, or a row with a non-finite value, is a
+   dropout: the flight is cut there (step 2).
+2. **Trimming and checks.** Take-off and landing are cut: the flight is the span in which the
+   motors run and the vehicle is more than ``trim_height_m`` above the ground level (the
+   median Vicon height of the motors-off samples at the start); of several such stretches (a
+   touch-and-go: ``B2_circle_fast_rep1``) the longest. The checks of
+   :mod:`~.flight_checks` find faulty spans (an accelerometer that leaves the motion
+   capture's acceleration, motor or thrust values outside 0-65535, dropouts); the flight is
+   the longest airborne stretch free of them, and each is a :class:`~.checks.Finding` in
+   ``Flight.findings`` (the callers print them and list them in their reports). A flight with
+   less than ``min_flight_s`` left is refused (:class:`DataError` naming the findings).
 3. **Run.** ``y = [p, a_world]`` with ``a_world = R(q) (9.81 acc_g) - [0, 0, 9.81]`` [m/s^2];
    ``u = [R(q) e3 * pwm, vbat]`` with ``pwm`` the mean motor PWM over 65535 (the inputs of
    :data:`~learnest_codegen.systems.quadrotor.QUADROTOR`).
@@ -33,21 +38,31 @@ agrees with Vicon to a few cm; its acceleration is gravity-free). Beside it lies
    The inputs (motors, battery) are held as logged: that is what was applied.
 
 :func:`reference_states` gives the paper's baseline states from Vicon position alone: the
-position itself, and velocity and acceleration from a Savitzky-Golay filter.
+position itself, and velocity and acceleration from a Savitzky-Golay filter; :func:`references`
+the same at several windows and a central-difference velocity (``recordings/references.py``).
 """
 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..data import Run
 from ..errors import DataError, SettingsError
+from .checks import content_key, longest_run
+from .flight_checks import ACCEL_FAULT_MPS2, accelerometer_faults, dropout_mask, input_faults
+from .references import CD_HALF_WINDOW_S as CD_HALF_WINDOW_S
+from .references import REFERENCE_WINDOWS_S as REFERENCE_WINDOWS_S
+from .references import REFERENCES as REFERENCES
+from .references import SAVGOL_ORDER as SAVGOL_ORDER
+from .references import SAVGOL_WINDOW as SAVGOL_WINDOW
+from .references import central_velocity as central_velocity
+from .references import reference_states as reference_states
+from .references import references as references
 
 GRAVITY = 9.81  # [m/s^2], the constant the README's conversion uses
 PWM_FULL = 65535.0
@@ -56,17 +71,15 @@ QUATERNION = ("qx", "qy", "qz", "qw")
 ACCEL = ("imu_acc_x", "imu_acc_y", "imu_acc_z")
 MOTORS = tuple(f"motor_motor_m{i}" for i in range(1, 5))
 VBAT = "pwr_pm_vbat"
+COMMAND = "pid_controller_cmd_thrust"  # checked for its range when present
 ONBOARD = tuple(f"est_stateEstimate_{n}" for n in ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az"))
 REQUIRED = ("t", *POSITION, *QUATERNION, *ACCEL, *MOTORS, VBAT, *ONBOARD)
 #: Measured channel groups whose exact repeat marks a held (not re-sampled) value.
 MEASURED = {"position": POSITION, "acceleration": ACCEL}
 HELD = ("missing", "hold")
 
-# The paper's baseline: "a window length of 150 and a polynomial of order 2" at ~100 Hz. We read
-# 150 as samples (1.5 s; a window in seconds would be absurd at 150). scipy accepts even windows
-# but then the fit is centred half a sample off the output sample, a 5 ms delay; 151 keeps it
-# centred.
-SAVGOL_WINDOW, SAVGOL_ORDER = 151, 2
+#: A flight shorter than this after its faulty spans are cut is left out [s].
+MIN_FLIGHT_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -95,15 +108,21 @@ class Flight:
     ----------
     name : the CSV's stem, e.g. ``"B2_circle_fast_rep1"``.
     run : the quadrotor :class:`~learnest_codegen.data.Run` (``x`` is ``None``), ``t`` from 0.
-    reference : (T, 9) Savitzky-Golay reference states ``[p, v, a]`` (:func:`reference_states`).
+    reference : (T, 9) Savitzky-Golay reference states ``[p, v, a]`` (:func:`reference_states`,
+        the paper's window).
     onboard : (T, 9) the Crazyflie EKF's ``[p, v, a]`` (world frame).
     quaternion : (T, 4) Vicon attitude ``(qx, qy, qz, qw)``.
     vbat : (T,) battery voltage [V].
     timing : the time stamps' regularity (:class:`Timing`).
     trimmed : ``(first, last)`` sample indices of the flight in the resampled log.
-    truncated : whether the flight was cut short at implausible accelerometer data.
+    truncated : whether a check cut the flight short (``findings`` say where and why).
     metadata : the ``_metadata.yaml`` beside the CSV as flat ``key: value`` strings (``{}``
         when absent).
+    references : reference name (:data:`REFERENCES`) -> (T, 9) ``[p, v, a]``, NaN where a
+        reference has no value for a state (``cd_0.1s`` has no acceleration).
+    findings : what the checks found (:class:`~.checks.Finding`), in the log's seconds.
+    key : :func:`~.checks.content_key` of the log's required columns: two files with the same
+        key hold the same flight.
     """
 
     name: str
@@ -116,6 +135,9 @@ class Flight:
     trimmed: tuple[int, int]
     truncated: bool = False
     metadata: dict = field(default_factory=dict)
+    references: dict = field(default_factory=dict)
+    findings: tuple = ()
+    key: str = ""
 
     @property
     def duration(self) -> float:
@@ -133,8 +155,14 @@ def list_flights(root: str | Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.csv") if p.is_file())
 
 
-def read_table(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a flight CSV into ``column -> (N,) array``, checking columns and values."""
+def read_table(path: str | Path, dropped: list | None = None) -> dict[str, np.ndarray]:
+    """Read a flight CSV into ``column -> (N,) array``, checking columns and values.
+
+    A row with a non-finite value in a required column (a marker occlusion, a lost packet)
+    raises :class:`DataError`, unless ``dropped`` is a list: then the row is left out (the
+    resampling bridges it, or the reader cuts the flight at the gap) and its data-row number
+    appended to ``dropped``.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"flight file {path} not found")
@@ -152,16 +180,25 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     if table.shape[0] < 2 or table.shape[1] != len(header):
         raise DataError(f"{path}: expected >= 2 rows of {len(header)} values, got shape {table.shape}")
     columns = {name: table[:, i] for i, name in enumerate(header)}
+    bad = np.zeros(table.shape[0], bool)
     for name in REQUIRED:
-        bad = np.flatnonzero(~np.isfinite(columns[name]))
-        if bad.size:
-            raise DataError(f"{path}: non-finite value in column {name!r} at data row {bad[0] + 1} "
-                            f"({bad.size} in that column)")
+        rows = ~np.isfinite(columns[name])
+        if rows.any() and dropped is None:
+            first = int(np.argmax(rows))
+            raise DataError(f"{path}: non-finite value in column {name!r} at data row {first + 1} "
+                            f"({int(rows.sum())} in that column)")
+        bad |= rows
+    if bad.any():
+        dropped.extend(int(r) + 1 for r in np.flatnonzero(bad))
+        columns = {name: values[~bad] for name, values in columns.items()}
+        if len(columns["t"]) < 2:
+            raise DataError(f"{path}: fewer than 2 rows with finite values in every required column")
     return columns
 
 
-def check_timing(t: np.ndarray, where: str, max_gap_s: float) -> Timing:
-    """Check that ``t`` increases strictly with no gap longer than ``max_gap_s``."""
+def check_timing(t: np.ndarray, where: str, max_gap_s: float | None = None) -> Timing:
+    """Check that ``t`` increases strictly (and, with ``max_gap_s``, has no gap longer than
+    that; :func:`read_flight` instead cuts the flight at such a gap)."""
     steps = np.diff(t)
     if np.any(steps <= 0):
         k = int(np.argmax(steps <= 0))
@@ -171,7 +208,7 @@ def check_timing(t: np.ndarray, where: str, max_gap_s: float) -> Timing:
     # doubles carry ~1e-7 s of round-off, which must not make 0.01 s into 0.0099999905 s.
     dt = round(float(np.median(steps)), 6)
     longest = float(steps.max())
-    if longest > max_gap_s:
+    if max_gap_s is not None and longest > max_gap_s:
         k = int(np.argmax(steps))
         raise DataError(f"{where}: gap of {longest:.3f} s after t={t[k] - t[0]:.3f} s (sample {k}); "
                         f"at most {max_gap_s} s can be filled (nominal period {dt:.4f} s)")
@@ -186,25 +223,6 @@ def world_acceleration(quaternion: np.ndarray, acc_g: np.ndarray) -> np.ndarray:
 def thrust_vector(quaternion: np.ndarray, pwm: np.ndarray) -> np.ndarray:
     """``R(q) e3 * pwm``: (T, 3) world-frame thrust direction scaled by throttle (0-1)."""
     return Rotation.from_quat(quaternion).apply(np.array([0.0, 0.0, 1.0])) * pwm[:, None]
-
-
-def reference_states(position: np.ndarray, dt: float, window: int = SAVGOL_WINDOW,
-                     order: int = SAVGOL_ORDER) -> np.ndarray:
-    """The paper's baseline states ``[p, v, a]`` (T, 9) from Vicon position ``(T, 3)`` [m].
-
-    ``p`` is the Vicon position itself; ``v`` and ``a`` are the first and second derivatives of
-    a Savitzky-Golay fit (``window`` samples, polynomial ``order``; scipy's ``interp`` edges).
-    The fit attenuates fast motion: for a sinusoid of ``w`` rad/s an order-2 fit over ``L``
-    seconds keeps ``3 (sin(x) - x cos(x)) / x^3`` of the velocity, ``x = w L / 2`` (0.94 at
-    1 rad/s, 0.79 at 2 rad/s for the 1.51 s default).
-    """
-    if position.ndim != 2 or position.shape[1] != 3:
-        raise DataError(f"reference_states: expected position (T, 3), got {position.shape}")
-    if window > position.shape[0]:
-        raise DataError(f"reference_states: Savitzky-Golay window {window} is longer than the "
-                        f"{position.shape[0]} samples")
-    deriv = [savgol_filter(position, window, order, deriv=n, delta=dt, axis=0) for n in (1, 2)]
-    return np.hstack([position, *deriv])
 
 
 def read_metadata(path: Path) -> dict:
@@ -258,24 +276,28 @@ def _resample(t: np.ndarray, columns: dict[str, np.ndarray], dt: float,
     return grid, out
 
 
-def airborne_span(height: np.ndarray, pwm: np.ndarray, trim_height_m: float) -> tuple[int, int]:
+def airborne_span(height: np.ndarray, pwm: np.ndarray, trim_height_m: float,
+                  faulty: np.ndarray | None = None) -> tuple[int, int]:
     """``(first, last)``: the longest stretch in which the motors run and the height is above
-    the ground level (before the motors start) plus ``trim_height_m``."""
+    the ground level (before the motors start) plus ``trim_height_m``, and (with ``faulty``)
+    no sample is faulty."""
     start = int(np.argmax(pwm > 0))  # first sample with the motors running
     ground = float(np.median(height[:start])) if start > 0 else float(height[0])
-    flying = np.concatenate([[0], ((pwm > 0) & (height > ground + trim_height_m)).astype(int), [0]])
-    starts, ends = np.flatnonzero(np.diff(flying) == 1), np.flatnonzero(np.diff(flying) == -1)
-    if starts.size == 0 or np.max(ends - starts) < 2:
+    flying = (pwm > 0) & (height > ground + trim_height_m)
+    if not flying.any() or longest_run(flying)[1] - longest_run(flying)[0] < 1:
         raise DataError(f"no airborne samples: the vehicle never rises {trim_height_m} m above the "
                         f"ground level {ground:.3f} m with the motors running")
-    longest = int(np.argmax(ends - starts))  # a touch-and-go at the end is not part of the flight
-    return int(starts[longest]), int(ends[longest]) - 1
+    # a touch-and-go at the end is not part of the flight: the longest stretch is
+    span = longest_run(flying & ~faulty) if faulty is not None else longest_run(flying)
+    if span is None or span[1] - span[0] < 1:
+        raise DataError("no airborne samples free of faults (see the findings above)")
+    return span
 
 
 def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0.15,
-                max_gap_s: float = 0.05, max_accel_mps2: float = 20.0,
+                max_gap_s: float = 0.05, accel_fault_mps2: float = ACCEL_FAULT_MPS2,
                 savgol_window: int = SAVGOL_WINDOW, savgol_order: int = SAVGOL_ORDER,
-                held: str = "missing") -> Flight:
+                held: str = "missing", min_flight_s: float = MIN_FLIGHT_S) -> Flight:
     """Read a NanoBench flight CSV into a trimmed, uniformly sampled :class:`Flight`.
 
     Parameters
@@ -285,43 +307,59 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
     trim_height_m : height above the ground level that counts as airborne [m]. 0.15 m cuts
         the touchdown: at 0.05 m, four of the 17 NanoBench flights end with a 30-60 m/s^2
         landing impact.
-    max_accel_mps2 : an accelerometer-derived acceleration above this [m/s^2] marks the end
-        of usable data (``B2_circle_medium_rep3``: at 28.5 s, 1 m up, the battery browns out,
-        the accelerometer reads > 100 m/s^2 and the onboard EKF diverges); the flight ends 1 s
-        before it. ``truncated`` records it.
-    max_gap_s : the longest sample interval that is filled by resampling [s].
-    savgol_window, savgol_order : the reference filter (:func:`reference_states`); it runs on
-        the whole log before trimming, so the trimmed flight has no filter edge inside.
+    max_gap_s : the longest sample interval that is bridged by resampling [s]; a longer gap
+        (or rows with non-finite values) is a dropout, and the flight is cut there.
+    accel_fault_mps2 : how far the accelerometer may leave the motion capture's acceleration
+        (0.5 s mean, beyond its flight's offset) before the span is a fault
+        (:func:`~.flight_checks.accelerometer_faults`; ``B2_circle_medium_rep3``: at 28.5 s
+        the battery browns out and the accelerometer reads > 100 m/s^2).
+    savgol_window, savgol_order : the paper's reference filter (``reference``); the
+        ``references`` are :func:`references`. Both run on the whole log before trimming.
     held : ``"missing"``: a held position or accelerometer value is a missing output (NaN);
         ``"hold"``: it is used as a sample (see the module docstring, step 4).
+    min_flight_s : a flight shorter than this once its faulty spans are cut is left out
+        (:class:`DataError` naming the findings).
 
     Raises
     ------
-    DataError : missing columns, non-numeric or non-finite values, time not increasing, a gap
-        longer than ``max_gap_s``, a bad quaternion, no airborne part.
+    DataError : missing columns, non-numeric values, time not increasing, a bad quaternion,
+        no airborne part, too little left after cutting faulty spans.
     """
     if held not in HELD:
         raise SettingsError(f"read_flight: held must be one of {HELD}, got {held!r}")
     path = Path(path)
-    columns = read_table(path)
+    dropped: list[int] = []
+    columns = read_table(path, dropped)
+    key = content_key([columns[n] for n in REQUIRED])
     t = columns.pop("t")
-    timing = check_timing(t, str(path), max_gap_s)
+    timing = check_timing(t, str(path))
+    rows_t = t - t[0]
     t, c = _resample(t, columns, timing.dt, held_rows(columns) if held == "missing" else None)
     quat = c["quaternion"]
     pwm = np.mean([c[m] for m in MOTORS], axis=0) / PWM_FULL
     position = np.stack([c[n] for n in POSITION], axis=1)
+    acc = world_acceleration(quat, np.stack([c[n] for n in ACCEL], axis=1))
+    faulty, findings = dropout_mask(path.stem, rows_t, t, max_gap_s, max(REFERENCE_WINDOWS_S) / 2,
+                                    len(dropped))
+    bad_inputs, found = input_faults(path.stem, rows_t, columns, t, (*MOTORS, COMMAND))
+    faulty, findings = faulty | bad_inputs, findings + found
     try:
-        first, last = airborne_span(position[:, 2], pwm, trim_height_m) if trim else (0, len(t) - 1)
+        if trim:
+            first, last = airborne_span(position[:, 2], np.clip(pwm, 0, None), trim_height_m)
+            bad_accel, found = accelerometer_faults(path.stem, acc, position, timing.dt, (first, last),
+                                                    accel_fault_mps2)
+            faulty, findings = faulty | bad_accel, findings + found
+            first, last = airborne_span(position[:, 2], np.clip(pwm, 0, None), trim_height_m, faulty)
+        else:
+            first, last = longest_run(~faulty) if faulty.any() else (0, len(t) - 1)
         reference = reference_states(position, timing.dt, savgol_window, savgol_order)
     except DataError as exc:
-        raise DataError(f"{path}: {exc}") from exc
-    acc = world_acceleration(quat, np.stack([c[n] for n in ACCEL], axis=1))
-    implausible = np.flatnonzero(np.linalg.norm(acc[first:last + 1], axis=1) > max_accel_mps2)
-    if implausible.size:  # a brown-out or sensor failure: keep what comes before, less 1 s
-        last = first + int(implausible[0]) - int(round(1.0 / timing.dt))
-        if last - first < 2 * savgol_window:
-            raise DataError(f"{path}: the accelerometer exceeds {max_accel_mps2} m/s^2 "
-                            f"{implausible[0] * timing.dt:.2f} s into the flight; too little is left")
+        raise DataError(f"{path}: {exc}" + "".join(f"; {f.line()}" for f in findings)) from exc
+    kept = f"kept {t[first]:.2f}-{t[last]:.2f} s of the log"
+    findings = [replace(f, note=f"{f.note}; {kept}" if f.note else kept) for f in findings]
+    if t[last] - t[first] < min_flight_s:
+        raise DataError(f"{path}: {t[last] - t[first]:.1f} s left once the faulty spans are cut, "
+                        f"less than {min_flight_s:g} s: " + "; ".join(f.line() for f in findings))
     u = np.hstack([thrust_vector(quat, pwm), c[VBAT][:, None]])
     y = np.hstack([position, acc])
     for group, block in (("position", slice(0, 3)), ("acceleration", slice(3, 6))):
@@ -330,5 +368,7 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
     sl = slice(first, last + 1)
     run = Run(t[sl] - t[first], u[sl], y[sl], None, "quadrotor")
     onboard = np.stack([c[n] for n in ONBOARD], axis=1)
+    truncated = bool(findings)
     return Flight(path.stem, run, reference[sl], onboard[sl], quat[sl], c[VBAT][sl], timing,
-                  (first, last), bool(implausible.size), read_metadata(path))
+                  (first, last), truncated, read_metadata(path),
+                  {k: v[sl] for k, v in references(position, timing.dt).items()}, tuple(findings), key)

@@ -302,3 +302,93 @@ QUADROTOR_THRUST_LINEAR = replace(
     params={"c_T": 0.0, "dc_T_z": 0.0, "c_v_xy": 0.0, "c_a_xy": 0.0, "c_v_z": 0.0, "c_a_z": 0.0,
             "c_0_z": 0.0},
 )
+
+
+# -- accelerometer bias ---------------------------------------------------------------------
+#: Process noise of each bias state per RK4 step [m/s^2]: a random walk of 0.01 m/s^2 per
+#: sqrt(s), 0.05 m/s^2 over a 30 s flight; the NanoBench flights' world-frame accelerometer
+#: offsets (0.1-0.4 m/s^2 horizontally, constant within a flight: the accelerometer's mounting
+#: against the motion-capture body frame) are fixed by the position within a few seconds.
+BIAS_PROCESS_STD = 1e-3
+#: Initial std of each bias state [m/s^2]: the largest offset on the NanoBench flights is 0.40.
+BIAS_INITIAL_STD = 0.3
+#: Process noise of each lagged-reading state per RK4 step [m/s^2] (what the first-order lag
+#: does not describe of the accelerometer's filter and latency).
+LAG_PROCESS_STD = 1e-3
+#: The accelerometer lag the lagged systems are registered with [s]; a study chooses it on
+#: the training flights (``experiments/quadrotor_tuning.py``).
+ACCEL_LAG_S = 0.02
+
+
+def with_accelerometer_bias(system: System, name: str, lag_s: float | None = None) -> System:
+    """``system`` with three more states ``bx, by, bz`` [m/s^2], an offset of the world-frame
+    accelerometer: ``y_a = a + b``, ``bdot = 0`` (a random walk in the estimators, process
+    noise :data:`BIAS_PROCESS_STD`). Tilting a gravity vector of 9.81 m/s^2 by 1 degree reads
+    0.17 m/s^2 horizontally: a few degrees between the accelerometer and the motion-capture
+    body frame, or a zero offset, shows as a constant world-frame offset while the yaw holds
+    (the NanoBench flights: 0.1-0.4 m/s^2 on x, up to 0.3 on y, per flight). Position fixes
+    ``a`` (its second derivative), the accelerometer fixes ``a + b``: both are observable. The
+    residual acts on ``ax, ay, az`` as in ``system``; the dynamics and their parameters are
+    ``system``'s.
+
+    With ``lag_s`` the accelerometer also reads the acceleration late: three more states
+    ``mx, my, mz``, a first-order lag ``mdot = (a - m) / tau_acc`` (parameter ``tau_acc``,
+    registered as ``lag_s`` [s]), and ``y_a = m + b``. The onboard stream reaches the log
+    later than the motion capture (radio and logging) and is low-pass filtered on board; on the
+    NanoBench flights the accelerometer trails the motion capture's acceleration by about one
+    sample."""
+    base_dynamics, base_true = system.dynamics, system.true_dynamics or system.dynamics
+    lag = lag_s is not None
+
+    def extra(ops, x, p):
+        zero = [0.0 * x[9], 0.0 * x[10], 0.0 * x[11]]
+        if not lag:
+            return zero
+        return [*zero, *((x[6 + i] - x[12 + i]) / p["tau_acc"] for i in range(3))]
+
+    def dynamics(ops, x, u, p):
+        return [*base_dynamics(ops, x, u, p), *extra(ops, x, p)]
+
+    def true_dynamics(ops, x, u, p):
+        return [*base_true(ops, x, u, p), *extra(ops, x, p)]
+
+    def measurement(ops, x, u, p):
+        read = x[12:15] if lag else x[6:9]
+        return [*x[0:3], read[0] + x[9], read[1] + x[10], read[2] + x[11]]
+
+    noise = system.noise
+    residual = replace(system.residual, states=tuple(system.residual_state_names))
+    states = (*system.states, *(Signal(f"b{a}", "m/s^2", f"accelerometer offset, world {a}") for a in AXES))
+    more = dict(state_std=(*noise.state_std, 0.05, 0.05, 0.05),
+                process_std=(*noise.process_std, *(BIAS_PROCESS_STD,) * 3),
+                initial_std=(*noise.initial_std, *(BIAS_INITIAL_STD,) * 3))
+    params, true_params, x0 = dict(system.params), dict(system.true_params), (*system.x0, 0.0, 0.0, 0.0)
+    if lag:
+        states += tuple(Signal(f"m{a}", "m/s^2", f"acceleration as the accelerometer reads it, world {a}")
+                        for a in AXES)
+        lagged = {"state_std": (0.05,) * 3, "process_std": (LAG_PROCESS_STD,) * 3,
+                  "initial_std": noise.initial_std[6:9]}
+        more = {k: (*v, *lagged[k]) for k, v in more.items()}
+        params["tau_acc"] = true_params["tau_acc"] = float(lag_s)
+        x0 = (*x0, *system.x0[6:9])
+    return replace(
+        system, name=name,
+        description=system.description + " Accelerometer offset states b (y_a = a + b)"
+                    + (", read through a first-order lag tau_acc." if lag else "."),
+        states=states, dynamics=dynamics, true_dynamics=true_dynamics, measurement=measurement,
+        noise=replace(noise, **more), x0=x0, residual=residual, params=params, true_params=true_params)
+
+
+#: The paper's triple integrator with accelerometer offset states (:func:`with_accelerometer_bias`).
+QUADROTOR_BIAS = with_accelerometer_bias(QUADROTOR_STATE, "quadrotor_bias")
+#: ``quadrotor_linear`` (the fitted prior ``adot = -k_v v - k_a a``) with accelerometer offsets.
+QUADROTOR_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_linear_bias")
+#: ``quadrotor_thrust_linear`` (thrust, drag and lag rows, fitted) with accelerometer offsets.
+QUADROTOR_THRUST_LINEAR_BIAS = with_accelerometer_bias(QUADROTOR_THRUST_LINEAR,
+                                                       "quadrotor_thrust_linear_bias")
+#: ``quadrotor_bias`` (the paper's triple integrator with offsets) whose accelerometer reads the
+#: acceleration through a first-order lag.
+QUADROTOR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_STATE, "quadrotor_bias_lag", lag_s=ACCEL_LAG_S)
+#: ``quadrotor_linear_bias`` whose accelerometer reads the acceleration through a first-order lag.
+QUADROTOR_LINEAR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_linear_bias_lag",
+                                                    lag_s=ACCEL_LAG_S)
