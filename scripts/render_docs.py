@@ -13,19 +13,25 @@ import sys
 import figures
 
 
-def stale_pages() -> list[tuple]:
-    out = []
+def stale_pages() -> tuple[list[tuple], list[str]]:
+    """``(pages whose figures changed with their new text, a line per page that cannot be
+    rendered because a benchmark's JSON is missing)``."""
+    out, missing = [], []
     for page in figures.PAGES:
         text = page.read_text()
-        new = figures.render_page(text)
+        try:
+            new = figures.render_page(text)
+        except FileNotFoundError as exc:
+            missing.append(f"{page.relative_to(figures.ROOT)}: {exc}")
+            continue
         if new != text:
             out.append((page, new))
-    return out
+    return out, missing
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    stale = stale_pages()
+    stale, missing = stale_pages()
     for page, new in stale:
         rel = page.relative_to(figures.ROOT)
         if "--check" in argv:
@@ -33,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             page.write_text(new)
             print(f"rendered {rel}")
-    return 1 if stale and "--check" in argv else 0
+    for line in missing:
+        print(line, file=sys.stderr)
+    return 1 if missing or (stale and "--check" in argv) else 0
 
 
 if __name__ == "__main__":

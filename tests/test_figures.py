@@ -18,7 +18,9 @@ JSONS = sorted(figures.FIGURES.glob("*.json"))
 
 
 def test_every_quoted_figure_equals_its_json():
-    stale = [str(page.relative_to(figures.ROOT)) for page, _ in render_docs.stale_pages()]
+    changed, missing = render_docs.stale_pages()
+    assert missing == [], "a page quotes a benchmark whose JSON is missing: run it"
+    stale = [str(page.relative_to(figures.ROOT)) for page, _ in changed]
     assert stale == [], "run python scripts/render_docs.py (or the benchmark that changed)"
 
 
