@@ -52,12 +52,20 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"unknown benchmark {unknown[0]!r}; choose from {', '.join(table)} or all", file=sys.stderr)
         return 2
-    for name in names:
-        module = table[name]
+    parsed, left = {}, None
+    for name in names:  # every option must belong to a named benchmark, before hours of work
         parser = argparse.ArgumentParser(prog=f"bench.py {name}")
-        if hasattr(module, "add_arguments"):
-            module.add_arguments(parser)
-        args, _ = parser.parse_known_args(rest)
+        if hasattr(table[name], "add_arguments"):
+            table[name].add_arguments(parser)
+        parsed[name], extra = parser.parse_known_args(rest)
+        left = set(extra) if left is None else left & set(extra)
+    stray = [a for a in rest if a in (left or ()) and a.startswith("-")]
+    if stray:
+        print(f"{stray[0]}: not an option of {', '.join(names)} (python scripts/bench.py {names[0]} --help)",
+              file=sys.stderr)
+        return 2
+    for name in names:
+        module, args = table[name], parsed[name]
         print(f"==> {name} (about {module.MINUTES} min)", flush=True)
         start = time.perf_counter()
         figs, cond = module.measure(args)

@@ -51,3 +51,12 @@ def test_a_changed_figure_is_caught(tmp_path, monkeypatch):
     monkeypatch.setattr(figures, "FIGURES", tmp_path / "figures")
     page = "MSE <!-- value: toy figures.x .2f -->2.40<!-- /value --> here"
     assert figures.render_page(page) == "MSE <!-- value: toy figures.x .2f -->2.50<!-- /value --> here"
+
+
+def test_an_option_no_named_benchmark_has_is_refused_before_any_work(capsys, monkeypatch):
+    import bench
+
+    monkeypatch.setattr(bench.figures, "write", lambda *a, **k: pytest.fail("a benchmark ran"))
+    assert bench.main(["demo", "training", "--variants", "x"]) == 2
+    assert "--variants: not an option of demo, training" in capsys.readouterr().err
+    assert bench.main(["nonesuch"]) == 2
