@@ -46,7 +46,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -301,7 +301,7 @@ def run_job(job: Job) -> dict:
     ``train_seconds``, ``best_epoch``, ``final_loss``, ``prior_loss``, ``observer`` and ``hash``;
     ``timings``: seconds of each stage (simulate, train_*, compile_*, estimate); ``wall_seconds``;
     ``cpu_timings`` and ``cpu_seconds``: the same in CPU seconds of the job's process and the
-    compilers it ran (:func:`cpu_seconds`), which a loaded machine inflates far less than wall time.
+    compilers it ran (:class:`~.executors.StageClock`), which depend far less on the machine's load.
     """
     import torch
 
@@ -311,17 +311,10 @@ def run_job(job: Job) -> dict:
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
     from ..simulation import simulate
     from ..systems import get_system
+    from .executors import StageClock
 
-    start, start_cpu = time.perf_counter(), cpu_seconds()
-    timings: dict[str, float] = {}
-    cpu_timings: dict[str, float] = {}
-
-    def timed(stage: str, fn: Callable, *args, **kwargs):
-        t0, c0 = time.perf_counter(), cpu_seconds()
-        value = fn(*args, **kwargs)
-        timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0
-        cpu_timings[stage] = cpu_timings.get(stage, 0.0) + cpu_seconds() - c0
-        return value
+    clock = StageClock()  # wall and CPU seconds of each stage
+    timed = clock.timed
 
     if job.backend not in BACKENDS:
         raise UnknownNameError(f"unknown backend {job.backend!r}; choose from {list(BACKENDS)}")
@@ -388,21 +381,11 @@ def run_job(job: Job) -> dict:
         **job.identity(), "config_hash": job.config_hash(), "task_hash": job.task_hash(),
         "code": code_hash(), "system": system.name, "state_names": list(system.state_names),
         "samples": len(test_run),
-        "methods": methods, "training": training, "timings": timings,
-        "wall_seconds": time.perf_counter() - start,
-        "cpu_timings": cpu_timings, "cpu_seconds": cpu_seconds() - start_cpu,
+        "methods": methods, "training": training, "timings": clock.wall, "wall_seconds": clock.wall_seconds(),
+        "cpu_timings": clock.cpu, "cpu_seconds": clock.cpu_seconds(),
     }
     write_json(job.result_path, results)
     return results
-
-
-def cpu_seconds() -> float:
-    """User and system CPU seconds of this process and of its finished children (the compilers a
-    job runs), so far."""
-    import resource
-
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def config_summary(configs: Mapping[str, TaskConfig]) -> str:
