@@ -58,6 +58,9 @@ def test_quick_sweep_writes_results_and_table(sweep):
         for key in ("knode", "knode_full"):
             assert res["training"][key]["best_epoch"] <= 2 and res["training"][key]["train_seconds"] > 0
         assert {"simulate", "train_knode", "compile_knode", "estimate"} <= set(res["timings"])
+        cpu = res["cpu_timings"]  # CPU seconds per stage: the same stages, within the job's total
+        assert set(cpu) == set(res["timings"]) and min(cpu.values()) >= 0
+        assert 0 < sum(cpu.values()) <= res["cpu_seconds"]
         assert (f.with_suffix("") / "models" / "knode" / "model.json").is_file()
     assert not list((out / "runs").glob("*/*.error.json"))
     # the MHE rows run on mhe_gn; seed 0 ran the Ipopt MHE beside it, and the table says how close
@@ -78,6 +81,8 @@ def test_quick_sweep_writes_results_and_table(sweep):
     summary = load(out / "summary.json")
     assert summary["sweep"]["jobs_run"] == 2 and summary["sweep"]["workers"] == 2
     assert summary["table"]["cartpole"]["n_seeds"] == 2
+    jobs_cpu = [load(f)["cpu_seconds"] for f in files]
+    assert summary["table"]["cartpole"]["job_cpu_seconds_total"] == pytest.approx(sum(jobs_cpu), rel=1e-12)
     assert "wall time" in output
 
 

@@ -8,6 +8,7 @@ extra to install.
 from __future__ import annotations
 
 import os
+import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Callable, Sequence
 
@@ -139,3 +140,36 @@ def make_executor(name: str, jobs: int, preload: Sequence[str] = ("torch",)):
     names the modules a local worker imports before it is forked."""
     check_executor(name)
     return LocalExecutor(jobs, preload) if name == "local" else EXECUTOR_CLASSES[name](jobs)
+
+
+def cpu_seconds() -> float:
+    """User and system CPU seconds of this process and of its finished children (the compilers a
+    job runs), so far."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+class StageClock:
+    """Wall and CPU seconds (:func:`cpu_seconds`) of a job's stages, ``wall`` and ``cpu`` (stage ->
+    seconds, summed over the stage's calls), and of the whole job since the clock was made."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self._start, self._start_cpu = time.perf_counter(), cpu_seconds()
+
+    def timed(self, stage: str, fn: Callable, *args, **kwargs):
+        """``fn(*args, **kwargs)``, its seconds added to ``stage``."""
+        wall, cpu = time.perf_counter(), cpu_seconds()
+        value = fn(*args, **kwargs)
+        self.wall[stage] = self.wall.get(stage, 0.0) + time.perf_counter() - wall
+        self.cpu[stage] = self.cpu.get(stage, 0.0) + cpu_seconds() - cpu
+        return value
+
+    def wall_seconds(self) -> float:
+        return time.perf_counter() - self._start
+
+    def cpu_seconds(self) -> float:
+        return cpu_seconds() - self._start_cpu

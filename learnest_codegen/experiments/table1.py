@@ -46,7 +46,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -299,7 +299,9 @@ def run_job(job: Job) -> dict:
     ``config_hash``, ``task_hash``, ``config``; ``methods``: per Table I row the ``mse``,
     ``mse_per_state``, ``us_per_step`` and ``seconds``; ``training``: per KNODE model the
     ``train_seconds``, ``best_epoch``, ``final_loss``, ``prior_loss``, ``observer`` and ``hash``;
-    ``timings``: seconds of each stage (simulate, train_*, compile_*, estimate); ``wall_seconds``.
+    ``timings``: seconds of each stage (simulate, train_*, compile_*, estimate); ``wall_seconds``;
+    ``cpu_timings`` and ``cpu_seconds``: the same in CPU seconds of the job's process and the
+    compilers it ran (:class:`~.executors.StageClock`), which depend far less on the machine's load.
     """
     import torch
 
@@ -309,15 +311,10 @@ def run_job(job: Job) -> dict:
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
     from ..simulation import simulate
     from ..systems import get_system
+    from .executors import StageClock
 
-    start = time.perf_counter()
-    timings: dict[str, float] = {}
-
-    def timed(stage: str, fn: Callable, *args, **kwargs):
-        t0 = time.perf_counter()
-        value = fn(*args, **kwargs)
-        timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0
-        return value
+    clock = StageClock()  # wall and CPU seconds of each stage
+    timed = clock.timed
 
     if job.backend not in BACKENDS:
         raise UnknownNameError(f"unknown backend {job.backend!r}; choose from {list(BACKENDS)}")
@@ -384,8 +381,8 @@ def run_job(job: Job) -> dict:
         **job.identity(), "config_hash": job.config_hash(), "task_hash": job.task_hash(),
         "code": code_hash(), "system": system.name, "state_names": list(system.state_names),
         "samples": len(test_run),
-        "methods": methods, "training": training, "timings": timings,
-        "wall_seconds": time.perf_counter() - start,
+        "methods": methods, "training": training, "timings": clock.wall, "wall_seconds": clock.wall_seconds(),
+        "cpu_timings": clock.cpu, "cpu_seconds": clock.cpu_seconds(),
     }
     write_json(job.result_path, results)
     return results

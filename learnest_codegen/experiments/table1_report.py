@@ -116,10 +116,23 @@ def summarise(results: Sequence[dict], task: str) -> dict:
         "full_state_vs_true": full, "training_mean": training,
         "timings_mean": {k: float(np.mean([r["timings"].get(k, 0.0) for r in results])) for k in timings},
         "job_wall_seconds_mean": float(np.mean([r["wall_seconds"] for r in results])),
+        **_cpu_summary(results),
         "configurations": sorted({r.get("task_hash", "?") for r in results}),
         "backends": sorted({r.get("backend", "?") for r in results}),
         "code": sorted({r.get("code", "?") for r in results}),
     }
+
+
+def _cpu_summary(results: Sequence[dict]) -> dict:
+    """The jobs' CPU seconds (``cpu_seconds_total``, the mean per job and per stage), when every
+    job recorded them (results files written before they were recorded have none)."""
+    if not results or not all("cpu_seconds" in r for r in results):
+        return {}
+    stages = sorted({k for r in results for k in r["cpu_timings"]})
+    return {"job_cpu_seconds_total": float(sum(r["cpu_seconds"] for r in results)),
+            "job_cpu_seconds_mean": float(np.mean([r["cpu_seconds"] for r in results])),
+            "cpu_timings_mean": {k: float(np.mean([r["cpu_timings"].get(k, 0.0) for r in results]))
+                                 for k in stages}}
 
 
 def _reference_summary(results: Sequence[dict]) -> dict:
@@ -217,8 +230,12 @@ def format_markdown(table: Table1) -> str:
     for t in tasks:
         s = table.tasks[t]
         tm = s["timings_mean"]
+        cpu = ""
+        if "cpu_timings_mean" in s:  # the CPU seconds, where the jobs recorded them
+            cpu = (f"; CPU {s['job_cpu_seconds_mean']:.1f} s ("
+                   + ", ".join(f"{k} {v:.1f} s" for k, v in s["cpu_timings_mean"].items()) + ")")
         lines.append(f"- {t}: job wall time {s['job_wall_seconds_mean']:.1f} s on average ("
-                     + ", ".join(f"{k} {v:.1f} s" for k, v in tm.items()) + "); best epochs "
+                     + ", ".join(f"{k} {v:.1f} s" for k, v in tm.items()) + f"){cpu}; best epochs "
                      f"{s['training_mean']['knode']['best_epoch']:.0f} (partial), "
                      f"{s['training_mean']['knode_full']['best_epoch']:.0f} (full state); "
                      f"backend {', '.join(s['backends'])}; code {', '.join(s.get('code', ['?']))}")
