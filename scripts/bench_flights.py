@@ -47,6 +47,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--data", default=None,
                         help="data root (default: $LEARNEST_DATA or ../shared/data)")
     parser.add_argument("--out", type=Path, default=OUT, help="the studies' folder (results reused)")
+    parser.add_argument("--tuned", default=",".join((RECOMMENDED, *COMPARED)),
+                        help="comma-separated features tuned with both estimators (the recommended one "
+                             "always; each takes about half an hour a fold on 2 cores)")
     parser.add_argument("--variants", default=",".join(VARIANTS),
                         help="comma-separated features run with the tuned UKF beside the recommended one")
 
@@ -160,7 +163,8 @@ def measure(args) -> tuple[dict, dict]:
     out = Path(args.out)
     both = ("ukf", "mhe_rti")
     studies = {}
-    runs = [*(("tuned", f, both, True) for f in (RECOMMENDED, *COMPARED)),
+    tuned_features = dict.fromkeys([RECOMMENDED, *(f for f in args.tuned.split(",") if f)])
+    runs = [*(("tuned", f, both, True) for f in tuned_features),
             *(("untuned", f, both, False) for f in (RECOMMENDED, *COMPARED, "linear_prior")),
             *(("tuned", f, ("ukf",), True) for f in args.variants.split(",") if f)]
     for tag, features, estimators, tune in runs:
@@ -277,10 +281,17 @@ def render_onboard(data: dict) -> str:
     return "\n".join(lines)
 
 
+NOT_MEASURED = "Not measured by this run of the benchmark (`{command}`): {what}."
+
+
 def render_variants(data: dict) -> str:
     """Every tuned features' KNODE-UKF against the UKF tuned the same way: velocity at each
     reference, and acceleration and the normalised overall at 1 s."""
     studies = data["figures"]["studies"]
+    variants = [k for k in studies
+                if k.endswith("/tuned") and k.split("/")[0] not in (RECOMMENDED, *COMPARED)]
+    if not variants:
+        return NOT_MEASURED.format(command=data["command"], what="no variant was run (`--variants`)")
     pair = "KNODE-UKF vs UKF (tuned)"
     head = ["features", *(f"velocity {r}" for r in REFERENCES), "acceleration sg_1s", "overall sg_1s"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
@@ -366,6 +377,11 @@ def render_position(data: dict) -> str:
 def render_every_tuning(data: dict) -> str:
     """The per-state table of every tuned model against its nominal estimator tuned the same way."""
     out = []
+    measured = [k.split("/")[0] for k in data["figures"]["studies"] if k.endswith("/tuned")]
+    missing = [f for f in COMPARED if f not in measured]
+    if missing:
+        what = f"{', '.join(missing)} tuned (`--tuned`)"
+        out += [NOT_MEASURED.format(command=data["command"], what=what), ""]
     for key, study in data["figures"]["studies"].items():
         features, tag = key.split("/")
         if tag != "tuned":
