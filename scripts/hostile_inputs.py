@@ -1173,7 +1173,8 @@ def start_cases() -> list[Case]:
            ("horizon-ukf", "ukf", '"--horizon", "10"', ("horizon",)),
            ("horizon-vs-compiled", "mhe_gn", '"--horizon", "10"', ("horizon",))]
     cases = [_case(f"start/{name}", "boundaries", ERROR, f"estimate {args.replace(chr(34), '')} ({e})",
-                   est.format(folder=f"cartpole_nominal_{e}", args=args), needles=needles)
+                   est.format(folder=f"cartpole_nominal_{e}" + ("" if e == "ukf" else "_n20"), args=args),
+                   needles=needles)
              for name, e, args, needles in bad]
     cases.append(_case("start/x0-alone-mhe_gn", "boundaries", RESULT,
                        "--x0 3 initial stds off without --P0 (mhe_gn): as good as with --P0 initial "
@@ -1357,11 +1358,11 @@ def handle_thread_cases() -> list[Case]:
                     f"{{len(errors) - before}} errors of 400 steps")
     verdict(True, f"{{len(errors)}} clear errors, no crash")
     '''
-    folders = [*(f for _, f in _builds()), "cartpole_nominal_mhe"]
+    folders = [*(f for _, f in _builds()), "cartpole_nominal_mhe_n20"]
     return [_case(f"threads/one-handle-{f.replace('cartpole_nominal_', '')}", "boundaries", RESULT,
                   f"one {f.replace('cartpole_nominal_', '')} handle stepped from two threads, "
                   "10 rounds (segfaulted in 3 of 12 runs before)",
-                  body.format(folder=f, rounds=3 if f.endswith("_mhe") else 10), timeout=300)
+                  body.format(folder=f, rounds=3 if f.endswith("_mhe_n20") else 10), timeout=300)
             for f in folders]
 
 
