@@ -280,7 +280,8 @@ print("HOSTILE_ACCEPTED {}", flush=True)
 '''
 
 SETUP = r'''
-must(["simulate", "--system", "cartpole", "--seed", 4, "--duration", 1.0, "--out", RUN])
+# --force: a workdir whose fixtures are incomplete or of an older layout is set up again
+must(["simulate", "--system", "cartpole", "--seed", 4, "--duration", 1.0, "--out", RUN, "--force"])
 from learnest_codegen import get_system
 from learnest_codegen.compilation import compile_estimators
 from learnest_codegen.export import prior_model, true_model
@@ -293,8 +294,9 @@ robot = prior_model(get_system("ground_robot"))
 for precision in ("float64", "float32"):
     compile_estimators(robot, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti"),
                        precision=precision)
-must(["simulate", "--system", "cartpole", "--seed", 1, "--duration", 24.0, "--out", W / "long.csv"])
-must(["simulate", "--system", "ground_robot", "--seed", 1, "--out", W / "robot.csv"])
+must(["simulate", "--system", "cartpole", "--seed", 1, "--duration", 24.0, "--out", W / "long.csv",
+      "--force"])
+must(["simulate", "--system", "ground_robot", "--seed", 1, "--out", W / "robot.csv", "--force"])
 print("fixtures ready", sorted(p.name for p in LIB.iterdir()))
 '''
 
