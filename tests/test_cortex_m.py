@@ -63,6 +63,11 @@ def check_parity(gen, fw, host, steps: int, system) -> float:
     assert fw.summary["steps"] == host.summary["steps"] == steps
     # 0, or 1 where the innovation gate rejected an output (not an error); the same samples
     assert fw.summary["status"] == host.summary["status"] and fw.summary["status"] >= 0
+    # overruns: the steps whose busy ticks exceed the sample period (late steps, each counted,
+    # also one that misses no tick); missed_ticks: the sample ticks that passed meanwhile
+    period = system.dt * fw.summary["tick_hz"]
+    assert fw.summary["overruns"] == int(np.sum(fw.busy_ticks > period))
+    assert fw.summary["missed_ticks"] >= 0
     assert np.all(fw.status >= 0) and np.array_equal(fw.status, host.status)
     assert fw.X.shape == (steps, system.nx)
     rel = bc.relative_difference(fw.X, host.X)

@@ -431,6 +431,23 @@ def test_real_flights_load():
         assert np.median(np.abs(f.run.u[:, 2])) == pytest.approx(0.86, abs=0.06)  # hover throttle
 
 
+def test_real_flights_inside_the_declared_input_limits():
+    """The quadrotor declares its inputs' real ranges (thrust components +-1, one LiPo cell
+    0-4.5 V) and the estimators gate inputs beyond them: no sample of any real flight is outside
+    (the limits leave out only glitches), while a value just beyond each end is rejected."""
+    from learnest_codegen.estimators.inputs import InputCheck, plausible_inputs
+
+    flights = [nb.read_flight(p) for p in nb.list_flights(_nanobench())]
+    quadrotors = [s for n, s in SYSTEMS.items() if n.startswith("quadrotor")]
+    assert len({s.input_limits for s in quadrotors}) == 1  # the same vehicle, the same inputs
+    system = quadrotors[0]
+    check = InputCheck(plausible_inputs(system), system.nu)
+    for f in flights:
+        assert not check.apply(f.run.u)[1].any(), f.name
+    lo, hi = np.array(system.input_limits).T
+    assert check.apply(lo - 1e-3)[1].all() and check.apply(hi + 1e-3)[1].all()
+
+
 def test_real_flights_fitted_prior_helps_every_held_out_figure_eight(tmp_path):
     """The grey-box step on real data in the default run (UKF only, so it is quick): the prior's
     acceleration rows fitted on three circles make the UKF better on every figure-eight held

@@ -13,6 +13,7 @@ from scipy.signal import savgol_filter
 from learnest_codegen import get_system
 from learnest_codegen.data import Run
 from learnest_codegen.errors import DataError
+from learnest_codegen.estimators.inputs import InputCheck, plausible_inputs
 from learnest_codegen.observers import observe
 from learnest_codegen.recordings.dart import (
     DartSettings,
@@ -321,6 +322,9 @@ def test_real_recording_sanity_and_prior_gap(car, path):
     np.testing.assert_allclose(np.diff(run.t), car.dt, atol=1e-9)
     assert np.abs(np.diff(run.y[:, 2])).max() < 0.1  # yaw unwrapped
     assert run.u[:, 0].min() >= 0 and run.u[:, 0].max() <= 1 and np.abs(run.u[:, 1]).max() <= 1
+    # the car's declared input limits are the commands' real ranges: the estimators keep every
+    # logged command
+    assert not InputCheck(plausible_inputs(car), car.nu).apply(run.u)[1].any()
     states, derivs = vicon_derivatives(run)
     moving = states[:, 2] > 0.3
     assert 1.0 < np.median(states[moving, 2]) < 3.0 and states[:, 2].max() < 4.5

@@ -65,6 +65,24 @@ def read_run(data: str, system, resample: bool, measured: bool = True):
     return run
 
 
+def missing_note(run, gate, dt: float) -> str:
+    """The summary's words on the missing outputs of ``run``: their count and, when no output
+    arrives for the gate's ``lost_after`` samples or more, the longest such gap (the estimate
+    there is a prediction, flagged unreliable). Empty when nothing is missing."""
+    from ..data import longest_gap
+    from ..estimators.gate import lost_after
+
+    missing = int(run.missing.sum())
+    if not missing:
+        return ""
+    (start, length), lost = longest_gap(run), lost_after(gate)
+    if length < lost:
+        return f", {missing} missing"
+    return (f", {missing} missing (longest gap without any measurement: {length} samples from row "
+            f"{start + 1}, {length * dt:.3g} s; the estimate there is a prediction, unreliable "
+            f"after {lost} samples)")
+
+
 def system_named(name: str):
     from ..systems import get_system
 

@@ -20,6 +20,7 @@ from .common import (
     SYSTEM_HELP,
     friendly,
     gate_settings,
+    missing_note,
     parse_covariance,
     parse_vector,
     read_run,
@@ -215,9 +216,7 @@ def _estimate_run(system_name, data, estimator, model, backend, compiled, precis
         check_horizon((estimator,), horizon)
     except ValueError as exc:
         raise click.UsageError(f"--horizon: {exc}") from exc
-    from ..data import longest_gap
     from ..errors import LearnestError, SolverError
-    from ..estimators.gate import lost_after
     from ..evaluation import mse, run_estimator
     from ..outputs import atomic_file, claim_output
     from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
@@ -264,15 +263,7 @@ def _estimate_run(system_name, data, estimator, model, backend, compiled, precis
     if run.x is not None:
         line += f", MSE vs truth {mse(result.x_hat, run.x):.4e} (all states)"
     line += f", {result.rejections} output(s) rejected by the innovation gate"
-    missing = int(run.missing.sum())
-    if missing:
-        line += f", {missing} missing"
-        gap = longest_gap(run)
-        lost = lost_after(est.settings.gate)
-        if gap[1] >= lost:
-            line += (f" (longest gap without any measurement: {gap[1]} samples from row {gap[0] + 1}, "
-                     f"{gap[1] * system.dt:.3g} s; the estimate there is a prediction, unreliable "
-                     f"after {lost} samples)")
+    line += missing_note(run, est.settings.gate, system.dt)
     input_rejections = int(getattr(est, "input_rejections", 0))
     if input_rejections:
         line += f", {input_rejections} implausible input(s) replaced"

@@ -213,6 +213,10 @@ class UKF(GateReport):
         except np.linalg.LinAlgError as exc:  # Cholesky of a non-positive-definite P
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError(f"UKF.step: {exc} (state left as before this step)") from exc
+        except ValueError as exc:  # scipy's Cholesky meets an overflowed (inf) sigma point
+            self._kf.x, self._kf.P, self._kf.sigmas_f = saved
+            raise SolverError("UKF.step: non-finite values in the prediction (state left as before "
+                              "this step)") from exc
         if not (np.all(np.isfinite(self._kf.x)) and np.all(np.isfinite(self._kf.P))):
             self._kf.x, self._kf.P, self._kf.sigmas_f = saved
             raise SolverError("UKF.step: non-finite state or covariance (state left as before)")
