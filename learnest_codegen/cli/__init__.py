@@ -15,7 +15,8 @@ import click
 
 from .common import USER_ERRORS as USER_ERRORS
 from .diagnose import diagnose
-from .estimation import compile_cmd, compile_standalone, estimate, evaluate
+from .estimation import compile_cmd, compile_standalone, estimate
+from .evaluation import evaluate
 from .experiments import demo, reproduce
 from .modelling import simulate, train
 
