@@ -619,3 +619,38 @@ def test_a_prior_parameter_is_chosen_by_the_same_criterion(tmp_path, monkeypatch
     x0 = qt.start_state(case, 15)
     np.testing.assert_array_equal(run_estimator(again, case.run, x0, "u").x_hat,
                                   run_estimator(estimator, case.run, x0, "u").x_hat)
+
+
+def test_a_study_model_with_a_fitted_prior_and_a_net_compiles_without_its_system(tmp_path):
+    """A study's ``linear`` model (the fitted prior and a net) names the built-in system it was
+    fitted on and its fitted parameters, so ``learnest-compile MODEL --target crazyflie`` needs
+    no ``--system``: the app's estimator is the one of that model (its manifest's model hash and
+    system fingerprint, the fitted parameters included) and finds its system by itself."""
+    import json
+
+    from click.testing import CliRunner
+
+    from learnest_codegen.cli.estimation import compile_standalone
+    from learnest_codegen.experiments.quadrotor_models import trained_model
+    from learnest_codegen.learning.model import load_model
+    from learnest_codegen.pipeline import estimator_system, expected_manifest, load_estimator
+
+    cases = fs.simulated_cases(range(2), duration=6.0)
+    settings = fs.StudySettings(training=replace(fs.StudySettings().training, epochs=3))
+    directory = tmp_path / "runs" / "sim" / "linear" / "model"
+    model = trained_model(cases, "linear", tmp_path, settings, directory, progress=False)
+    meta = json.loads((directory / "model.json").read_text())
+    assert meta["system_source"]["name"] == "quadrotor_linear" and meta["system_source"]["builtin"]
+    fitted = meta["prior_params"]
+    assert set(fitted) == set(SYSTEMS["quadrotor_linear"].params) and any(v != 0.0 for v in fitted.values())
+    assert load_model(directory).system.fingerprint() == model.system.fingerprint()
+
+    result = CliRunner().invoke(compile_standalone, [str(directory), "--target", "crazyflie",
+                                                     "--out", str(tmp_path / "generated")])
+    assert result.exit_code == 0, result.output
+    (folder,) = [p for p in (tmp_path / "generated").iterdir()
+                 if p.is_dir() and not p.name.endswith("_crazyflie")]
+    assert (tmp_path / "generated" / f"{folder.name}_crazyflie").is_dir()
+    estimator = load_estimator(folder, expect=expected_manifest(model))  # refuses another model
+    found = estimator_system(estimator)  # from the folder's record, checked against its manifest
+    assert found.params == fitted and found.fingerprint() == model.system.fingerprint()

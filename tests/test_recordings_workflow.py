@@ -5,6 +5,7 @@ set of flights (docs/guide/recordings_workflow.md)."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -112,30 +113,66 @@ def _flights():
     return root / "nanobench"
 
 
+def _drifting_copy(src, dst, start_s, rate_g_per_s):
+    """``src`` with its y accelerometer climbing by ``rate_g_per_s`` from ``start_s`` (the motion
+    capture unchanged), written as ``dst``."""
+    from learnest_codegen.recordings import crazyflie as nb
+
+    header = src.read_text().splitlines()[0].split(",")
+    columns = nb.read_table(src)
+    t = columns["t"] - columns["t"][0]
+    columns["imu_acc_y"] = columns["imu_acc_y"] + rate_g_per_s * np.clip(t - start_s, 0, None)
+    np.savetxt(dst, np.column_stack([columns[h] for h in header]), delimiter=",", header=",".join(header),
+               comments="", fmt="%.9f")
+
+
 def test_reproduce_quadrotor_on_a_training_set_and_a_test_set(tmp_path):
-    """``--train DIR1 --test DIR2``: one model trained on the first set, tested on the second;
-    a test flight that repeats a training flight's data is left out of the tests and said; the
-    report has the per-state table at every reference."""
+    """The command of docs/guide/recordings_workflow.md, ``--recommended --train DIR/ --test
+    'DIR2/*.csv'``, on NanoBench flights: a training folder holding a renamed copy of one of its
+    flights and a flight whose accelerometer drifts by 0.2 g/s from 12 s, and a test folder
+    holding a copy of a training flight. One model is trained on the three distinct training
+    flights (the drifting one up to 1 s before its drift, at most), tested on the one new
+    flight; both copies are counted once and the drift is cut, each said on stderr and in the
+    report; the report has the per-state table of both estimators at every reference."""
     src = _flights()
-    train, test = tmp_path / "train", tmp_path / "test"
-    train.mkdir()
+    train, test = tmp_path / "flights" / "train", tmp_path / "flights" / "new"
+    train.mkdir(parents=True)
     test.mkdir()
     for name in ("B2_circle_slow_rep1", "B2_circle_fast_rep1"):
         shutil.copy(src / f"{name}.csv", train / f"{name}.csv")
+    shutil.copy(src / "B2_circle_slow_rep1.csv", train / "Z9_copy.csv")
+    _drifting_copy(src / "B2_circle_medium_rep1.csv", train / "B2_circle_drifting.csv", 12.0, 0.2)
     shutil.copy(src / "B3_figure8_slow_rep1.csv", test / "B3_figure8_slow_rep1.csv")
     shutil.copy(src / "B2_circle_slow_rep1.csv", test / "B9_renamed_rep1.csv")
-    result = CliRunner().invoke(cli, ["reproduce", "quadrotor", "--train", str(train), "--test", str(test),
-                                      "--features", "bias_prior", "--estimators", "ukf",
-                                      "--out", str(tmp_path / "out")])
+    out = tmp_path / "results" / "mine"
+    result = CliRunner().invoke(cli, ["reproduce", "quadrotor", "--recommended", "--train", f"{train}/",
+                                      "--test", f"{test}/*.csv", "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert "B9_renamed_rep1: duplicate: the same data as B2_circle_slow_rep1" in result.output
-    data = json.loads((tmp_path / "out" / "quadrotor.json").read_text())
+    for line in ("Z9_copy: duplicate: the same data as B2_circle_slow_rep1; counted once",
+                 "B9_renamed_rep1: duplicate: the same data as B2_circle_slow_rep1; counted once",
+                 "B2_circle_drifting: accelerometer"):
+        assert f"warning: {line}" in result.output, line
+    data = json.loads((out / "quadrotor.json").read_text())
     assert data["protocol"] == "train-test"
+    (drift,) = [f for f in data["findings"] if f["check"] == "accelerometer"]
+    assert drift["recording"] == "B2_circle_drifting" and drift["action"] == "cut"
+    assert 11.5 <= drift["start_s"] <= 12.5  # the hinge dates the drift's start
     (study,) = data["studies"]
-    assert list(study["per_case"]) == ["B3_figure8_slow_rep1"]
-    assert study["trained_on"]["B3_figure8_slow_rep1"] == ["B2_circle_fast_rep1", "B2_circle_slow_rep1"]
-    refs = study["by_reference"]["KNODE-UKF"]
-    assert set(refs) == {"sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s", "cd_0.1s"}
-    assert set(refs["sg_1s"]) == {"p", "v", "a", "overall"} and set(refs["cd_0.1s"]) == {"p", "v", "overall"}
-    report = (tmp_path / "out" / "quadrotor.md").read_text()
-    assert "| cd_0.1s |" in report and "Recordings checked" in report
+    assert study["features"] == "bias_lag_prior" and list(study["per_case"]) == ["B3_figure8_slow_rep1"]
+    trained_on = ["B2_circle_drifting", "B2_circle_fast_rep1", "B2_circle_slow_rep1"]
+    assert study["trained_on"]["B3_figure8_slow_rep1"] == trained_on
+    meta = json.loads((out / "runs" / "train_set" / "bias_lag_prior" / "model" / "model.json").read_text())
+    samples = dict(zip(meta["runs"], meta["run_samples"]))
+    assert sorted(samples) == trained_on
+    kept = re.fullmatch(r"kept (\d+\.\d+)-(\d+\.\d+) s of the log", drift["note"])
+    assert kept and float(kept[2]) <= drift["start_s"] - 1.0 + 0.005  # ends 1 s before the drift
+    assert samples["B2_circle_drifting"] == pytest.approx(100 * (float(kept[2]) - float(kept[1])) + 1, abs=1)
+    for knode in ("KNODE-UKF", "KNODE-MHE-RTI"):
+        refs = study["by_reference"][knode]
+        assert set(refs) == {"sg_0.5s", "sg_1s", "sg_1.5s", "sg_3s", "cd_0.1s"}
+        assert set(refs["sg_1s"]) == {"p", "v", "a", "overall"}
+        assert set(refs["cd_0.1s"]) == {"p", "v", "overall"}  # central differences: no acceleration
+    report = (out / "quadrotor.md").read_text()
+    assert "### Per state group and reference" in report and report.count("| cd_0.1s |") >= 3
+    assert "Recordings checked" in report and "B2_circle_drifting: accelerometer" in report
+    assert "Z9_copy: duplicate" in report and "B9_renamed_rep1: duplicate" in report

@@ -265,15 +265,16 @@ def flight_replay(path: Path) -> FlightReplay:
     """
     path = Path(path)
     flight = read_flight(path)
-    whole = read_flight(path, trim=False, max_accel_mps2=np.inf)  # from the ground, unclipped
+    # from the ground: untrimmed, up to the first span a check finds faulty (after the flight)
+    whole = read_flight(path, trim=False)
     first, last = flight.trimmed
     columns = read_table(path)
     t = columns.pop("t")
     dt = check_timing(t, str(path), 0.05).dt
     grid = dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + GRID_SLACK)) + 1)
-    if grid.size != len(whole.run):
-        raise DataError(f"{path}: the replay's grid has {grid.size} samples, the recording's "
-                        f"{len(whole.run)}")
+    if whole.trimmed[0] != 0 or whole.trimmed[1] < last or grid.size <= whole.trimmed[1]:
+        raise DataError(f"{path}: the replay's grid has {grid.size} samples and the recording "
+                        f"keeps {whole.trimmed[0]}..{whole.trimmed[1]} of them, not 0..{last} of the flight")
 
     def column(name: str) -> np.ndarray:
         return np.interp(grid, t - t[0], columns[name])

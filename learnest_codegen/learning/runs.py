@@ -22,6 +22,8 @@ from ..data import Run, check_sampling
 from ..errors import DataError, SettingsError
 from ..systems import System
 from .pairs import segment_pairs
+from .source import KEY as SOURCE_KEY
+from .source import system_source
 
 __all__ = ["train_on_runs"]
 
@@ -49,7 +51,8 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
     fit_prior : prior parameters of ``system`` to fit by least squares on the observations
         before the net is trained (:func:`~learnest_codegen.learning.prior_fit.fit_linear_params`):
         the grey-box route. The model's system holds the fitted values and ``model.json`` stores
-        them (``prior_params``); refinement rounds keep them.
+        them (``prior_params``) beside ``system`` as given (``system_source``: a built-in by
+        name), so that loading the model needs no system; refinement rounds keep them.
     start_at_prior : start the net with a zero output layer, so training starts from the prior
         itself (``Delta = 0``) rather than from a random residual; early stopping after a few
         epochs then keeps a small learned correction, not mostly the initialisation. Needs
@@ -90,6 +93,9 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
     u = np.vstack([run.u for run in runs])
     breaks = tuple(int(b) for b in np.cumsum([len(run) for run in runs])[:-1])
     dt = float(system.dt)
+    # the model names the system as given (a built-in by name, a file by path); the fitted
+    # parameters are stored beside it and applied again when it is loaded
+    source = system_source(system)
     fitted = {}
     if fit_prior:
         from .prior_fit import fit_linear_params, fitted_system
@@ -105,6 +111,7 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
         model = _prior_only(system, settings, np.vstack(zetas), u, breaks, observer)
         model.meta.update(runs=names, run_samples=[len(run) for run in runs], prior_params=fitted,
                           net_kept=False, train_seconds=time.perf_counter() - start)
+        model.meta[SOURCE_KEY] = source
         return model
     init = None
     if start_at_prior:
@@ -132,6 +139,7 @@ def train_on_runs(runs: Sequence[Run], system: System, settings: TrainingSetting
                       train_seconds=time.perf_counter() - start)
     if fitted:
         model.meta["prior_params"] = fitted
+    model.meta[SOURCE_KEY] = source
     if net_must_beat_prior:
         _check_against_prior(model, system, np.vstack(zetas), u, breaks, settings.validation_fraction)
     return model

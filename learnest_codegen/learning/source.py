@@ -1,7 +1,8 @@
 """Where a model's system comes from, so that a model (and its compiled estimators) find it again.
 
 A trained model records its system under ``model.json``'s ``system_source`` key: a built-in
-system by name, a system file by its absolute path and the SHA-256 of its content. Loading the
+system by name (with its prior parameters when they were fitted to recordings), a system file
+by its absolute path and the SHA-256 of its content. Loading the
 model without naming a system takes the built-in, or loads the file after checking that it is
 the same file as at training; an edited, moved or unrecorded file is refused in one line that
 says what to do. The same record is written beside each compiled estimator
@@ -12,6 +13,7 @@ Imports neither torch nor CasADi.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import inspect
 import json
@@ -50,7 +52,9 @@ def file_sha256(path: str | Path) -> str:
 def system_source(system: System) -> dict[str, Any]:
     """The record of where ``system`` comes from.
 
-    ``{"name", "fingerprint", "builtin": True}`` for the registered built-in of that name;
+    ``{"name", "fingerprint", "builtin": True}`` for the registered built-in of that name, with
+    ``"params"`` when it is that built-in with other prior parameters (a grey-box prior fitted
+    to recordings);
     ``{"name", "fingerprint", "file", "sha256"}`` for a system that a Python file defines as
     ``SYSTEM`` (the file that defines its dynamics, measurement or excitation, loaded again and
     found to compute the same, :meth:`~learnest_codegen.systems.System.fingerprint`);
@@ -62,6 +66,10 @@ def system_source(system: System) -> dict[str, Any]:
     builtin = SYSTEMS.get(system.name)
     if builtin is system or (builtin is not None and _same(builtin, fingerprint)):
         return {**record, "builtin": True}
+    params = {k: float(v) for k, v in system.params.items()}
+    if builtin is not None and set(params) == set(builtin.params) and params != dict(builtin.params) \
+            and _same(dataclasses.replace(builtin, params=params), fingerprint):
+        return {**record, "builtin": True, "params": params}  # a prior fitted to recordings
     for path in _defining_files(system):
         try:
             candidate = get_system(str(path))
@@ -103,11 +111,19 @@ def system_from_source(record: Mapping[str, Any] | None, name: str | None, where
         raise ModelMismatchError(f"{where} records no system file for system {name!r}; pass the "
                                  "system (--system FILE, or system=)")
     if record.get("builtin"):
-        return get_system(record["name"])
+        system = get_system(record["name"])
+        if record.get("params"):
+            unknown = sorted(set(record["params"]) - set(system.params))
+            if unknown:
+                raise ModelMismatchError(f"{where} sets prior parameters {unknown} that the built-in "
+                                         f"system {system.name!r} no longer has; retrain or recompile")
+            system = dataclasses.replace(system, params={k: float(v) for k, v in record["params"].items()})
+        return system
     path = record.get("file")
     if path is None:
         raise ModelMismatchError(f"{where} was trained for system {record['name']!r}, which was built in "
-                                 "code rather than loaded from a file; pass the system (system=)")
+                                 "code rather than loaded from a file; pass the system (--system NAME or "
+                                 "FILE, or system=)")
     if not Path(path).is_file():
         raise SystemFileError(f"{where} was trained for the system file {path}, which no longer exists; "
                               "pass --system FILE (or system=) where it is now")

@@ -311,8 +311,8 @@ def read_flight(path: str | Path, *, trim: bool = True, trim_height_m: float = 0
         (or rows with non-finite values) is a dropout, and the flight is cut there.
     accel_fault_mps2 : how far the accelerometer may leave the motion capture's acceleration
         (0.5 s mean, beyond its flight's offset) before the span is a fault
-        (:func:`~.flight_checks.accelerometer_faults`; ``B2_circle_medium_rep3``: at 28.5 s
-        the battery browns out and the accelerometer reads > 100 m/s^2).
+        (:func:`~.flight_checks.accelerometer_faults`; ``B2_circle_medium_rep3``: the battery
+        browns out near the end of the log and the accelerometer reads > 100 m/s^2).
     savgol_window, savgol_order : the paper's reference filter (``reference``); the
         ``references`` are :func:`references`. Both run on the whole log before trimming.
     held : ``"missing"``: a held position or accelerometer value is a missing output (NaN);
