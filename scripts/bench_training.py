@@ -233,7 +233,7 @@ def render_cost(data: dict) -> str:
         "",
         f"The whole default (every round): {t['whole_default']['cold_cpu_seconds']:.2f} s cold, "
         f"{t['whole_default']['warm_cpu_seconds']:.2f} s warm. {m['cpu']}, {m['cores']} cores, load "
-        f"{min(loads):.1f}-{max(loads):.1f} during the runs; {data['conditions']['date']}, commit "
+        f"{min(loads):.1f}-{max(loads):.1f} during the runs; {data['conditions']['date']}, revision "
         f"{data['conditions']['commit']}."])
 
 
