@@ -265,15 +265,18 @@ def flight_replay(path: Path) -> FlightReplay:
     """
     path = Path(path)
     flight = read_flight(path)
-    whole = read_flight(path, trim=False, max_accel_mps2=np.inf)  # from the ground, unclipped
+    whole = read_flight(path, trim=False)  # from the ground: the log up to its first dropout or bad input
     first, last = flight.trimmed
+    if whole.trimmed[0] != 0 or whole.trimmed[1] < last:
+        raise DataError(f"{path}: a dropout or a bad input lies between the ground and the flight's end "
+                        f"(samples {whole.trimmed[0]}-{whole.trimmed[1]} usable, the flight ends at {last})")
     columns = read_table(path)
     t = columns.pop("t")
     dt = check_timing(t, str(path), 0.05).dt
     grid = dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + GRID_SLACK)) + 1)
-    if grid.size != len(whole.run):
-        raise DataError(f"{path}: the replay's grid has {grid.size} samples, the recording's "
-                        f"{len(whole.run)}")
+    if grid.size < len(whole.run) or not np.array_equal(grid[:len(whole.run)], whole.run.t):
+        raise DataError(f"{path}: the replay's grid ({grid.size} samples) is not the recording's "
+                        f"({len(whole.run)} samples from the ground)")
 
     def column(name: str) -> np.ndarray:
         return np.interp(grid, t - t[0], columns[name])
