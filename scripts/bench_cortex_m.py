@@ -139,7 +139,7 @@ def measure(args) -> tuple[dict, dict]:
     shutil.rmtree(BUILD, ignore_errors=True)  # make rebuilds nothing whose flags alone changed
     cartpole = get_system("cartpole")
     model_dir = bench_demo.model_dir()
-    cart_model, _ = resolve_model(cartpole, str(model_dir))
+    cart_model, cart_hash = resolve_model(cartpole, str(model_dir))
     cart_run = simulate(cartpole, seed=1)
     quad_model, quad_run, trained_on = quadrotor_model(getattr(args, "data", None), BUILD / "quadrotor")
     tools = {tool: subprocess.run([tool, "--version"], capture_output=True, text=True).stdout.splitlines()[0]
@@ -149,6 +149,7 @@ def measure(args) -> tuple[dict, dict]:
         model={"cartpole": f"the demo's trained KNODE cartpole ({model_dir.relative_to(figures.ROOT)})",
                "quadrotor": "the grey-box prior quadrotor_linear fitted on the figure-eight flights "
                             f"({', '.join(trained_on)})"},
+        model_hash=cart_hash,
         run={"cartpole": f"cartpole seed 1 (the demo's test run), {len(cart_run.y)} samples{partial}",
              "quadrotor": f"the flight {QUADROTOR_FLIGHT}, {len(quad_run.y)} samples{partial}"},
         settings=f"each estimator as learnest-compile generates it ({PRECISION}, the system's horizon)",

@@ -255,7 +255,7 @@ def render_timing(data: dict) -> str:
     lines.append(f"\nOver {t['greybox']['samples']:,} samples ({', '.join(t['greybox']['flights'])}) for "
                  f"each model; QEMU's estimates equal the host replay's: "
                  f"{'yes' if all(t[m]['equal_to_host'] for m in t) else 'no'}. {c['toolchain']}; "
-                 f"{c['date']}, commit {c['commit']}.")
+                 f"{c['date']}, revision {c['commit']}.")
     return "\n".join(lines)
 
 

@@ -2,7 +2,9 @@
 
 Runs ``learnest demo --out build/bench/demo`` in a fresh process (the README's main job, the
 default training, seeds 0 and 1) and keeps its report. The trained model it leaves in
-``build/bench/demo/model`` is the one the instruction-count benchmarks measure.
+``build/bench/demo/model`` is the one the instruction-count benchmarks measure; its hash is
+recorded as ``conditions.model_hash`` here and in theirs, and ``tests/test_figures.py`` checks
+that they measured the model whose accuracy this benchmark quotes.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ def measure(args) -> tuple[dict, dict]:
         settings="learnest demo (every option at its default)")
     subprocess.run([sys.executable, "-m", "learnest_codegen.cli", "demo", "--out", str(OUT)], check=True)
     report = json.loads((OUT / "report.json").read_text())
+    cond["model_hash"] = model_hash(OUT / "model")
     return {"rows": report["rows"], "train_seconds": report["meta"]["train_seconds"]}, cond
 
 
@@ -36,6 +39,15 @@ def model_dir() -> Path:
     if not (OUT / "model" / "model.json").exists():
         measure(None)
     return OUT / "model"
+
+
+def model_hash(model: str | Path) -> str:
+    """The hash a trained cartpole model directory compiles under (its weights and settings), or
+    ``model`` itself for ``"nominal"`` and ``"true"``."""
+    from learnest_codegen import get_system
+    from learnest_codegen.compilation import resolve_model
+
+    return resolve_model(get_system("cartpole"), str(model))[1]
 
 
 def render_table(data: dict) -> str:

@@ -237,7 +237,7 @@ def render_selftest(data: dict) -> str:
                      f"{r['verdict']} | {_estimator_cell(r, 'mhe')} | {_estimator_cell(r, 'ukf')} | "
                      f"{'yes' if r['pass'] else 'NO'} |")
     m = part["measured"]
-    lines.append(f"\n{part['right']} of {part['cases']} right; {m['date']}, commit {m['commit']}, "
+    lines.append(f"\n{part['right']} of {part['cases']} right; {m['date']}, revision {m['commit']}, "
                  f"{m['wall_seconds'] / 60:.0f} min at load {m['load_1min']}-{m['load_1min_at_end']} on "
                  f"{data['conditions']['machine']['cores']} cores.")
     return "\n".join(lines)
@@ -323,7 +323,7 @@ def render_limits(data: dict) -> str:
         limit = "not at 5 ms" if e["limit_ms"] is None else f"{e['limit_ms']:g} ms"
         lines.append(f"| {e['encoder_mrad']:g} | {limit} | {found} |")
     m = lim["measured"]
-    lines.append(f"\n{m['date']}, commit {m['commit']}, {m['wall_seconds'] / 60:.0f} min at load "
+    lines.append(f"\n{m['date']}, revision {m['commit']}, {m['wall_seconds'] / 60:.0f} min at load "
                  f"{m['load_1min']}-{m['load_1min_at_end']}.")
     return "\n".join(lines)
 

@@ -467,7 +467,7 @@ def _label(name: str) -> str:
 
 def _when(part: dict) -> str:
     m = part.get("measured", {})
-    return f"commit {m.get('commit', '?')}, {m.get('date', '?')}, load {m.get('load_1min', '?')}"
+    return f"revision {m.get('commit', '?')}, {m.get('date', '?')}, load {m.get('load_1min', '?')}"
 
 
 def render_soak(data: dict) -> str:

@@ -195,7 +195,8 @@ def measure(args) -> tuple[dict, dict]:
     model = args.model or str(bench_demo.model_dir())
     described = (f"the demo's trained KNODE cartpole ({Path(model).relative_to(figures.ROOT)})"
                  if not args.model else model)
-    cond = figures.conditions(model=described, run="cartpole seed 1 (the demo's test run), 5000 samples",
+    cond = figures.conditions(model=described, model_hash=bench_demo.model_hash(model),
+                              run="cartpole seed 1 (the demo's test run), 5000 samples",
                               settings="each estimator's defaults; backends " + ", ".join(args.backends)
                               + "; compiled precisions " + ", ".join(args.precisions))
     result = bench(model, tuple(args.backends), BUILD, args.estimators, tuple(args.precisions))

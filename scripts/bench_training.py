@@ -253,7 +253,7 @@ def render_cost(data: dict) -> str:
         "",
         f"{m['cpu']}, {m['cores']} cores, load {min(loads):.1f}-{max(loads):.1f} during the alternating "
         "runs; "
-        f"{data['conditions']['date']}, commit {data['conditions']['commit']}."])
+        f"{data['conditions']['date']}, revision {data['conditions']['commit']}."])
 
 
 if __name__ == "__main__":

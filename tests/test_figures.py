@@ -36,6 +36,21 @@ def test_every_figure_file_names_its_model_run_and_conditions(path):
     assert (SCRIPTS / f"bench_{path.stem}.py").exists(), "a figure file without its benchmark"
 
 
+DEMO_MODEL_BENCHES = ("callgrind", "cortex_m", "streams")  # they measure build/bench/demo/model
+
+
+@pytest.mark.parametrize("name", DEMO_MODEL_BENCHES)
+def test_figures_of_the_demos_model_measured_the_model_the_demo_quotes(name):
+    """The instruction counts, M4F figures and streams are of the model whose accuracy the demo's
+    table gives: the same hash of its weights and settings (a model left in build/ by an older
+    checkout is not)."""
+    demo = json.loads((figures.FIGURES / "demo.json").read_text())["conditions"]
+    assert demo.get("model_hash"), "demo.json records no model hash: run python scripts/bench.py demo"
+    cond = json.loads((figures.FIGURES / f"{name}.json").read_text())["conditions"]
+    assert cond.get("model_hash") == demo["model_hash"], (
+        f"{name}.json measured another model than demo.json's: run python scripts/bench.py {name}")
+
+
 def test_every_page_block_names_an_existing_view():
     for page in figures.PAGES:
         for m in figures.BLOCK.finditer(page.read_text()):

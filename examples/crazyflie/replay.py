@@ -265,16 +265,18 @@ def flight_replay(path: Path) -> FlightReplay:
     """
     path = Path(path)
     flight = read_flight(path)
-    # from the ground: untrimmed, up to the first span a check finds faulty (after the flight)
-    whole = read_flight(path, trim=False)
+    whole = read_flight(path, trim=False)  # from the ground: the log up to its first dropout or bad input
     first, last = flight.trimmed
+    if whole.trimmed[0] != 0 or whole.trimmed[1] < last:
+        raise DataError(f"{path}: a dropout or a bad input lies between the ground and the flight's end "
+                        f"(samples {whole.trimmed[0]}-{whole.trimmed[1]} usable, the flight ends at {last})")
     columns = read_table(path)
     t = columns.pop("t")
     dt = check_timing(t, str(path), 0.05).dt
     grid = dt * np.arange(int(np.floor((t[-1] - t[0]) / dt + GRID_SLACK)) + 1)
-    if whole.trimmed[0] != 0 or whole.trimmed[1] < last or grid.size <= whole.trimmed[1]:
-        raise DataError(f"{path}: the replay's grid has {grid.size} samples and the recording "
-                        f"keeps {whole.trimmed[0]}..{whole.trimmed[1]} of them, not 0..{last} of the flight")
+    if grid.size < len(whole.run) or not np.array_equal(grid[:len(whole.run)], whole.run.t):
+        raise DataError(f"{path}: the replay's grid ({grid.size} samples) is not the recording's "
+                        f"({len(whole.run)} samples from the ground)")
 
     def column(name: str) -> np.ndarray:
         return np.interp(grid, t - t[0], columns[name])

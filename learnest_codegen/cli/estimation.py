@@ -103,38 +103,28 @@ COMPILE_OPTIONS = [
 ]
 
 
-def _with_compile_options(fn):
-    for option in reversed(COMPILE_OPTIONS):
-        fn = option(fn)
-    return with_gate_options(fn)
+def _compile_command(name: str, **settings) -> click.Command:
+    """``learnest compile`` and the standalone ``learnest-compile``: one command, two names."""
 
-
-@click.command("compile")
-@_with_compile_options
-@friendly
-def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, target, force, horizon,
+    def command(model_dir, out, system_name, nominal, estimators, precision, target, force, horizon,
                 clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
-    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
+        """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
 
-    Each estimator gets its own folder under --out, written whole or not at all; an existing
-    folder is replaced only with --force."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
-             clamp_inputs, target)
+        Each estimator gets its own folder under --out, written whole or not at all; an existing
+        folder is replaced only with --force."""
+        _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
+                 gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
+                 clamp_inputs, target)
+
+    command = friendly(command)
+    for option in reversed(COMPILE_OPTIONS):
+        command = option(command)
+    return click.command(name, **settings)(with_gate_options(command))
 
 
-@click.command("learnest-compile", context_settings={"help_option_names": ["-h", "--help"]})
-@_with_compile_options
-@friendly
-def compile_standalone(model_dir, out, system_name, nominal, estimators, precision, target, force,
-                       horizon, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
-    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
-
-    Each estimator gets its own folder under --out, written whole or not at all; an existing
-    folder is replaced only with --force."""
-    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
-             clamp_inputs, target)
+compile_cmd = _compile_command("compile")
+compile_standalone = _compile_command("learnest-compile",
+                                      context_settings={"help_option_names": ["-h", "--help"]})
 
 
 #: Where ``estimate`` compiles an estimator it is not given (``--compiled``): beside the output.

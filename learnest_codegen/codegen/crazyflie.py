@@ -9,7 +9,7 @@ build compiles (``make CRAZYFLIE_BASE=...``, through the firmware's ``tools/make
         Kbuild, app-config  what the firmware builds; the app layer and CONFIG_ESTIMATOR_OOT
         src/Kbuild
         src/estimator_out_of_tree.c   the firmware side (templates/crazyflie/src): the
-                                      measurement queue, state_t, param and log, the task
+                                      measurement queue, state_t, param and log, the estimator task
         src/learnest_app.h  names the estimator and the state, output and input indices
         src/<prefix>/       the estimator's C (its sources and headers, its build fragment
                             <prefix>.mk) and its Kbuild, which compiles it with the flags it

@@ -7,7 +7,7 @@ too (``tests/test_ckit.py`` compares them).
 
 Per sample: the window moves by one stage; the arrival prior becomes the previous solution's
 estimate of the new first state (``xbar_{k-N|k} <- xhat*_{k-N|k-1}``) once the window is full
-(before, the arrival term stays on sample 0 with ``xbar = x0``); Ipopt is warm-started from the
+(until then, the arrival term stays on sample 0 with ``xbar = x0``); Ipopt is warm-started from the
 previous solution shifted by one stage, its new last state predicted by ``F``; the estimate is
 the last window state. A step Ipopt does not solve raises :class:`SolverError` and leaves the
 estimator as it was: silently keeping a poor estimate would hide the problem, and the caller
@@ -56,7 +56,7 @@ samples). A step the solver fails on also restarts the window at the next step (
 stays as it was; the prior is updated by the outputs the gate keeps), so a window the solver
 cannot solve is not retried forever.
 
-Why a restart and not a relaxed arrival weight on the old window (the first design): a window
+Why a restart and not a relaxed arrival weight on the old window: a window
 that keeps its old samples must explain a real jump by one huge process-noise step, and an
 arrival weight ``P / rho`` with ``rho ~ 1e5`` makes the Gauss-Newton normal equations so
 ill-conditioned that its absolute step tolerance is never met; both locked the embedded MHE

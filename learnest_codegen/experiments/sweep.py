@@ -142,7 +142,7 @@ def run_sweep(configs: Mapping[str, TaskConfig], *, seeds: int = DEFAULT_SEEDS,
         echo(f"note: {len(report.other_code)} finished job(s) were made by other code than this "
              f"(the package's sources changed since, or predate this record): {names}. Their "
              f"results are kept; use --force to redo them.")
-    for job in planned:  # failed preparation: every job of the task is a recorded failure
+    for job in planned:  # failed preparation: every job of that task is a recorded failure
         if job.task in broken:
             report.failed[job.task, job.seed] = record_failure(job, broken[job.task])["error"]
 

@@ -191,7 +191,7 @@ def task_configs(tasks: Iterable[str] | None = None, *, epochs: int | None = Non
 class Job:
     """One (task, seed) of the sweep; picklable, so any executor can ship it to a worker.
 
-    ``shared`` is the folder of the task's nominal and true-dynamics estimators (C backend).
+    ``shared`` is the folder of this task's nominal and true-dynamics estimators (C backend).
     """
 
     task: str
@@ -256,7 +256,7 @@ def result_path(out: str | Path, task: str, seed: int) -> Path:
 
 
 def shared_dir(out: str | Path, task: str) -> Path:
-    """``OUT/compiled/<task>``: the task's nominal and true-dynamics estimators."""
+    """``OUT/compiled/<task>``: that task's nominal and true-dynamics estimators."""
     return Path(out) / "compiled" / task
 
 

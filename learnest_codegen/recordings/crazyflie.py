@@ -30,7 +30,7 @@ agrees with Vicon to a few cm; its acceleration is gravity-free). Beside it lies
 4. **Held measurements.** A row whose Vicon position (all three coordinates) or accelerometer
    (all three axes) repeats the row before exactly is a held value, not a new sample: with
    ``held="missing"`` (the default) the grid sample nearest to it has that output missing
-   (NaN), with ``held="hold"`` it is used as before. In the NanoBench files this finds 2 held
+   (NaN), with ``held="hold"`` it is used as a sample. In the NanoBench files this finds 2 held
    positions in 17 flights (both outside the trimmed flights) and no held accelerometer row:
    the dataset interpolates its onboard streams onto the Vicon clock
    (its metadata counts e.g. 1,997 IMU rows for 2,725 Vicon rows) rather than holding them,

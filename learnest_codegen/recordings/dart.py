@@ -25,8 +25,8 @@ What :func:`read_recording` does, in order:
    arrived since the previous grid time, and is missing (NaN) otherwise (``held="missing"``,
    the default); a packet is new when ``elapsed time sensors`` or any sensor channel changed
    from the row before. The car's ~10 Hz packets then give one encoder sample in about ten,
-   instead of ten copies of it. ``held="hold"`` keeps the copies (the reader before missing
-   outputs existed).
+   instead of ten copies of it. ``held="hold"`` keeps the copies (every grid sample then carries the
+   last packet's value).
 5. **Align the commands**: ``u(t_k)`` is the command held at ``t_k - command_delay_s``. The
    default 0.06 s is the lag at which the steering command best predicts the Vicon path
    curvature in the four recordings (0.05-0.08 s): transport delay and the servo's response

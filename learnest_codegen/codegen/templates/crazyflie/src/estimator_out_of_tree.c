@@ -26,7 +26,7 @@
  * Parameters (group learnest): reset (write 1: start again at the next sample with a
  * position), gateThr (the innovation gate's chi-square threshold; 0 disables it). Logs (group
  * learnest): status of the last step, steps, rejected outputs, errors, late samples (taken as
- * predictions because the task fell behind), samples without a position, the last step's
+ * predictions because the estimator task fell behind), samples without a position, the last step's
  * duration [us] and the measured world acceleration.
  */
 #include <stdbool.h>
@@ -61,7 +61,7 @@ static const app_real defaultP0[APP_NX * APP_NX] = APP_DEFAULT_P0;
 static const app_real defaultQ[APP_NX * APP_NX] = APP_DEFAULT_Q;
 static const app_real defaultR[APP_NY * APP_NY] = APP_DEFAULT_R;
 
-/* Shared by the stabilizer loop and the task, under dataMutex. */
+/* Shared by the stabilizer loop and the estimator task, under dataMutex. */
 static state_t taskState;
 static uint32_t samplesDue;
 static SemaphoreHandle_t runTaskSemaphore;
@@ -70,7 +70,7 @@ static SemaphoreHandle_t dataMutex;
 static StaticSemaphore_t dataMutexBuffer;
 static bool isInit = false;
 
-/* The task's view of the sensors since the last sample. */
+/* The estimator task's view of the sensors since the last sample. */
 static struct quat attitude = {.x = 0.0f, .y = 0.0f, .z = 0.0f, .w = 1.0f}; /* body to world */
 static bool haveAttitude = false; /* a pose has set it since the start */
 static struct vec position, accG; /* [m], [g] */
@@ -243,7 +243,7 @@ static void publish(void) {
   xSemaphoreGive(dataMutex);
 }
 
-/* One round of the task: woken by the stabilizer loop once per tick. */
+/* One pass of the estimator task: woken by the stabilizer loop once per tick. */
 static void taskRound(void) {
   uint32_t due;
   xSemaphoreTake(runTaskSemaphore, portMAX_DELAY);
