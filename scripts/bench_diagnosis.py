@@ -9,7 +9,9 @@ Parts (each records its own date, commit and load under ``measured``):
   default estimators): the verdict, the effects found against the truth, each estimator's
   corrected held-out MSE against the level the data support; the pendulum rig's cases are also
   run on the true states (``twin_truth``).
-* ``dart`` - the four DART recordings pooled, default settings (``learnest diagnose --format dart``).
+* ``dart`` - the four DART recordings pooled, default settings (``learnest diagnose --format dart``);
+  their folder is ``--dart``, else ``dart/`` under the data root (``$LEARNEST_DATA``, then
+  ``../shared/data``); without recordings the part is skipped (a kept measurement stays).
 * ``limits`` - how large an effect must be to be named through the pre-training observer: each
   kind injected alone into the cartpole at the self-test's strength and at halvings of it (the
   smallest strength from which on it is named by name or alias), a force gain and offset
@@ -26,7 +28,6 @@ import figures
 MINUTES = 120
 ORDER = 60
 PARTS = ("selftest", "dart", "limits")
-DART_DEFAULT = "/work/shared/data/dart"
 
 # effect of the cartpole's library, the self-test's strength of it (halved down to 1/32)
 LIMIT_KINDS = (("mass(pdot via m_c)", 0.5), ("viscous_friction(pdot via F)", 2.0),
@@ -42,7 +43,20 @@ RIG_ENCODERS = (5e-4, 2e-3)  # [rad]
 
 def add_arguments(parser) -> None:
     parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, of {', '.join(PARTS)}")
-    parser.add_argument("--dart", default=DART_DEFAULT, help="the DART recordings' folder")
+    parser.add_argument("--dart", default=None,
+                        help="the DART recordings' folder (default: dart/ under $LEARNEST_DATA or "
+                             "../shared/data)")
+
+
+def _dart_folder(given: str | None):
+    """The folder of the DART recordings: ``given``, else ``dart/`` under the data root; ``None``
+    when there are no recordings."""
+    from learnest_codegen.recordings import dart, data_root
+
+    if given is not None:
+        return given
+    files = dart.list_recordings(data_root())
+    return None if not files else str(files[0].parent)
 
 
 def _stamp(start: float, load: float) -> dict:
@@ -76,14 +90,19 @@ def measure(args) -> tuple[dict, dict]:
     if "selftest" in parts:
         out["selftest"] = _timed(_selftest)
         out["twin_truth"] = _timed(_twin_truth)
-    if "dart" in parts:
-        out["dart"] = _timed(_dart, args.dart)
+    folder = _dart_folder(args.dart) if "dart" in parts else args.dart
+    if "dart" in parts and folder is None:
+        print("bench diagnosis: no DART recordings (pass --dart or set $LEARNEST_DATA): part dart skipped",
+              flush=True)
+    elif "dart" in parts:
+        out["dart"] = _timed(_dart, folder)
     if "limits" in parts:
         out["limits"] = _timed(_limits)
     cond = figures.conditions(
         model="the prior of each system (no KNODE model): diagnose corrects it with effects of its library",
-        run="self-test: simulated runs, seeds 1, 2, ... per case; dart: the four DART recordings in "
-            f"{args.dart}; limits: the cartpole (10 s at 500 Hz, seed 1) and the pendulum rig "
+        run="self-test: simulated runs, seeds 1, 2, ... per case; dart: the four DART recordings "
+            f"({'dart/ of the data root' if args.dart is None else args.dart}); limits: the cartpole "
+            "(10 s at 500 Hz, seed 1) and the pendulum rig "
             "(2 runs of 15 s)",
         settings="DiagnosisSettings() (estimators mhe and ukf, C backend) unless a part says otherwise",
         parts={k: v.get("measured") for k, v in out.items()})
@@ -289,6 +308,8 @@ def render_twin_truth(data: dict) -> str:
 
 
 def render_dart(data: dict) -> str:
+    if "dart" not in data["figures"]:
+        return "- not measured: no DART recordings were found when the benchmark ran."
     d = data["figures"]["dart"]
     lines = [f"- verdict: **{d['verdict']}**, held-out gap closed {_pct(d['closed'])} ({d['runs']} "
              f"recordings pooled, each held out in turn)"]
