@@ -15,7 +15,7 @@ Parts (each records its own date, commit and load under ``measured``):
 * ``limits`` - how large an effect must be to be named through the pre-training observer: each
   kind injected alone into the cartpole at the self-test's strength and at halvings of it (the
   smallest strength from which on it is named by name or alias), a force gain and offset
-  together, and the rig's input delay with two encoders.
+  together, and the rig's input delay with two encoders, on two swing-ups pooled and on one.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ FACTORS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 PAIRS = ((-0.2, 0.3), (-0.1, 0.15), (-0.05, 0.075), (-0.025, 0.0375))  # force gain, offset [N]
 RIG_DELAYS_MS = (0.5, 1.0, 1.5, 2.0, 3.0, 5.0)
 RIG_ENCODERS = (5e-4, 2e-3)  # [rad]
+RIG_RUNS = (2, 1)  # swing-ups of 15 s: pooled, and one run fitted on its first 70 %
 
 
 def add_arguments(parser) -> None:
@@ -103,7 +104,7 @@ def measure(args) -> tuple[dict, dict]:
         run="self-test: simulated runs, seeds 1, 2, ... per case; dart: the four DART recordings "
             f"({'dart/ of the data root' if args.dart is None else args.dart}); limits: the cartpole "
             "(10 s at 500 Hz, seed 1) and the pendulum rig "
-            "(2 runs of 15 s)",
+            "(2 runs of 15 s pooled, and 1 run)",
         settings="DiagnosisSettings() (estimators mhe and ukf, C backend) unless a part says otherwise",
         parts={k: v.get("measured") for k, v in out.items()})
     return out, cond
@@ -211,24 +212,25 @@ def _rig_delays() -> list[dict]:
     from learnest_codegen.diagnosis.selftest_systems import pendulum_rig
 
     out = []
-    for encoder in RIG_ENCODERS:
+    for n_runs, encoder in ((n, e) for n in RIG_RUNS for e in RIG_ENCODERS):
         sweep = []
         for ms in RIG_DELAYS_MS:
             truth = pendulum_rig(ms * 1e-3, encoder)
-            runs = [_late_run(truth, seed, None, ms * 1e-3) for seed in (1, 2)]
+            runs = [_late_run(truth, seed, None, ms * 1e-3) for seed in range(1, n_runs + 1)]
             diagnosed = dataclasses.replace(truth, true_dynamics=None, true_params=truth.params)
             r = diagnose(diagnosed, runs, settings=DiagnosisSettings(source="observer", estimators=())).report
             found = next((e["params"]["delay"] for e in r["effects"] if e["kind"] == "input_delay"), None)
             sweep.append({"delay_ms": ms, "found_ms": None if found is None else 1e3 * found,
                           "named": found is not None and abs(1e3 * found - ms) <= 1.0,
                           "others": [e["name"] for e in r["effects"] if e["kind"] != "input_delay"]})
-            print(f"    rig delay {ms} ms, encoder {encoder * 1e3:g} mrad: {sweep[-1]}", flush=True)
+            print(f"    rig delay {ms} ms, encoder {encoder * 1e3:g} mrad, {n_runs} run(s): {sweep[-1]}",
+                  flush=True)
         limit = None
         for s in reversed(sweep):  # smallest delay from which on every larger one is named within 1 ms
             if not s["named"]:
                 break
             limit = s["delay_ms"]
-        out.append({"encoder_mrad": encoder * 1e3, "sweep": sweep, "limit_ms": limit})
+        out.append({"encoder_mrad": encoder * 1e3, "runs": n_runs, "sweep": sweep, "limit_ms": limit})
     return out
 
 
@@ -337,12 +339,14 @@ def render_limits(data: dict) -> str:
     lines += ["", "| force gain | force offset [N] | found | match | verdict |", "|---|---|---|---|---|"]
     for p in lim["gain_offset"]:
         lines.append(f"| {p['gain']:g} | {p['offset']:g} | {p['found']} | {p['match']} | {p['verdict']} |")
-    lines += ["", "| rig encoder [mrad] | delay named within 1 ms from | "
-              "found [ms] at 0.5 / 1 / 1.5 / 2 / 3 / 5 ms |", "|---|---|---|"]
+    lines += ["", "| rig encoder [mrad] | swing-ups | delay named within 1 ms from | "
+              "found [ms] at 0.5 / 1 / 1.5 / 2 / 3 / 5 ms |", "|---|---|---|---|"]
     for e in lim["rig_delay"]:
         found = " / ".join("-" if s["found_ms"] is None else f"{s['found_ms']:.2f}" for s in e["sweep"])
         limit = "not at 5 ms" if e["limit_ms"] is None else f"{e['limit_ms']:g} ms"
-        lines.append(f"| {e['encoder_mrad']:g} | {limit} | {found} |")
+        runs = e.get("runs", 2)
+        runs = f"{runs} (pooled)" if runs > 1 else f"{runs}"
+        lines.append(f"| {e['encoder_mrad']:g} | {runs} | {limit} | {found} |")
     m = lim["measured"]
     lines.append(f"\n{m['date']}, commit {m['commit']}, {m['wall_seconds'] / 60:.0f} min at load "
                  f"{m['load_1min']}-{m['load_1min_at_end']}.")
