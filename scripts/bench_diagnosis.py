@@ -9,11 +9,13 @@ Parts (each records its own date, commit and load under ``measured``):
   default estimators): the verdict, the effects found against the truth, each estimator's
   corrected held-out MSE against the level the data support; the pendulum rig's cases are also
   run on the true states (``twin_truth``).
-* ``dart`` - the four DART recordings pooled, default settings (``learnest diagnose --format dart``).
+* ``dart`` - the four DART recordings pooled, default settings (``learnest diagnose --format dart``);
+  their folder is ``--dart``, else ``dart/`` under the data root (``$LEARNEST_DATA``, then
+  ``../shared/data``); without recordings the part is skipped (a kept measurement stays).
 * ``limits`` - how large an effect must be to be named through the pre-training observer: each
   kind injected alone into the cartpole at the self-test's strength and at halvings of it (the
   smallest strength from which on it is named by name or alias), a force gain and offset
-  together, and the rig's input delay with two encoders.
+  together, and the rig's input delay with two encoders, on two swing-ups pooled and on one.
 """
 
 from __future__ import annotations
@@ -26,7 +28,6 @@ import figures
 MINUTES = 120
 ORDER = 60
 PARTS = ("selftest", "dart", "limits")
-DART_DEFAULT = "/work/shared/data/dart"
 
 # effect of the cartpole's library, the self-test's strength of it (halved down to 1/32)
 LIMIT_KINDS = (("mass(pdot via m_c)", 0.5), ("viscous_friction(pdot via F)", 2.0),
@@ -38,11 +39,25 @@ FACTORS = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125)
 PAIRS = ((-0.2, 0.3), (-0.1, 0.15), (-0.05, 0.075), (-0.025, 0.0375))  # force gain, offset [N]
 RIG_DELAYS_MS = (0.5, 1.0, 1.5, 2.0, 3.0, 5.0)
 RIG_ENCODERS = (5e-4, 2e-3)  # [rad]
+RIG_RUNS = (2, 1)  # swing-ups of 15 s: pooled, and one run fitted on its first 70 %
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, of {', '.join(PARTS)}")
-    parser.add_argument("--dart", default=DART_DEFAULT, help="the DART recordings' folder")
+    parser.add_argument("--dart", default=None,
+                        help="the DART recordings' folder (default: dart/ under $LEARNEST_DATA or "
+                             "../shared/data)")
+
+
+def _dart_folder(given: str | None):
+    """The folder of the DART recordings: ``given``, else ``dart/`` under the data root; ``None``
+    when there are no recordings."""
+    from learnest_codegen.recordings import dart, data_root
+
+    if given is not None:
+        return given
+    files = dart.list_recordings(data_root())
+    return None if not files else str(files[0].parent)
 
 
 def _stamp(start: float, load: float) -> dict:
@@ -76,15 +91,20 @@ def measure(args) -> tuple[dict, dict]:
     if "selftest" in parts:
         out["selftest"] = _timed(_selftest)
         out["twin_truth"] = _timed(_twin_truth)
-    if "dart" in parts:
-        out["dart"] = _timed(_dart, args.dart)
+    folder = _dart_folder(args.dart) if "dart" in parts else args.dart
+    if "dart" in parts and folder is None:
+        print("bench diagnosis: no DART recordings (pass --dart or set $LEARNEST_DATA): part dart skipped",
+              flush=True)
+    elif "dart" in parts:
+        out["dart"] = _timed(_dart, folder)
     if "limits" in parts:
         out["limits"] = _timed(_limits)
     cond = figures.conditions(
         model="the prior of each system (no KNODE model): diagnose corrects it with effects of its library",
-        run="self-test: simulated runs, seeds 1, 2, ... per case; dart: the four DART recordings in "
-            f"{args.dart}; limits: the cartpole (10 s at 500 Hz, seed 1) and the pendulum rig "
-            "(2 runs of 15 s)",
+        run="self-test: simulated runs, seeds 1, 2, ... per case; dart: the four DART recordings "
+            f"({'dart/ of the data root' if args.dart is None else args.dart}); limits: the cartpole "
+            "(10 s at 500 Hz, seed 1) and the pendulum rig "
+            "(2 runs of 15 s pooled, and 1 run)",
         settings="DiagnosisSettings() (estimators mhe and ukf, C backend) unless a part says otherwise",
         parts={k: v.get("measured") for k, v in out.items()})
     return out, cond
@@ -192,24 +212,25 @@ def _rig_delays() -> list[dict]:
     from learnest_codegen.diagnosis.selftest_systems import pendulum_rig
 
     out = []
-    for encoder in RIG_ENCODERS:
+    for n_runs, encoder in ((n, e) for n in RIG_RUNS for e in RIG_ENCODERS):
         sweep = []
         for ms in RIG_DELAYS_MS:
             truth = pendulum_rig(ms * 1e-3, encoder)
-            runs = [_late_run(truth, seed, None, ms * 1e-3) for seed in (1, 2)]
+            runs = [_late_run(truth, seed, None, ms * 1e-3) for seed in range(1, n_runs + 1)]
             diagnosed = dataclasses.replace(truth, true_dynamics=None, true_params=truth.params)
             r = diagnose(diagnosed, runs, settings=DiagnosisSettings(source="observer", estimators=())).report
             found = next((e["params"]["delay"] for e in r["effects"] if e["kind"] == "input_delay"), None)
             sweep.append({"delay_ms": ms, "found_ms": None if found is None else 1e3 * found,
                           "named": found is not None and abs(1e3 * found - ms) <= 1.0,
                           "others": [e["name"] for e in r["effects"] if e["kind"] != "input_delay"]})
-            print(f"    rig delay {ms} ms, encoder {encoder * 1e3:g} mrad: {sweep[-1]}", flush=True)
+            print(f"    rig delay {ms} ms, encoder {encoder * 1e3:g} mrad, {n_runs} run(s): {sweep[-1]}",
+                  flush=True)
         limit = None
         for s in reversed(sweep):  # smallest delay from which on every larger one is named within 1 ms
             if not s["named"]:
                 break
             limit = s["delay_ms"]
-        out.append({"encoder_mrad": encoder * 1e3, "sweep": sweep, "limit_ms": limit})
+        out.append({"encoder_mrad": encoder * 1e3, "runs": n_runs, "sweep": sweep, "limit_ms": limit})
     return out
 
 
@@ -289,6 +310,8 @@ def render_twin_truth(data: dict) -> str:
 
 
 def render_dart(data: dict) -> str:
+    if "dart" not in data["figures"]:
+        return "- not measured: no DART recordings were found when the benchmark ran."
     d = data["figures"]["dart"]
     lines = [f"- verdict: **{d['verdict']}**, held-out gap closed {_pct(d['closed'])} ({d['runs']} "
              f"recordings pooled, each held out in turn)"]
@@ -316,12 +339,14 @@ def render_limits(data: dict) -> str:
     lines += ["", "| force gain | force offset [N] | found | match | verdict |", "|---|---|---|---|---|"]
     for p in lim["gain_offset"]:
         lines.append(f"| {p['gain']:g} | {p['offset']:g} | {p['found']} | {p['match']} | {p['verdict']} |")
-    lines += ["", "| rig encoder [mrad] | delay named within 1 ms from | "
-              "found [ms] at 0.5 / 1 / 1.5 / 2 / 3 / 5 ms |", "|---|---|---|"]
+    lines += ["", "| rig encoder [mrad] | swing-ups | delay named within 1 ms from | "
+              "found [ms] at 0.5 / 1 / 1.5 / 2 / 3 / 5 ms |", "|---|---|---|---|"]
     for e in lim["rig_delay"]:
         found = " / ".join("-" if s["found_ms"] is None else f"{s['found_ms']:.2f}" for s in e["sweep"])
         limit = "not at 5 ms" if e["limit_ms"] is None else f"{e['limit_ms']:g} ms"
-        lines.append(f"| {e['encoder_mrad']:g} | {limit} | {found} |")
+        runs = e.get("runs", 2)
+        runs = f"{runs} (pooled)" if runs > 1 else f"{runs}"
+        lines.append(f"| {e['encoder_mrad']:g} | {runs} | {limit} | {found} |")
     m = lim["measured"]
     lines.append(f"\n{m['date']}, revision {m['commit']}, {m['wall_seconds'] / 60:.0f} min at load "
                  f"{m['load_1min']}-{m['load_1min_at_end']}.")

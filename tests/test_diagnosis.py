@@ -669,3 +669,33 @@ def test_flight_estimators_scored_as_the_study_scores_them(tmp_path):
     case = Case(found.names[1], found.runs[1], found.references[1])
     study = nominal_results([case], tmp_path / "study", StudySettings(estimators=("ukf",)), progress=False)
     assert ukf["per_segment"]["prior"][-1] == pytest.approx(study[case.name]["UKF"]["mse"], rel=1e-9)
+
+
+def test_bench_finds_the_dart_recordings_under_the_data_root(tmp_path, monkeypatch):
+    """The benchmark's DART part reads ``dart/`` under the data root ($LEARNEST_DATA first), an
+    explicit folder as given, and is skipped (its view says so) when there are no recordings."""
+    import sys
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    monkeypatch.syspath_prepend(str(scripts))
+    import bench_diagnosis
+    import figures
+
+    monkeypatch.setenv("LEARNEST_DATA", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    assert bench_diagnosis._dart_folder(None) is None
+
+    def none_kept(name):
+        raise FileNotFoundError(name)
+
+    monkeypatch.setattr(figures, "load", none_kept)  # no part kept from an earlier run
+    args = type("Args", (), {"parts": "dart", "dart": None})()
+    out, cond = bench_diagnosis.measure(args)
+    assert "dart" not in out and "dart/ of the data root" in cond["run"]
+    assert "not measured" in bench_diagnosis.render_dart({"figures": out})
+    (tmp_path / "dart").mkdir()
+    (tmp_path / "dart" / "run1.csv").write_text("t\n0\n")
+    assert Path(bench_diagnosis._dart_folder(None)) == tmp_path / "dart"
+    assert bench_diagnosis._dart_folder(str(tmp_path / "elsewhere")) == str(tmp_path / "elsewhere")
+    del sys.modules["bench_diagnosis"]

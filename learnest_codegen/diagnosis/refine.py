@@ -93,8 +93,9 @@ def refine(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], thet
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            step = np.clip(step * min(1.0, float(np.min(limit / np.maximum(np.abs(step), 1e-300)))),
-                           lo - theta, hi - theta)
+            over = np.abs(step) > limit  # shrink the whole step until every part is within its limit
+            shrink = float(np.min(limit[over] / np.abs(step[over]))) if over.any() else 1.0
+            step = np.clip(step * shrink, lo - theta, hi - theta)
             trial = theta + step
             try:
                 R2, P2 = evaluate(trial)
