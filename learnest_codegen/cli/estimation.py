@@ -4,6 +4,7 @@ and estimates of a run.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import click
@@ -35,6 +36,7 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
              clamp_inputs: bool | None = None, target: str = "host") -> dict:
     from ..codegen import crazyflie
     from ..compilation import DEFAULT_ESTIMATORS, check_horizon, estimator_dir, precision_problem
+    from ..errors import SettingsError
     from ..outputs import claim_output
     from ..pipeline import compile_model, resolve
 
@@ -61,13 +63,22 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         crazyflie.check_target(estimators[0], precision, system)
     resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
     inputs = (model_dir,) if model_dir else ()
+    fresh = []
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
         folder = estimator_dir(Path(out), resolved.model, name, precision)
         claim_output(folder, inputs=inputs, force=force, kind="dir")
         if target == "crazyflie":
             claim_output(Path(out) / crazyflie.app_name(folder.name), inputs=inputs, force=force, kind="dir")
+            fresh += [] if folder.exists() else [folder]
     results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
+    if target == "crazyflie":
+        try:  # an estimator the vehicle cannot hold is refused before anything is reported
+            crazyflie.check_fits(next(iter(results.values())))
+        except SettingsError:
+            for folder in fresh:
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused
