@@ -8,14 +8,17 @@ on recorded flights, computes what the Python bindings compute (examples/crazyfl
   against the firmware's headers and a stub of its queue. What the app gives its estimator must
   be what the recordings pipeline gives the Python study (float32 rounding of the same
   arithmetic), the estimates must equal the Python bindings' bit for bit on the app's inputs
-  (the same C, the same float32 inputs: docs/reports/cortex_m.md), and the replayed grey-box
-  estimator's velocity error must beat the onboard EKF's logged estimate on each flight.
-- Slow: the firmware's build of cf2.bin with the app (``make cf2_defconfig && make``) and the
-  same replay under QEMU on the Cortex-M4F, compiled with the flags that build used.
+  (the same C, the same float32 inputs: docs/reports/cortex_m.md), and the replayed estimator's
+  velocity error must beat the onboard EKF's logged estimate on each flight.
+- Slow: the same replay with the KNODE model; the firmware's build of cf2.bin as it comes and
+  with the app (``make cf2_defconfig && make``; flash, RAM and CCM printed before and after) and
+  the same replay under QEMU on the Cortex-M4F, compiled with the flags that build used.
 
-The model is the grey-box quadrotor prior (``quadrotor_linear``: ``adot = -k_v v - k_a a``,
-fitted by least squares) on two figure-eight flights; the circles it is replayed on are held out
-(scripts/bench_crazyflie.py replays all 17 flights on priors fitted on the other type).
+The models: the grey-box quadrotor prior (``quadrotor_linear``: ``adot = -k_v v - k_a a``,
+fitted by least squares) on two figure-eight flights, and the KNODE model (that prior and the
+net, the study's training) on the eight figure-eights, as scripts/bench_crazyflie.py trains it;
+the circles they are replayed on are held out (the benchmark replays all 17 flights on models
+fitted on the other type).
 Skips, with the reason, when gcc, arm-none-eabi-gcc, the firmware tarball, QEMU or the flights
 are missing.
 """
