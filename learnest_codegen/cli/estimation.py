@@ -4,7 +4,6 @@ and estimates of a run.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import click
@@ -36,7 +35,6 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
              clamp_inputs: bool | None = None, target: str = "host") -> dict:
     from ..codegen import crazyflie
     from ..compilation import DEFAULT_ESTIMATORS, check_horizon, estimator_dir, precision_problem
-    from ..errors import SettingsError
     from ..outputs import claim_output
     from ..pipeline import compile_model, resolve
 
@@ -72,13 +70,8 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
             fresh += [] if folder.exists() else [folder]
     results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
-    if target == "crazyflie":
-        try:  # an estimator the vehicle cannot hold is refused before anything is reported
-            crazyflie.check_fits(next(iter(results.values())))
-        except SettingsError:
-            for folder in fresh:
-                shutil.rmtree(folder, ignore_errors=True)
-            raise
+    if target == "crazyflie":  # refused before anything is reported, and nothing new left
+        crazyflie.check_fits(next(iter(results.values())), undo=fresh)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import re
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,10 +151,11 @@ def _horizon_bytes(estimator: GeneratedEstimator, horizon: int) -> int:
     return workspace_bytes(header, estimator.prefix) + counts(horizon) - counts(estimator.horizon)
 
 
-def check_fits(estimator: GeneratedEstimator) -> int:
+def check_fits(estimator: GeneratedEstimator, undo: Sequence[Path] = ()) -> int:
     """The workspace of ``estimator`` [B], or :class:`SettingsError` when it and the app task's
     stack need more than the :data:`FREE_RAM_BYTES` the firmware leaves free (the firmware's link
-    would fail)."""
+    would fail); the folders of ``undo`` (generated for this app only) are removed before it
+    raises."""
     workspace = workspace_bytes(Path(estimator.directory) / f"{estimator.prefix}.h", estimator.prefix)
     stack = 4 * STACK_WORDS
     if workspace + stack <= FREE_RAM_BYTES:
@@ -166,6 +168,8 @@ def check_fits(estimator: GeneratedEstimator) -> int:
             remedy += (f", or --horizon {fits[-1]} or less (N = {fits[-1]} needs "
                        f"{_horizon_bytes(estimator, fits[-1]):,} B)")
     at = f" at N = {estimator.horizon}" if estimator.horizon is not None else ""
+    for folder in undo:
+        shutil.rmtree(folder, ignore_errors=True)
     raise SettingsError(
         f"the crazyflie target: {estimator.estimator}{at} needs a {workspace:,} B workspace; with the "
         f"app task's {stack:,} B stack that is more than the {FREE_RAM_BYTES:,} B of RAM the firmware "
