@@ -100,28 +100,51 @@ def _flight(rp, path: Path, binary: Path, estimator, model: str, fold: str, net_
 
 
 def _mhe_workspaces(work: Path) -> dict:
-    """The embedded MHE's workspace bound (mhe_rti of the nominal ``quadrotor_linear``: the same
-    sizes as a fitted one) at its default horizon and at :data:`MHE_SHORT`."""
+    """The embedded MHE's workspace bound (mhe_rti of the nominal ``quadrotor_linear`` in float32:
+    the same sizes as a fitted one) at its default horizon and at :data:`MHE_SHORT`, and what
+    ``--target crazyflie`` says of the default horizon (it refuses what the firmware cannot hold)."""
     import re
+    import shutil
 
     from learnest_codegen.codegen.crazyflie import workspace_bytes
+
+    def compile_(out: Path, *args: str) -> subprocess.CompletedProcess:
+        shutil.rmtree(out, ignore_errors=True)
+        return subprocess.run([sys.executable, "-m", "learnest_codegen.cli", "compile", "--nominal",
+                               "--system", "quadrotor_linear", "--estimator", "mhe_rti", "--out", str(out),
+                               *args], capture_output=True, text=True)
 
     sizes, default = {}, None
     for horizon in (None, MHE_SHORT):
         gen = work / f"n{horizon or 'default'}"
-        subprocess.run([sys.executable, "-m", "learnest_codegen.cli", "compile", "--nominal", "--system",
-                        "quadrotor_linear", "--estimator", "mhe_rti", "--target", "crazyflie", "--out",
-                        str(gen), "--force", *(("--horizon", str(horizon)) if horizon else ())],
-                       check=True, capture_output=True)
-        est = next(p for p in gen.iterdir() if p.is_dir() and not p.name.endswith("_crazyflie"))
+        done = compile_(gen, "--precision", "float32", *(("--horizon", str(horizon)) if horizon else ()))
+        if done.returncode != 0:
+            raise SystemExit(f"compiling mhe_rti failed:\n{done.stderr[-2000:]}")
+        est = next(p for p in gen.iterdir() if p.is_dir())
         header = est / f"{est.name}.h"
         n = int(re.search(r"_HORIZON (\d+)", header.read_text()).group(1))
         sizes[n] = workspace_bytes(header, est.name)
         default = default or n
+    refused = compile_(work / "target", "--target", "crazyflie")
     (n0, b0), (n1, b1) = sizes.items()
     return {"estimator": "mhe_rti", "default_horizon": default,
             "workspace_bytes": {str(n): b for n, b in sizes.items()},
-            "bytes_per_stage": (b0 - b1) / (n0 - n1)}
+            "bytes_per_stage": (b0 - b1) / (n0 - n1),
+            "target_exit_code": refused.returncode,
+            "target_message": refused.stderr.strip().splitlines()[-1] if refused.stderr.strip() else ""}
+
+
+def _elsewhere(rp, firmware: Path, app: Path, work: Path):
+    """The firmware's build with ``app``, both copied to a longer path under ``work`` (built
+    again from clean: the file names compiled in must not depend on where they are)."""
+    import shutil
+
+    where = work / "another" / "checkout" / "path"
+    shutil.rmtree(work / "another", ignore_errors=True)
+    for folder in (firmware, app):  # without their build output (their top-level build/)
+        shutil.copytree(folder, where / folder.name, symlinks=True,
+                        ignore=lambda d, names, top=folder: ["build"] if Path(d) == top else [])
+    return rp.build_firmware(where / firmware.name, where / app.name)
 
 
 def _timing(rp, app: Path, firmware: Path, host: Path, folder: Path, work: Path, rate: int) -> dict:
@@ -168,7 +191,10 @@ def measure(args) -> tuple[dict, dict]:
         run="the 17 NanoBench flights, each from the log's start (on the ground) to the end of its "
             "airborne part, replayed on the model fitted on the other type; QEMU: "
             + ", ".join(TIMED),
-        firmware=str(rp.firmware_tarball().name), toolchain=subprocess.run(
+        firmware=str(rp.firmware_tarball().name) + " (unpacked as a git repository committed on the "
+                 "firmware's date; the apps' Makefiles map the file names compiled in, so the figures do "
+                 "not depend on the checkout path)",
+        toolchain=subprocess.run(
             ["arm-none-eabi-gcc", "--version"], capture_output=True, text=True).stdout.splitlines()[0])
     firmware = rp.unpack_firmware(OUT)
     before = rp.build_firmware(firmware)
@@ -193,7 +219,12 @@ def measure(args) -> tuple[dict, dict]:
             build = rp.build_firmware(firmware, app)
             out["firmware"][model] = {**build.sizes.to_json(), "warnings": len(build.warnings),
                                       "app_objects": rp.app_memory(build, app),
-                                      "file_name_bytes": rp.path_bytes(build, firmware)}
+                                      "paths_in_binary": rp.path_occurrences(build, firmware, app)}
+            if model == "greybox":
+                other = _elsewhere(rp, firmware, app, OUT / "elsewhere")
+                out["firmware"]["another_path"] = {
+                    **other.sizes.to_json(), "same_sizes": other.sizes == build.sizes,
+                    "same_binary": other.binary.read_bytes() == build.binary.read_bytes()}
             out["apps"][model] = {"prefix": estimator_dir.name, "estimator": estimator.manifest["estimator"],
                                   "net_kept": bool(trained.meta.get("net_kept", False)),
                                   "prior_params": trained.meta.get("prior_params"),
@@ -203,9 +234,14 @@ def measure(args) -> tuple[dict, dict]:
             rate = crazyflie.sample_rate_hz(estimator.manifest["dt"])
             out["timing"][model] = _timing(rp, app, firmware, host, folder, work / "qemu", rate)
     out["mhe"] = _mhe_workspaces(OUT / "mhe")
+    out["firmware"]["free_ram_limit"] = {"bytes": crazyflie.FREE_RAM_BYTES,
+                                         "as_measured": crazyflie.FREE_RAM_BYTES == before.sizes.to_json()
+                                         ["ram"]["free"]}
     grey = [r for r in out["flights"] if r["model"] == "greybox"]
+    knode = [r for r in out["flights"] if r["model"] == "knode_net"]
     out["summary"] = {"flights": len(grey),
                       "greybox_beats_onboard_velocity": sum(r["v_rms"] < r["onboard_v_rms"] for r in grey),
+                      "knode_beats_onboard_velocity": sum(r["v_rms"] < r["onboard_v_rms"] for r in knode),
                       "equal_to_bindings": sum(r["equal_to_bindings"] for r in out["flights"]),
                       "replays": len(out["flights"])}
     return out, cond
@@ -228,15 +264,25 @@ def render_memory(data: dict) -> str:
         f"\nThe app's own objects take {ga['flash']:,} B of flash and {ga['ram']:,} B of RAM with the "
         f"grey-box model ({na['flash']:,} and {na['ram']:,} B with the KNODE net), the estimator's "
         f"workspace {a['workspace_bytes']:,} B of it (a static buffer, no heap); the app task's stack "
-        f"({a['stack_bytes']:,} B of RAM) belongs to the firmware's app layer. Another "
-        f"{g['file_name_bytes']:,} B of the flash difference are the firmware's own file names, which an "
-        f"out-of-tree build compiles by their absolute path and its assertions keep. Compiler warnings "
+        f"({a['stack_bytes']:,} B of RAM) belongs to the firmware's app layer. Compiler warnings "
         f"in the app's files: {g['warnings']} and {n['warnings']} (the build has -Werror).")
+    e = f["another_path"]
+    lines.append(
+        f"The app's Makefile names the compiled-in file names (the firmware's assertions keep them) "
+        f"relative to the firmware's and the app's folders: their absolute paths occur "
+        f"{g['paths_in_binary'] + n['paths_in_binary']} times in the two `cf2.bin`, and the grey-box "
+        f"build copied to another, longer path has "
+        f"{'the same sizes' if e['same_sizes'] else 'other sizes'} "
+        f"({'the same bytes' if e['same_binary'] else 'other bytes'}).")
     m = data["figures"]["mhe"]
     n = m["default_horizon"]
+    short = min(m["workspace_bytes"], key=int)
     lines.append(f"The embedded MHE (`{m['estimator']}`) needs {m['workspace_bytes'][str(n)]:,} B of "
-                 f"workspace at its default horizon N = {n} ({m['bytes_per_stage']:,.0f} B a stage), more "
-                 f"than the {f['before']['ram']['free']:,} B of RAM the firmware leaves free.")
+                 f"workspace at its default horizon N = {n} ({m['bytes_per_stage']:,.0f} B a stage; "
+                 f"{m['workspace_bytes'][short]:,} B at N = {short}): with the app task's stack, more "
+                 f"than the {f['before']['ram']['free']:,} B of RAM the firmware leaves free. "
+                 f"`--target crazyflie` refuses it (exit code {m['target_exit_code']}):\n\n"
+                 f"    {m['target_message']}")
     return "\n".join(lines)
 
 
@@ -274,10 +320,11 @@ def render_flights(data: dict) -> str:
                      f"{g['onboard_v_rms']:.4f} | "
                      f"{'yes' if g['equal_to_bindings'] and n['equal_to_bindings'] else 'no'} |")
     beats = sum(r["greybox"]["v_rms"] < r["greybox"]["onboard_v_rms"] for r in rows.values())
+    net_beats = sum(r["knode_net"]["v_rms"] < r["knode_net"]["onboard_v_rms"] for r in rows.values())
     dropped = ("dropped (it did not beat the prior on its validation data), so that column repeats the "
                "grey-box")
-    lines.append(f"\nThe grey-box estimator's velocity error is below the onboard EKF's on {beats} of "
-                 f"{len(rows)} flights. " + " ".join(
+    lines.append(f"\nThe velocity error is below the onboard EKF's on {beats} of {len(rows)} flights with "
+                 f"the grey-box estimator, on {net_beats} of {len(rows)} with the KNODE net. " + " ".join(
                      f"The KNODE net fitted on the {t} was {'kept' if k else dropped}."
                      for t, k in kept.items()))
     return "\n".join(lines)

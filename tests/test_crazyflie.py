@@ -8,14 +8,17 @@ on recorded flights, computes what the Python bindings compute (examples/crazyfl
   against the firmware's headers and a stub of its queue. What the app gives its estimator must
   be what the recordings pipeline gives the Python study (float32 rounding of the same
   arithmetic), the estimates must equal the Python bindings' bit for bit on the app's inputs
-  (the same C, the same float32 inputs: docs/reports/cortex_m.md), and the replayed grey-box
-  estimator's velocity error must beat the onboard EKF's logged estimate on each flight.
-- Slow: the firmware's build of cf2.bin with the app (``make cf2_defconfig && make``) and the
-  same replay under QEMU on the Cortex-M4F, compiled with the flags that build used.
+  (the same C, the same float32 inputs: docs/reports/cortex_m.md), and the replayed estimator's
+  velocity error must beat the onboard EKF's logged estimate on each flight.
+- Slow: the same replay with the KNODE model; the firmware's build of cf2.bin as it comes and
+  with the app (``make cf2_defconfig && make``; flash, RAM and CCM printed before and after) and
+  the same replay under QEMU on the Cortex-M4F, compiled with the flags that build used.
 
-The model is the grey-box quadrotor prior (``quadrotor_linear``: ``adot = -k_v v - k_a a``,
-fitted by least squares) on two figure-eight flights; the circles it is replayed on are held out
-(scripts/bench_crazyflie.py replays all 17 flights on priors fitted on the other type).
+The models: the grey-box quadrotor prior (``quadrotor_linear``: ``adot = -k_v v - k_a a``,
+fitted by least squares) on two figure-eight flights, and the KNODE model (that prior and the
+net, the study's training) on the eight figure-eights, as scripts/bench_crazyflie.py trains it;
+the circles they are replayed on are held out (the benchmark replays all 17 flights on models
+fitted on the other type).
 Skips, with the reason, when gcc, arm-none-eabi-gcc, the firmware tarball, QEMU or the flights
 are missing.
 """
@@ -23,6 +26,7 @@ are missing.
 from __future__ import annotations
 
 import importlib.util
+import re
 import shutil
 import subprocess
 import sys
@@ -112,6 +116,28 @@ def test_what_a_crazyflie_cannot_run_is_refused_in_one_line(tmp_path, args, mess
     assert not list(tmp_path.iterdir())  # refused before anything was written
 
 
+def test_an_estimator_the_firmware_cannot_hold_is_refused_with_a_horizon_that_fits(tmp_path):
+    """The embedded MHE's workspace at its default horizon overflows the firmware's free RAM (its
+    link would fail): refused in one line, nothing left behind, and the horizon it proposes
+    generates the workspace it names."""
+    r = invoke(["--nominal", "--system", "quadrotor_linear", "--estimator", "mhe_rti", "--target",
+                "crazyflie", "--out", tmp_path])
+    assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"{crazyflie.FREE_RAM_BYTES:,} B of RAM" in r.output and "--estimator ukf" in r.output
+    workspace = int(re.search(r"needs a ([\d,]+) B workspace", r.output).group(1).replace(",", ""))
+    assert workspace + 4 * crazyflie.STACK_WORDS > crazyflie.FREE_RAM_BYTES
+    assert not list(tmp_path.iterdir())
+    horizon, predicted = re.search(r"--horizon (\d+) or less \(N = \d+ needs ([\d,]+) B\)", r.output).groups()
+    r = invoke(["--nominal", "--system", "quadrotor_linear", "--estimator", "mhe_rti", "--horizon", horizon,
+                "--target", "crazyflie", "--out", tmp_path])
+    assert r.exit_code == 0, r.output
+    assert f"workspace {predicted.replace(',', '')} B" in r.output
+    # one stage more does not fit
+    r = invoke(["--nominal", "--system", "quadrotor_linear", "--estimator", "mhe_rti", "--horizon",
+                int(horizon) + 1, "--target", "crazyflie", "--out", tmp_path / "longer"])
+    assert r.exit_code == 1 and "needs a" in r.output
+
+
 def test_one_estimator_per_app(tmp_path):
     r = invoke(["--nominal", "--system", "quadrotor", "--estimator", "ukf", "--estimator", "mhe_rti",
                 "--target", "crazyflie", "--out", tmp_path])
@@ -160,13 +186,15 @@ def host_replay(firmware, greybox, tmp_path_factory):
     return rp.build_replay(greybox[1], firmware, tmp_path_factory.mktemp("replay"))
 
 
-def test_replayed_flights_equal_the_bindings_and_beat_the_onboard_ekf(greybox, host_replay):
+def _check_replays(estimator_dir: Path, binary: Path, label: str) -> None:
+    """Each of :data:`REPLAYED` through the app's replay ``binary``: the app's samples are the
+    pipeline's, its estimates the bindings', its velocity error below the onboard EKF's."""
     from learnest_codegen.pipeline import load_estimator
 
-    estimator = load_estimator(greybox[0])
+    estimator = load_estimator(estimator_dir)
     for name in REPLAYED:
         flight = rp.flight_replay(_flights_folder() / f"{name}.csv")
-        replay = rp.run_replay(host_replay, flight.records)
+        replay = rp.run_replay(binary, flight.records)
         assert replay.summary["errors"] == 0 and replay.summary["late"] == 0
         assert np.all(replay.status[replay.started] >= 0)
         # the app's measurement and inputs are the recordings pipeline's, to float32 rounding
@@ -192,8 +220,37 @@ def test_replayed_flights_equal_the_bindings_and_beat_the_onboard_ekf(greybox, h
         v = slice(3, 6)
         ours = np.sqrt(np.mean((replay.x[airborne, v] - flight.reference[:, v]) ** 2))
         ekf = np.sqrt(np.mean((flight.onboard[:, v] - flight.reference[:, v]) ** 2))
-        print(f"{name}: velocity RMS {ours:.4f} m/s, onboard EKF {ekf:.4f} m/s")
+        print(f"{label}, {name}: velocity RMS {ours:.4f} m/s, onboard EKF {ekf:.4f} m/s")
         assert ours < ekf
+
+
+def test_replayed_flights_equal_the_bindings_and_beat_the_onboard_ekf(greybox, host_replay):
+    _check_replays(greybox[0], host_replay, "grey-box")
+
+
+@pytest.fixture(scope="module")
+def knode(tmp_path_factory):
+    """The KNODE model (the study's training, features ``linear``: the grey-box prior and the net)
+    trained on the eight figure-eights, as scripts/bench_crazyflie.py trains it; its estimator
+    folder and its app."""
+    from learnest_codegen.experiments.quadrotor import StudySettings, flight_cases, trained_model
+
+    _flights_folder()
+    work = tmp_path_factory.mktemp("knode")
+    train = [c for c in flight_cases(data_root()) if c.name.startswith("B3_figure8")]
+    trained = trained_model(train, "linear", work / "study", StudySettings(), work / "model", progress=False)
+    print(f"KNODE net kept: {trained.meta.get('net_kept')}")
+    r = invoke([work / "model", "--system", "quadrotor_linear", "--target", "crazyflie", "--out",
+                work / "gen"])
+    assert r.exit_code == 0, r.output
+    estimator = next(p for p in (work / "gen").iterdir() if not p.name.endswith("_crazyflie"))
+    return estimator, work / "gen" / crazyflie.app_name(estimator.name)
+
+
+@pytest.mark.slow
+def test_the_knode_app_replayed_equals_the_bindings_and_beats_the_onboard_ekf(firmware, knode,
+                                                                              tmp_path):
+    _check_replays(knode[0], rp.build_replay(knode[1], firmware, tmp_path / "replay"), "KNODE")
 
 
 def test_the_replay_catches_a_sample_the_app_did_not_take(greybox, host_replay):
@@ -217,14 +274,23 @@ def test_the_replay_catches_a_sample_the_app_did_not_take(greybox, host_replay):
 # -- the firmware's own build and the Cortex-M4F ---------------------------------------------------
 
 
+def _sizes(sizes: dict) -> str:
+    return ", ".join(f"{r} {sizes[k]['used']:,} of {sizes[k]['total']:,} B ({sizes[k]['free']:,} free)"
+                     for k, r in (("flash", "flash"), ("ram", "RAM"), ("ccm", "CCM")))
+
+
 @pytest.mark.slow
 def test_the_firmware_builds_with_the_app_and_runs_it_on_the_m4f(firmware, greybox, host_replay,
                                                                 tmp_path):
+    before = rp.build_firmware(firmware).sizes.to_json()  # as it comes
+    print(f"cf2.bin as it comes: {_sizes(before)}")
+    assert before["ram"]["free"] == crazyflie.FREE_RAM_BYTES  # the limit the target refuses by
     build = rp.build_firmware(firmware, greybox[1])
     sizes = build.sizes.to_json()
-    print(f"cf2.bin with the app: {sizes} ({build.seconds:.0f} s)")
+    print(f"cf2.bin with the grey-box app: {_sizes(sizes)} ({build.seconds:.0f} s)")
     assert build.binary.stat().st_size > 100_000 and build.warnings == ()
     assert sizes["ram"]["free"] >= 8 * 1024  # the app leaves the firmware 8 KB of RAM
+    assert rp.path_occurrences(build, firmware, greybox[1]) == 0  # the same wherever checked out
     if rp.missing_tools(qemu=True):
         pytest.skip(f"{rp.QEMU} not found")
     flight = rp.flight_replay(_flights_folder() / f"{REPLAYED[0]}.csv")

@@ -62,13 +62,17 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         crazyflie.check_target(estimators[0], precision, system)
     resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
     inputs = (model_dir,) if model_dir else ()
+    fresh = []
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
         folder = estimator_dir(Path(out), resolved.model, name, precision)
         claim_output(folder, inputs=inputs, force=force, kind="dir")
         if target == "crazyflie":
             claim_output(Path(out) / crazyflie.app_name(folder.name), inputs=inputs, force=force, kind="dir")
+            fresh += [] if folder.exists() else [folder]
     results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
+    if target == "crazyflie":  # refused before anything is reported, and nothing new left
+        crazyflie.check_fits(next(iter(results.values())), undo=fresh)
     for name, res in results.items():
         click.echo(f"{name}: {res.directory}  ({res.code_bytes / 1024:.0f} KiB of C, "
                    + (f"reused, built in {res.build_seconds:.2f} s)" if res.reused

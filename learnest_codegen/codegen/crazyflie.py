@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import re
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +34,8 @@ from ..recordings.crazyflie import GRAVITY
 from ..runtime.manifest import GeneratedEstimator
 from ..systems import System
 from ..toolchain import CFLAGS
-from . import templates
+from . import emit, templates
+from .mhe_gn import gn_workspace
 
 TEMPLATES = templates.TEMPLATES / "crazyflie"
 #: The estimators an app can run (no Ipopt, no heap), the one ``--target crazyflie`` builds when
@@ -56,6 +58,11 @@ INPUTS = {"T": ("Tx", "Ty", "Tz"), "VBAT": ("vbat",)}
 PRIORITY = 2
 STACK_WORDS = 1280
 APP_SOURCE = "estimator_out_of_tree.c"
+#: The RAM the firmware leaves free as it comes [B]: crazyflie-firmware 2a18fc29 (the tarball of
+#: ../shared/vendor), ``make cf2_defconfig && make`` with arm-none-eabi-gcc 12.2, its size report
+#: (scripts/bench_crazyflie.py measures it again: docs/figures/crazyflie.json,
+#: ``firmware.before.ram.free``). The estimator's workspace and the app task's stack live there.
+FREE_RAM_BYTES = 37_888
 
 
 @dataclass(frozen=True)
@@ -133,10 +140,48 @@ def workspace_bytes(header: Path, prefix: str) -> int:
     return int(match.group(1))
 
 
+def _horizon_bytes(estimator: GeneratedEstimator, horizon: int) -> int:
+    """The workspace of ``estimator`` (an embedded MHE) at another ``horizon``: only the counts
+    of :func:`~.mhe_gn.gn_workspace` change with it, CasADi's work arrays do not."""
+    def counts(n: int) -> int:
+        return emit.workspace_bytes(gn_workspace(estimator.nx, estimator.nu, estimator.ny, n),
+                                    estimator.precision)
+
+    header = Path(estimator.directory) / f"{estimator.prefix}.h"
+    return workspace_bytes(header, estimator.prefix) + counts(horizon) - counts(estimator.horizon)
+
+
+def check_fits(estimator: GeneratedEstimator, undo: Sequence[Path] = ()) -> int:
+    """The workspace of ``estimator`` [B], or :class:`SettingsError` when it and the app task's
+    stack need more than the :data:`FREE_RAM_BYTES` the firmware leaves free (the firmware's link
+    would fail); the folders of ``undo`` (generated for this app only) are removed before it
+    raises."""
+    workspace = workspace_bytes(Path(estimator.directory) / f"{estimator.prefix}.h", estimator.prefix)
+    stack = 4 * STACK_WORDS
+    if workspace + stack <= FREE_RAM_BYTES:
+        return workspace
+    remedy = "give --estimator ukf"
+    if estimator.horizon is not None:
+        fits = [n for n in range(1, estimator.horizon)
+                if _horizon_bytes(estimator, n) + stack <= FREE_RAM_BYTES]
+        if fits:
+            remedy += (f", or --horizon {fits[-1]} or less (N = {fits[-1]} needs "
+                       f"{_horizon_bytes(estimator, fits[-1]):,} B)")
+    at = f" at N = {estimator.horizon}" if estimator.horizon is not None else ""
+    for folder in undo:
+        shutil.rmtree(folder, ignore_errors=True)
+    raise SettingsError(
+        f"the crazyflie target: {estimator.estimator}{at} needs a {workspace:,} B workspace; with the "
+        f"app task's {stack:,} B stack that is more than the {FREE_RAM_BYTES:,} B of RAM the firmware "
+        f"leaves free (cf2_defconfig); {remedy}")
+
+
 def write_app(estimator: GeneratedEstimator, system: System, out: str | Path) -> CrazyflieApp:
     """Write the app folder of ``estimator`` (of ``system``) as ``out/<prefix>_crazyflie``,
-    whole or not at all; returns it."""
+    whole or not at all; returns it. Refused when it does not fit the firmware's RAM
+    (:func:`check_fits`)."""
     indices = check_target(estimator.estimator, estimator.precision, system)
+    workspace = check_fits(estimator)
     prefix, source = estimator.prefix, Path(estimator.directory)
     rate = sample_rate_hz(estimator.dt)
     values = {"p": prefix, "P": prefix.upper(), "rate_hz": rate, "dt_ms": round(1000 * estimator.dt),
@@ -152,5 +197,4 @@ def write_app(estimator: GeneratedEstimator, system: System, out: str | Path) ->
         shutil.copyfile(TEMPLATES / "src" / APP_SOURCE, tmp / "src" / APP_SOURCE)
         for name in (*estimator.sources, *estimator.headers, f"{prefix}.mk"):
             shutil.copyfile(source / name, tmp / "src" / prefix / name)
-    return CrazyflieApp(directory, prefix, estimator.estimator, rate,
-                        workspace_bytes(source / f"{prefix}.h", prefix))
+    return CrazyflieApp(directory, prefix, estimator.estimator, rate, workspace)

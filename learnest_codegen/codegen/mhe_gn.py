@@ -39,11 +39,7 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
     groups = state_groups(functions[0], functions[1], nx, ny)
-    gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
-          + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
-    counts = mhe_workspace(nx, model.nu, ny, n, solution=False)
-    counts = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
-              "members": counts["members"] + 16}
+    counts = gn_workspace(nx, model.nu, ny, n)
     P = prefix.upper()
     design = Design(
         estimator=solver.estimator,
@@ -83,6 +79,17 @@ def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
         _with_jacobian(f"{name}_node", model.h(x, u), x, u, ("h", "C")),
         cs.Function(f"{name}_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"]),
     )
+
+
+def gn_workspace(nx: int, nu: int, ny: int, n: int) -> dict[str, int]:
+    """What the embedded MHE's handle holds at horizon ``n`` besides CasADi's work arrays (which
+    do not depend on ``n``): :func:`~.mhe.mhe_workspace` and the Gauss-Newton's normal equations,
+    factors and steps."""
+    gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
+          + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
+    counts = mhe_workspace(nx, nu, ny, n, solution=False)
+    return {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
+            "members": counts["members"] + 16}
 
 
 def _with_jacobian(name: str, value: cs.SX, x: cs.SX, u: cs.SX, names: tuple[str, str]) -> cs.Function:
