@@ -134,8 +134,9 @@ def test_an_estimator_the_firmware_cannot_hold_is_refused_with_a_horizon_that_fi
     assert f"workspace {predicted.replace(',', '')} B" in r.output
     # one stage more does not fit
     r = invoke(["--nominal", "--system", "quadrotor_linear", "--estimator", "mhe_rti", "--horizon",
-                int(horizon) + 1, "--target", "crazyflie", "--out", tmp_path / "longer"])
+                int(horizon) + 1, "--target", "crazyflie", "--out", tmp_path / "longer" / "app"])
     assert r.exit_code == 1 and "needs a" in r.output
+    assert not (tmp_path / "longer").exists()  # the --out folders it would have created are not left
 
 
 def test_one_estimator_per_app(tmp_path):

@@ -62,13 +62,15 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         crazyflie.check_target(estimators[0], precision, system)
     resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
     inputs = (model_dir,) if model_dir else ()
-    fresh = []
+    # a refused app leaves nothing new: the --out folders this command creates, or new estimator folders
+    created = [p for p in (Path(out).resolve(), *Path(out).resolve().parents) if not p.exists()]
+    fresh = created[-1:]
     for name in dict.fromkeys(estimators):  # each folder: not over an input, not unasked
         folder = estimator_dir(Path(out), resolved.model, name, precision)
         claim_output(folder, inputs=inputs, force=force, kind="dir")
         if target == "crazyflie":
             claim_output(Path(out) / crazyflie.app_name(folder.name), inputs=inputs, force=force, kind="dir")
-            fresh += [] if folder.exists() else [folder]
+            fresh += [] if folder.exists() or created else [folder]
     results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
                             horizon=horizon)
     if target == "crazyflie":  # refused before anything is reported, and nothing new left
