@@ -21,7 +21,6 @@ the firmware's flash without its run data, RAM (``.data + .bss``), the workspace
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 import subprocess
 import sys
@@ -51,11 +50,7 @@ def add_arguments(parser) -> None:
 
 
 def example():
-    spec = importlib.util.spec_from_file_location("build_and_compare", EXAMPLE / "build_and_compare.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return figures.load_file(EXAMPLE / "build_and_compare.py", "build_and_compare")
 
 
 def quadrotor_model(data: str | None, out: Path):

@@ -25,7 +25,6 @@ crazyflie`` with its defaults (the UKF in float32, the system's tuning), the fir
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -48,11 +47,7 @@ STATES = ("px", "py", "pz", "vx", "vy", "vz", "ax", "ay", "az")
 
 
 def _replay_module():
-    spec = importlib.util.spec_from_file_location("crazyflie_replay", EXAMPLE / "replay.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return figures.load_file(EXAMPLE / "replay.py", "crazyflie_replay")
 
 
 def add_arguments(parser) -> None:

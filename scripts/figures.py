@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import datetime
 import importlib
+import importlib.util
 import json
 import os
 import platform
@@ -46,6 +47,16 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 BLOCK = re.compile(r"(<!-- figure: (?P<name>[\w.]+) -->\n)(?P<body>.*?)(<!-- /figure -->)", re.S)
 VALUE = re.compile(r"(<!-- value: (?P<bench>\w+) (?P<path>[\w.\[\]-]+) (?P<fmt>\S+) -->)(?P<body>.*?)"
                    r"(<!-- /value -->)")
+
+def load_file(path, name: str):
+    """The Python file ``path`` imported as module ``name`` (an example or a script outside any
+    package); registered in ``sys.modules`` first, because dataclasses look their module up by name."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
 
 
 def _packages() -> dict[str, str]:

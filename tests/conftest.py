@@ -10,6 +10,19 @@ from learnest_codegen import get_system
 from learnest_codegen.simulation import simulate
 
 
+def load_file(path, name: str):
+    """The Python file ``path`` imported as module ``name`` (an example or a script outside any
+    package); registered in ``sys.modules`` first, because dataclasses look their module up by name."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def rounding(dtype=np.float64, *, ops: int = 1, cond: float = 1.0) -> float:
     """The relative tolerance between two computations of one quantity that round differently.
 

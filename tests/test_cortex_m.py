@@ -13,13 +13,12 @@ Skips when the cross toolchain or QEMU is missing (scripts/setup_and_test.sh ins
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_file
 
 from learnest_codegen import get_system
 from learnest_codegen.codegen.emit import c_list
@@ -36,15 +35,7 @@ STEPS = 300
 TRACKING_STDS = 5.0
 
 
-def _load_example():
-    spec = importlib.util.spec_from_file_location("build_and_compare", EXAMPLE / "build_and_compare.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
-
-
-bc = _load_example()
+bc = load_file(EXAMPLE / "build_and_compare.py", "build_and_compare")
 _missing = bc.missing_tools()
 pytestmark = pytest.mark.skipif(
     bool(_missing), reason=f"{', '.join(_missing)} not found: apt-get install gcc-arm-none-eabi "

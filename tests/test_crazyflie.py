@@ -25,16 +25,15 @@ are missing.
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import load_file
 
 from learnest_codegen.cli import compile_standalone
 from learnest_codegen.codegen import crazyflie
@@ -51,15 +50,7 @@ ACCEL_ROUNDING = 8 * np.spacing(np.float32(16.0))  # [m/s^2]
 THRUST_ROUNDING = 0.5 / 65535 + 8 * np.spacing(np.float32(1.0))
 
 
-def _load_example():
-    spec = importlib.util.spec_from_file_location("crazyflie_replay", EXAMPLE / "replay.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
-
-
-rp = _load_example()
+rp = load_file(EXAMPLE / "replay.py", "crazyflie_replay")
 
 
 def invoke(args):
