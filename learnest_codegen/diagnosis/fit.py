@@ -37,6 +37,7 @@ class FitSettings:
     folds: int = 10  # cross-validation folds (contiguous blocks, within runs)
     max_effects: int = 6
     t_min: float = 2.5  # fold-consistency t statistic to enter
+    z_min: float = 4.0  # ... or, for a filter (a delay, a lag), the whole data's Wald statistic
     t_drop: float = 1.5  # ... below which a chosen effect's loss lets it go (hysteresis: no flip-flop)
     min_gain: float = 0.01
     min_size: float = 0.1

@@ -28,6 +28,10 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
 * **causal** (a delay or a lag): it must fit significantly better than its time mirror (the same
   filter run backwards in time, an advance): a smoother blurs an input's steps symmetrically in
   time, which a delay bounded to be >= 0 would otherwise half fit;
+* a delay or a lag is seen only where its input changes, so its held-out gain is uneven over the
+  folds by nature: for these, the whole data's Wald statistic (:func:`wald`) above ``z_min`` also
+  counts as consistent over folds, and the Wald statistic of the filter minus its mirror fitted
+  with it as significantly better than the mirror;
 * **jointly** (small subsets): when no candidate passes alone, or a pair fits significantly
   better than the best single one, two candidates enter together, each passing the tests
   against the other alone;
@@ -105,13 +109,38 @@ def per_run_values(data: FitData, cols: list[int], theta_cols: np.ndarray,
         step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[cols], data.hi[cols])
         e = R - np.einsum("ksi,i->ks", P, step)
         label = _fold_labels(len(rows), min(blocks, len(rows)))
-        scores = np.stack([np.einsum("ksi,ks->i", P[label == b], e[label == b]) for b in np.unique(label)])
-        n_b = len(scores)
-        inv = np.linalg.pinv(G)
-        cov = inv @ (scores.T @ scores) @ inv * n_b / max(n_b - 1, 1)
+        cov = sandwich(P, e, G, label)
         values[r] = theta_cols + step
         se[r] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return values, se
+
+
+def sandwich(P: np.ndarray, e: np.ndarray, G: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """The covariance of a least-squares step on features ``P (N, S, m)`` with residual ``e (N,
+    S)`` and normal matrix ``G``, robust to a residual correlated in time: ``G^-1 (sum_b s_b
+    s_b') G^-1`` over the contiguous stretches ``label (N,)``, ``s_b = P_b' e_b``."""
+    scores = np.stack([np.einsum("ksi,ks->i", P[label == b], e[label == b]) for b in np.unique(label)])
+    n_b = len(scores)
+    inv = np.linalg.pinv(G)
+    return inv @ (scores.T @ scores) @ inv * n_b / max(n_b - 1, 1)
+
+
+def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blocks: int) -> float:
+    """The Wald statistic of ``weights' theta`` over the columns ``idx``: ``theta`` the parameters
+    (``at`` at the data's linearisation plus the step fitted with all of them, bounded), its
+    standard error from :func:`sandwich` on ``blocks`` contiguous stretches of the whole data.
+
+    It weighs the evidence for a parameter where it lies: a sub-sample input delay is seen only
+    where the input changes (a swing-up's torque switches a few times a swing), so its held-out
+    gain is large in a few folds and nil in the others, and a t statistic over the folds' gains
+    counts that unevenness of excitation as inconsistency; the standard error counts only the
+    residual's own (correlated) scatter."""
+    P, R = data.Phi[:, :, idx], data.R
+    G = np.einsum("ksi,ksj->ij", P, P)
+    step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[idx], data.hi[idx])
+    e = R - np.einsum("ksi,i->ks", P, step)
+    cov = sandwich(P, e, G, _fold_labels(len(R), min(blocks, len(R))))
+    return float(weights @ (at + step) / max(np.sqrt(max(weights @ cov @ weights, 0.0)), 1e-300))
 
 
 def consistent(values: np.ndarray, pooled: float, se: np.ndarray | None = None, z: float = 3.0,
@@ -220,7 +249,13 @@ class Search:
                 "gain_abs": gain, "gain_needed": need_gain, "remaining_gap": remaining,
                 "share_of_prior_gap": gain / self.first.gap,
                 "size": size, "size_needed": need, "start": start}
-        reasons = [why for ok, why in ((t_stat > s.t_min, "not consistent across folds"),
+        # a filter (a delay, a lag) is seen where the input changes: its evidence is the whole
+        # data's Wald statistic when the folds' gains are too uneven for their t statistic
+        z = (self._filter_wald(base_cols, j, start) if single and self.effects[j].is_filter
+             and t_stat <= s.t_min and gain > need_gain and size > need else None)
+        step["z"] = None if z is None else z[0]
+        reasons = [why for ok, why in ((t_stat > s.t_min or (z is not None and z[0] > s.z_min),
+                                        "not consistent across folds"),
                                        (gain > need_gain, "explains too little of the gap"),
                                        (size > need, "below the noise / observer-artefact level"))
                    if not ok]
@@ -229,7 +264,10 @@ class Search:
             mirrored = self._trial(G, b, c, base_cols, j, data, mirror=True)[0]
             edge = mirrored - trial
             step["gain_over_mirror"] = float(edge.sum())
-            if edge.sum() <= need_gain or _t(_rel(edge, mirrored)) <= s.t_min:
+            if z is not None:
+                step["z_over_mirror"] = z[1]
+            if edge.sum() <= need_gain or (_t(_rel(edge, mirrored)) <= s.t_min
+                                            and (z is None or not z[1] > s.z_min)):
                 reasons.append("no better than its time mirror (a smoother's blur, not a lag)")
         if not reasons and src.runs is not None and len(np.unique(src.runs)) >= 2:
             theta_idx = np.concatenate([self.theta[base_cols], [start] if local is not None
@@ -244,6 +282,23 @@ class Search:
         step["accept"] = not reasons
         step["reason"] = "; ".join(reasons)
         return step
+
+    def _filter_wald(self, base_cols: list[int], j: int, start: float) -> tuple[float, float]:
+        """The Wald statistics (:func:`wald`) of filter ``j`` joining ``base_cols`` (linearised at
+        ``start``), and of its excess over its time mirror fitted with it (the delay minus the
+        advance: a smoother's symmetric blur fits both alike, a late input the delay alone)."""
+        k = len(base_cols)
+        at = np.concatenate([self.theta[base_cols], [start]])
+        fwd = self._local(base_cols + [j], at)
+        back = self._local(base_cols + [j], np.concatenate([self.theta[base_cols], [0.0]]), True)
+        both = FitData(fwd.R, np.concatenate([fwd.Phi, back.Phi[:, :, -1:]], axis=2), fwd.sigma,
+                       np.append(fwd.spurious, back.spurious[-1]), fwd.labels,
+                       np.append(fwd.lo, back.lo[-1]), np.append(fwd.hi, back.hi[-1]), fwd.runs)
+        alone, against = np.zeros(k + 1), np.zeros(k + 2)
+        alone[k], against[k], against[k + 1] = 1.0, 1.0, -1.0
+        blocks = self.settings.blocks
+        return (wald(fwd, list(range(k + 1)), at, alone, blocks),
+                wald(both, list(range(k + 2)), np.append(at, 0.0), against, blocks))
 
     def candidates(self, exclude=()) -> dict:
         """The next candidate: of the ``scan`` best by held-out SSE, the first that passes the tests;
