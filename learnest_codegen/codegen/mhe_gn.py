@@ -60,6 +60,20 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
+def generate_mhe_gn(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
+                    model_hash: str = "", precision: str = "float64") -> GeneratedEstimator:
+    """The converged embedded MHE (``mhe_gn``) of ``model`` in ``precision``, default prefix."""
+    return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
+                                 solver=GaussNewtonSettings(mode="converged", precision=precision))
+
+
+def generate_mhe_rti(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
+                     model_hash: str = "", precision: str = "float64") -> GeneratedEstimator:
+    """The real-time-iteration embedded MHE (``mhe_rti``) of ``model`` in ``precision``."""
+    return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
+                                 solver=GaussNewtonSettings(mode="rti", precision=precision))
+
+
 def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
     """``<name>_stage(x, u) -> (F, A)``, ``<name>_node(x, u) -> (h, C)``, ``<name>_F``.
 
