@@ -79,10 +79,11 @@ class EstimatorKind:
     float32_defaults: Callable[[Any], Any] | None = None
 
     def generate(self, model: DiscreteModel, settings: Any, directory: Path, **options) -> Any:
-        """Write, build and describe the estimator of ``model`` in ``directory``."""
+        """Write, build and describe the estimator of ``model`` in ``directory`` (the manifest's
+        ``estimator`` is :attr:`name`)."""
         module, function = self.generator.split(":")
         return getattr(importlib.import_module(f"learnest_codegen.codegen.{module}"), function)(
-            model, settings, directory, **options)
+            model, settings, directory, name=self.name, **options)
 
 
 def _mhe_defaults(model: DiscreteModel, **overrides):

@@ -10,6 +10,7 @@ updates; measured 3.3e-6).
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -93,3 +94,32 @@ def test_learnest_compile_builds_the_ekf(tmp_path, cartpole, run):
     X_c = est.run(run.u, run.y, cartpole.x0)
     X_r = ln.reference_estimator("nominal", "ekf", system=cartpole).run(run.u, run.y, cartpole.x0)
     assert np.abs(X_c - X_r).max() <= 1e-10 * np.abs(X_r).max()
+
+
+def test_plain_c_main_two_instances_and_no_allocation(knode, run, cartpole, tmp_path):
+    """test_embedded_mhe.py's firmware-style main over the KNODE-EKF: malloc, calloc, realloc
+    and free wrapped and counted over init and every step (none), two handles interleaved, the
+    estimates those of the binding to 1e-12."""
+    from test_embedded_mhe import C_MAIN, c_array, gn_sources
+
+    est = ln.compile_estimator(knode, "ekf", out=tmp_path / "gen")
+    prefix, directory = est.manifest["prefix"], est.directory
+    T = 60
+    U, Y = run.u[:T], run.y[:T]
+    s = est.settings
+    flat = lambda M: "{" + c_array(M.ravel()).strip("{}") + "}"  # noqa: E731
+    source = (C_MAIN.replace("PREFIX_UP", prefix.upper()).replace("PREFIX", prefix)
+              .replace("UDATA", c_array(U)).replace("YDATA", c_array(Y))
+              .replace("X0", flat(np.asarray(cartpole.x0))).replace("QDATA", flat(s.Q()))
+              .replace("RDATA", flat(s.R())).replace("PDATA", flat(s.P0())))
+    main_c = tmp_path / "main.c"
+    main_c.write_text(f"#define T_RUN {T}\n" + source)
+    exe = tmp_path / "main"
+    subprocess.run(["gcc", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", str(main_c),
+                    *map(str, gn_sources(directory)), f"-I{directory}",
+                    "-Wl,--wrap=malloc,--wrap=calloc,--wrap=realloc,--wrap=free", "-lm", "-o", str(exe)],
+                   check=True)
+    proc = subprocess.run([str(exe)], capture_output=True, text=True)
+    assert proc.returncode == 0 and "allocations 0" in proc.stderr, proc.stderr
+    X_c = np.loadtxt(proc.stdout.splitlines())
+    np.testing.assert_allclose(X_c, est.run(U, Y, cartpole.x0), rtol=0, atol=1e-12)

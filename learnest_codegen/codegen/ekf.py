@@ -20,17 +20,19 @@ from .mhe_gn import model_functions
 
 def generate_ekf(model: DiscreteModel, settings: EKFSettings, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False, precision: str = "float64") -> GeneratedEstimator:
+                 force: bool = False, precision: str = "float64",
+                 name: str = "ekf") -> GeneratedEstimator:
     """Write, compile and describe a C EKF for ``model`` in ``out_dir`` (``codegen/emit.py``).
 
-    ``precision`` (``"float64"`` or ``"float32"``) is the C real type. Unchanged inputs reuse
-    the library unless ``force``. Raises :class:`BuildError` with the compiler's stderr on
-    failure.
+    ``precision`` (``"float64"`` or ``"float32"``) is the C real type; ``name`` the estimator's
+    (its entry in ``compilation.ESTIMATORS``: the manifest's ``estimator``, the default
+    prefix's). Unchanged inputs reuse the library unless ``force``. Raises
+    :class:`BuildError` with the compiler's stderr on failure.
     """
-    prefix = resolve_prefix(prefix, model, "ekf", precision)
+    prefix = resolve_prefix(prefix, model, name, precision)
     stage, node, _ = model_functions(model, f"{prefix}_model")
     design = kalman_design(
-        model, settings, estimator="ekf", title="Extended Kalman Filter", kit="learnest_ekf.h",
+        model, settings, estimator=name, title="Extended Kalman Filter", kit="learnest_ekf.h",
         functions=(stage, node),
         hooks={"LEARNEST_MODEL_STAGE": stage.name(), "LEARNEST_MODEL_NODE": node.name()},
         precision=precision,

@@ -31,7 +31,7 @@ from .emit import Design, comment, emit, resolve_prefix
 
 def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False) -> GeneratedEstimator:
+                 force: bool = False, name: str = "mhe") -> GeneratedEstimator:
     """Generate, compile and describe the Ipopt MHE of ``model`` in ``out_dir``.
 
     Parameters
@@ -44,9 +44,11 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     prefix : C symbol prefix, default ``"<system>_<kind>_mhe_n<N>"`` (N the horizon).
     model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
     force : rebuild the library even when nothing changed.
+    name : the estimator's name (its entry in ``compilation.ESTIMATORS``): the manifest's
+        ``estimator`` and the default prefix's.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
-    prefix = resolve_prefix(prefix, model, "mhe", "float64", settings.horizon)
+    prefix = resolve_prefix(prefix, model, name, "float64", settings.horizon)
     problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     F = cs.Function(f"{prefix}_model_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
@@ -57,7 +59,7 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     offsets = problem.layout.offsets()
     include, lib = toolchain.casadi_dirs()
     design = Design(
-        estimator="mhe", title="Moving horizon estimator (Ipopt)", kit="learnest_mhe_ipopt.h",
+        estimator=name, title="Moving horizon estimator (Ipopt)", kit="learnest_mhe_ipopt.h",
         functions=functions,
         hooks={"LEARNEST_MODEL_SOLVER": problem.solver.name(),
                "LEARNEST_MODEL_SOLVER_CHECKOUT": f"{problem.solver.name()}_checkout",

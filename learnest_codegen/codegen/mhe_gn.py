@@ -23,26 +23,29 @@ from .mhe import header_doc, mhe_defaults, mhe_workspace
 
 def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                           solver: GaussNewtonSettings | None = None, prefix: str | None = None,
-                          model_hash: str = "", force: bool = False) -> GeneratedEstimator:
+                          model_hash: str = "", force: bool = False,
+                          name: str | None = None) -> GeneratedEstimator:
     """Generate, compile and describe the embedded (Gauss-Newton) MHE of ``model``.
 
     The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
     tolerance and precision (default converged, float64). The default prefix is
     ``"<system>_<kind>_<mhe_gn|mhe_rti>_n<N>"`` (N the horizon; ``_float32`` appended in
-    float32). The settings go through
+    float32); ``name`` replaces the estimator's name (``mhe_gn`` or ``mhe_rti`` by the mode) in
+    the manifest and the prefix. The settings go through
     :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE's.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
-    prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision, settings.horizon)
+    name = name or solver.estimator
+    prefix = resolve_prefix(prefix, model, name, solver.precision, settings.horizon)
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
     groups = state_groups(functions[0], functions[1], nx, ny)
     counts = gn_workspace(nx, model.nu, ny, n)
     P = prefix.upper()
     design = Design(
-        estimator=solver.estimator,
+        estimator=name,
         title=f"Embedded moving horizon estimator ({'RTI' if solver.mode == 'rti' else 'converged'} "
               "Gauss-Newton)", kit="learnest_mhe_gn.h", functions=functions,
         hooks={"LEARNEST_MODEL_STAGE": functions[0].name(), "LEARNEST_MODEL_NODE": functions[1].name(),
@@ -61,17 +64,21 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
 
 
 def generate_mhe_gn(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
-                    model_hash: str = "", precision: str = "float64") -> GeneratedEstimator:
+                    model_hash: str = "", precision: str = "float64",
+                    name: str = "mhe_gn") -> GeneratedEstimator:
     """The converged embedded MHE (``mhe_gn``) of ``model`` in ``precision``, default prefix."""
     return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
-                                 solver=GaussNewtonSettings(mode="converged", precision=precision))
+                                 solver=GaussNewtonSettings(mode="converged", precision=precision),
+                                 name=name)
 
 
 def generate_mhe_rti(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
-                     model_hash: str = "", precision: str = "float64") -> GeneratedEstimator:
+                     model_hash: str = "", precision: str = "float64",
+                     name: str = "mhe_rti") -> GeneratedEstimator:
     """The real-time-iteration embedded MHE (``mhe_rti``) of ``model`` in ``precision``."""
     return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
-                                 solver=GaussNewtonSettings(mode="rti", precision=precision))
+                                 solver=GaussNewtonSettings(mode="rti", precision=precision),
+                                 name=name)
 
 
 def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:

@@ -182,12 +182,14 @@ def ukf_update_function(model: DiscreteModel, settings: UKFSettings, *,
 
 def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False, precision: str = "float64") -> GeneratedEstimator:
+                 force: bool = False, precision: str = "float64",
+                 name: str = "ukf") -> GeneratedEstimator:
     """Write, compile and describe a C UKF for ``model`` in ``out_dir`` (``codegen/emit.py``).
 
-    ``precision`` (``"float64"`` or ``"float32"``) is the C real type. Unchanged inputs reuse
-    the library unless ``force``. Raises :class:`BuildError` with the compiler's stderr on
-    failure.
+    ``precision`` (``"float64"`` or ``"float32"``) is the C real type; ``name`` the estimator's
+    (its entry in ``compilation.ESTIMATORS``: the manifest's ``estimator``, the default
+    prefix's). Unchanged inputs reuse the library unless ``force``. Raises
+    :class:`BuildError` with the compiler's stderr on failure.
     """
     check_precision(precision, "generate_ukf")
     if precision == "float32" and settings.alpha < FLOAT32_MIN_ALPHA:
@@ -195,13 +197,13 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                          f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
                          "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
                          "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
-    prefix = resolve_prefix(prefix, model, "ukf", precision)
+    prefix = resolve_prefix(prefix, model, name, precision)
     settings.validate_for(model)
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     functions = (cs.Function(f"{prefix}_model_F", [x, u], [cs.cse(model.F(x, u))], ["x", "u"], ["F"]),
                  cs.Function(f"{prefix}_model_h", [x, u], [cs.cse(model.h(x, u))], ["x", "u"], ["h"]))
     design = kalman_design(
-        model, settings, estimator="ukf", title="Unscented Kalman Filter", kit="learnest_ukf.h",
+        model, settings, estimator=name, title="Unscented Kalman Filter", kit="learnest_ukf.h",
         functions=functions,
         hooks={"LEARNEST_MODEL_F": functions[0].name(), "LEARNEST_MODEL_H": functions[1].name(),
                "LEARNEST_UKF_ALPHA": repr(float(settings.alpha)),
