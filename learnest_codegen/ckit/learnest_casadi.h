@@ -108,16 +108,20 @@ LEARNEST_KIT int learnest_model_update(struct learnest_model* md, const learnest
 #endif
 
 #ifdef LEARNEST_MODEL_SOLVER
-/* The NLP solver: x = argmin of the problem with parameters p from the warm start x0.
- * Its memory is checked out of CasADi's static pool for the call and given back. */
+/* The NLP solver: x = argmin of the problem with parameters p from the warm start x0, with
+ * the variable bounds lbx and ubx (NULL: none). Its memory is checked out of CasADi's static
+ * pool for the call and given back. */
 LEARNEST_KIT int learnest_model_solve(struct learnest_model* md, const learnest_real* p,
-                                      const learnest_real* x0, learnest_real* x) {
+                                      const learnest_real* x0, const learnest_real* lbx,
+                                      const learnest_real* ubx, learnest_real* x) {
   int i, flag, mem = LEARNEST_MODEL_SOLVER_CHECKOUT();
   if (mem < 0) return LEARNEST_NO_MEMORY;
-  for (i = 0; i <= LEARNEST_CASADI_SZ_ARG; ++i) md->arg[i] = 0;  /* no bounds, no multipliers */
+  for (i = 0; i <= LEARNEST_CASADI_SZ_ARG; ++i) md->arg[i] = 0;  /* no multipliers */
   for (i = 0; i <= LEARNEST_CASADI_SZ_RES; ++i) md->res[i] = 0;
   md->arg[0] = x0;
   md->arg[1] = p;
+  md->arg[2] = lbx;  /* nlpsol's inputs: x0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0 */
+  md->arg[3] = ubx;
   md->res[0] = x;
   flag = LEARNEST_MODEL_SOLVER(md->arg, md->res, md->iw, md->w, mem);
   LEARNEST_MODEL_SOLVER_RELEASE(mem);

@@ -17,6 +17,7 @@
 #ifndef LEARNEST_MHE_H
 #define LEARNEST_MHE_H
 
+#include "learnest_bounds.h"
 #include "learnest_dense.h"
 #include "learnest_gate.h"
 #include "learnest_window.h"
@@ -368,6 +369,7 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
     learnest_window_reset(&m->next.w, xbar);
     learnest_window_open(&m->next.w, u);
     learnest_window_fill(m->Xn, xbar);
+    learnest_box_clamp(m->Xn, LEARNEST_N + 1);
     memcpy(m->Cn, cov, sizeof m->Cn);
     m->carried_next = 1;
     learnest_mhe_weigh_arrival(m, m->Cn, &m->carried_next, m->next.P);
