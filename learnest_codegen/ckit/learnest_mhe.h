@@ -22,6 +22,12 @@
 #include "learnest_gate.h"
 #include "learnest_window.h"
 
+/* 1: the arrival covariance is carried by the EKF recursion (learnest_mhe_carry) from reset on
+ * and never settles back to the running weight (MHESettings.arrival_update). */
+#ifndef LEARNEST_ARRIVAL_UPDATE
+#define LEARNEST_ARRIVAL_UPDATE 0
+#endif
+
 #define LEARNEST_NXX (LEARNEST_NX * LEARNEST_NX)
 #define LEARNEST_NYY (LEARNEST_NY * LEARNEST_NY)
 #define LEARNEST_NMAX (LEARNEST_NX > LEARNEST_NY ? LEARNEST_NX : LEARNEST_NY)
@@ -153,7 +159,7 @@ LEARNEST_KIT void learnest_mhe_reset(struct learnest_mhe* m, const learnest_real
   memcpy(m->W, t->W, sizeof m->W);
   memcpy(m->Q_cov, t->Q_cov, sizeof m->Q_cov);
   memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
-  m->carried = !learnest_mhe_settled(m, t->P_cov);
+  m->carried = LEARNEST_ARRIVAL_UPDATE || !learnest_mhe_settled(m, t->P_cov);
   if (m->carried) memcpy(m->C, t->P_cov, sizeof m->C);
   learnest_window_fill(m->X, x0);
 }
@@ -262,7 +268,7 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
         learnest_mhe_carry(m, H, A, m->Cn);
         learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
         (void)learnest_cap_variances(m->Cn, LEARNEST_NX, ceiling, work);
-        if (learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
+        if (!LEARNEST_ARRIVAL_UPDATE && learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
       } else {
         m->carried_next = 0;
       }

@@ -73,7 +73,7 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
         workspace=mhe_workspace(model.nx, model.nu, model.ny, settings.horizon, solution=True),
         glue_defines={"LEARNEST_NP": str(problem.layout.size),
                       **{f"LEARNEST_OFF_{key.upper()}": str(off) for key, off in offsets.items()},
-                      **bounds_defines(settings)},
+                      **bounds_defines(settings), **arrival_defines(settings)},
         link={"include_dirs": (include,), "lib_dirs": (lib,), "libs": ("ipopt",)},
         extra={"ipopt_options": dict(IPOPT_OPTIONS)})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
@@ -115,6 +115,12 @@ def bounds_defines(settings: MHESettings, precision: str = "float64") -> dict[st
                                for v in values) + "}"
 
     return {"LEARNEST_STATE_LO": side(0), "LEARNEST_STATE_HI": side(1)}
+
+
+def arrival_defines(settings: MHESettings) -> dict[str, str]:
+    """The kit's ``LEARNEST_ARRIVAL_UPDATE`` (learnest_mhe.h) when the arrival cost follows the
+    data (``MHESettings.arrival_update``); nothing otherwise."""
+    return {"LEARNEST_ARRIVAL_UPDATE": "1"} if settings.arrival_update else {}
 
 
 def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:

@@ -18,7 +18,7 @@ from ..export import DiscreteModel
 from ..integrators import rk4_step_jacobian
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, emit, resolve_prefix
-from .mhe import bounds_defines, header_doc, mhe_defaults, mhe_workspace
+from .mhe import arrival_defines, bounds_defines, header_doc, mhe_defaults, mhe_workspace
 
 
 def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
@@ -57,7 +57,8 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
         options={"MODE": f"{int(solver.mode == 'rti')}  /* {P}_MODE_{solver.mode.upper()} */",
                  "MAX_ITER": str(solver.max_iterations), "TOL": repr(solver.tolerance)},
         glue_defines={**{f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
-                      **group_defines(groups), **bounds_defines(settings, solver.precision)},
+                      **group_defines(groups), **bounds_defines(settings, solver.precision),
+                      **arrival_defines(settings)},
         extra={"model_instructions": model_instructions(model),
                "state_groups": [list(states) for states, _ in groups]})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)

@@ -171,7 +171,8 @@ class MHE(GateReport):
         Q, R, P = self.settings.weights()
         P_first = P if P0 is None else arrival_weight_from_covariance(P0, self.model.nx)
         carried = P0 is not None and not arrival.settled(np.asarray(P0, dtype=float), P)
-        self._arrival_cov = np.asarray(P0, dtype=float).copy() if carried else None
+        first = np.linalg.inv(P) if P0 is None else np.asarray(P0, dtype=float)
+        self._arrival_cov = first.copy() if carried or self.settings.arrival_update else None
         self._weights = (Q, R, P_first)
         self._P_run, self._P_run_cov = P, np.linalg.inv(P)
         self._R_cov = np.linalg.inv(R)
@@ -324,6 +325,8 @@ class MHE(GateReport):
         cov = arrival.propagate(cov, A, np.asarray(C), window.G[0] == 1.0,
                                 _inverse(self._weights[0]), self._R_cov)
         cov = cap_variances(cov, self.ceiling)
+        if self.settings.arrival_update:  # the arrival follows the data: carried on and on
+            return cov
         return None if arrival.settled(cov, self._P_run) else cov
 
     @property

@@ -118,6 +118,11 @@ class MHESettings:
     input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
         (:mod:`.inputs`; ``from_system`` takes :func:`~.inputs.plausible_inputs`); ``None``:
         only finiteness is checked.
+    arrival_update : ``True``: the arrival covariance follows the data, by the extended
+        Kalman filter's covariance recursion along the window's leaving stage (:mod:`.arrival`)
+        from the start (the running arrival covariance, or ``P0`` of ``reset``) on, instead of
+        the fixed running weight; ``False`` (default): that recursion only carries a first
+        prior larger than the running covariance until it has settled below it.
     state_bounds : ``((lo, hi), ...)`` per state, a box every state of the window stays in
         (``-inf``/``inf`` or ``None``: that side unbounded); ``None``: no bounds. Ipopt gets them
         as variable bounds; the embedded MHE takes projected Gauss-Newton steps with the bounds
@@ -133,6 +138,7 @@ class MHESettings:
     arrival: str = "steady_state"
     gate: GateSettings = GateSettings()
     input_limits: tuple[tuple[float, float], ...] | None = None
+    arrival_update: bool = False
     state_bounds: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
@@ -226,7 +232,8 @@ class MHESettings:
 
     def to_json(self) -> dict:
         skip = (("gate",) + (("input_limits",) if self.input_limits is None else ())
-                + (("state_bounds",) if self.state_bounds is None else ()))
+                + (("state_bounds",) if self.state_bounds is None else ())
+                + (() if self.arrival_update else ("arrival_update",)))  # older manifests' hash
         data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in skip}
         if self.state_bounds is not None:  # an open side as null: JSON has no infinity
             data["state_bounds"] = [[v if math.isfinite(v) else None for v in pair]
