@@ -22,13 +22,8 @@ def generate_ekf(model: DiscreteModel, settings: EKFSettings, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
                  force: bool = False, precision: str = "float64",
                  name: str = "ekf") -> GeneratedEstimator:
-    """Write, compile and describe a C EKF for ``model`` in ``out_dir`` (``codegen/emit.py``).
-
-    ``precision`` (``"float64"`` or ``"float32"``) is the C real type; ``name`` the estimator's
-    (its entry in ``compilation.ESTIMATORS``: the manifest's ``estimator``, the default
-    prefix's). Unchanged inputs reuse the library unless ``force``. Raises
-    :class:`BuildError` with the compiler's stderr on failure.
-    """
+    """The C EKF of ``model`` in ``out_dir``, written, compiled and described; the arguments
+    are :func:`~.ukf.generate_ukf`'s."""
     prefix = resolve_prefix(prefix, model, name, precision)
     stage, node, _ = model_functions(model, f"{prefix}_model")
     design = kalman_design(

@@ -64,22 +64,22 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 
-def generate_mhe_gn(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
-                    model_hash: str = "", precision: str = "float64",
-                    name: str = "mhe_gn") -> GeneratedEstimator:
-    """The converged embedded MHE (``mhe_gn``) of ``model`` in ``precision``, default prefix."""
-    return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
-                                 solver=GaussNewtonSettings(mode="converged", precision=precision),
-                                 name=name)
+def _in_mode(mode: str, estimator: str):
+    """The generator of the embedded MHE in ``mode`` (``compilation.ESTIMATORS``' entry
+    ``estimator``): :func:`generate_embedded_mhe` with that solver, default prefix."""
+
+    def generate(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
+                 model_hash: str = "", precision: str = "float64",
+                 name: str = estimator) -> GeneratedEstimator:
+        return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash, name=name,
+                                     solver=GaussNewtonSettings(mode=mode, precision=precision))
+
+    generate.__doc__ = f"The embedded MHE in {mode} mode (``{estimator}``) of ``model`` in ``precision``."
+    return generate
 
 
-def generate_mhe_rti(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
-                     model_hash: str = "", precision: str = "float64",
-                     name: str = "mhe_rti") -> GeneratedEstimator:
-    """The real-time-iteration embedded MHE (``mhe_rti``) of ``model`` in ``precision``."""
-    return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash,
-                                 solver=GaussNewtonSettings(mode="rti", precision=precision),
-                                 name=name)
+generate_mhe_gn = _in_mode("converged", "mhe_gn")
+generate_mhe_rti = _in_mode("rti", "mhe_rti")
 
 
 def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:

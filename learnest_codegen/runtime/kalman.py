@@ -69,6 +69,4 @@ class CompiledKalman(CompiledEstimator):
     @_locked
     def P(self) -> np.ndarray:
         """Current covariance ``(nx, nx)``."""
-        P = np.empty((self.nx, self.nx), dtype=self.dtype)
-        self.check_status("P", self._c["get_covariance"](self._started("P"), P))
-        return P.astype(float)
+        return self.read("P", "get_covariance", (self.nx, self.nx)).astype(float)
