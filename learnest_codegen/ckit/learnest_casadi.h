@@ -39,44 +39,42 @@ LEARNEST_KIT int learnest_casadi_call(struct learnest_model* md, learnest_casadi
   return f(md->arg, md->res, md->iw, md->w, 0);
 }
 
+/* f(x, u) -> (a, b), or -> a when b is NULL, on the work arrays of md: the model hooks. */
+LEARNEST_KIT void learnest_casadi_xu(struct learnest_model* md, learnest_casadi_function f,
+                                     const learnest_real* x, const learnest_real* u,
+                                     learnest_real* a, learnest_real* b) {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+  in[0] = x, in[1] = u, out[0] = a, out[1] = b;
+  (void)learnest_casadi_call(md, f, in, 2, out, b ? 2 : 1);
+}
+
 #ifdef LEARNEST_MODEL_STAGE
 LEARNEST_KIT void learnest_model_stage(struct learnest_model* md, const learnest_real* x,
                                        const learnest_real* u, learnest_real* F,
                                        learnest_real* A) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = F, out[1] = A;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_STAGE, in, 2, out, 2);
+  learnest_casadi_xu(md, LEARNEST_MODEL_STAGE, x, u, F, A);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_NODE
 LEARNEST_KIT void learnest_model_node(struct learnest_model* md, const learnest_real* x,
                                       const learnest_real* u, learnest_real* h, learnest_real* C) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = h, out[1] = C;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_NODE, in, 2, out, 2);
+  learnest_casadi_xu(md, LEARNEST_MODEL_NODE, x, u, h, C);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_F
 LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_real* x,
                                    const learnest_real* u, learnest_real* F) {
-  const learnest_real* in[2];
-  learnest_real* out[1];
-  in[0] = x, in[1] = u, out[0] = F;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_F, in, 2, out, 1);
+  learnest_casadi_xu(md, LEARNEST_MODEL_F, x, u, F, 0);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_H
 LEARNEST_KIT void learnest_model_h(struct learnest_model* md, const learnest_real* x,
                                    const learnest_real* u, learnest_real* h) {
-  const learnest_real* in[2];
-  learnest_real* out[1];
-  in[0] = x, in[1] = u, out[0] = h;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_H, in, 2, out, 1);
+  learnest_casadi_xu(md, LEARNEST_MODEL_H, x, u, h, 0);
 }
 #endif
 

@@ -214,9 +214,7 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                     f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), "
                     "generated operation for operation by the C kit (learnest_ukf.h) over the "
                     "model's generated code (<prefix>_model.c, one call per sigma point), so it "
-                    "equals FilterPy to rounding (tests/test_ukf.py); the kit also runs the "
-                    "samples, the gate and the covariance guards around it.",
-        gate_doc="each step computes, per valid output j, d2_j = (y_j - zp_j)^2 / S_jj with\n"
-                 " *   zp and S = P_zz + R the predicted output and its covariance.")
+                    "equals FilterPy to rounding (tests/test_ukf.py)",
+        predicted=("zp", "zp and S = P_zz + R the predicted output and its covariance"))
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
