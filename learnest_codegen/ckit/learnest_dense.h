@@ -147,8 +147,9 @@ LEARNEST_KIT int learnest_covariance_ok(const learnest_real* A, int n, learnest_
   return 1;
 }
 
-/* C (m x n) = A (m x k) B, B's entry (l, j) at B[l * bl + j * bj]; A and C column-major. */
-LEARNEST_KIT void learnest_mat_mul_strided(const learnest_real* A, const learnest_real* B, int bl,
+/* C (m x n) = A (m x k) B, B's entry (l, j) at B[l * bl + j * bj]; A and C column-major.
+ * Inlined into its two callers, so each loop indexes with its constant strides. */
+LEARNEST_KIT_INLINE void learnest_mat_mul_strided(const learnest_real* A, const learnest_real* B, int bl,
                                            int bj, int m, int k, int n, learnest_real* C) {
   int i, j, l;
   for (j = 0; j < n; ++j) {

@@ -26,7 +26,7 @@ LEARNEST_KIT void learnest_ekf_innovation(const LEARNEST_HANDLE* h, const learne
 }
 
 /* One sample: x = F(x, u), P = A P A' + Q (not on the first sample), then the Kalman update on
- * the valid outputs the gate keeps (learnest_masked_update); a lost estimate re-seeds: the
+ * the valid outputs the gate keeps (learnest_masked_gain_update); a lost estimate re-seeds: the
  * update of the prior covariance diag(ceiling) by every valid output. */
 LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
@@ -55,7 +55,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     learnest_ekf_innovation(h, P, C, PCt, S);
   }
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
-  if (!learnest_masked_update(P, C, h->R, keep, z, x)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  if (!learnest_masked_gain_update(P, PCt, S, keep, z, x)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   return learnest_kalman_commit(h, x, P, rejected, valid);
 }
 
