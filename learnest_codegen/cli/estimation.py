@@ -17,6 +17,10 @@ from ..compilation import (
     estimator_kind,
     precision_problem,
 )
+from ..errors import LearnestError, SolverError
+from ..evaluation import mse, run_estimator
+from ..outputs import atomic_file, claim_output
+from ..pipeline import compile_model, expected_manifest, load_estimator, make_estimator, resolve
 from .common import (
     CLAMP_INPUTS,
     ESTIMATOR_HELP,
@@ -43,8 +47,6 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
              force: bool = False, horizon: int | None = None,
              clamp_inputs: bool | None = None, target: str = "host") -> dict:
     from ..codegen import crazyflie
-    from ..outputs import claim_output
-    from ..pipeline import compile_model, resolve
 
     if target == "crazyflie":
         estimators, precision = estimators or (crazyflie.DEFAULT_ESTIMATOR,), precision or crazyflie.PRECISION
@@ -218,10 +220,6 @@ def _estimate_run(system_name, data, estimator, model, backend, compiled, precis
         check_horizon((estimator,), horizon)
     except ValueError as exc:
         raise click.UsageError(f"--horizon: {exc}") from exc
-    from ..errors import LearnestError, SolverError
-    from ..evaluation import mse, run_estimator
-    from ..outputs import atomic_file, claim_output
-    from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)
