@@ -39,8 +39,9 @@ LEARNEST_KIT int learnest_casadi_call(struct learnest_model* md, learnest_casadi
   return f(md->arg, md->res, md->iw, md->w, 0);
 }
 
-/* f(x, u) -> (a, b), or -> a when b is NULL, on the work arrays of md: the model hooks. */
-LEARNEST_KIT void learnest_casadi_xu(struct learnest_model* md, learnest_casadi_function f,
+/* f(x, u) -> (a, b), or -> a when b is NULL, on the work arrays of md: the model hooks (inlined
+ * into each, so every hook calls its CasADi function directly). */
+LEARNEST_KIT_INLINE void learnest_casadi_xu(struct learnest_model* md, learnest_casadi_function f,
                                      const learnest_real* x, const learnest_real* u,
                                      learnest_real* a, learnest_real* b) {
   const learnest_real* in[2];
