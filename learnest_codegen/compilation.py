@@ -13,79 +13,163 @@ model twice costs only the code generation.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from .errors import ModelMismatchError, SettingsError, UnknownNameError
+from .estimators.ekf import EKF, EKFSettings
+from .estimators.mhe import MHE
+from .estimators.mhe_problem import MHESettings, mhe_settings
+from .estimators.precision import PRECISIONS
+from .estimators.ukf import FLOAT32_MIN_ALPHA, UKF, UKFSettings
 from .export import DiscreteModel, hybrid_model, prior_model, true_model
 from .outputs import atomic_dir
+from .runtime.ekf import CompiledEKF
+from .runtime.manifest import MANIFEST, read_manifest
+from .runtime.mhe import CompiledMHE
+from .runtime.mhe_gn import CompiledEmbeddedMHE
+from .runtime.ukf import CompiledUKF
 from .systems import System
 
 
 @dataclass(frozen=True)
 class EstimatorKind:
-    """How to make settings for, generate, and load one kind of estimator."""
+    """One estimator: every face of the package (the CLI's choices and help, the pipeline, the
+    compile stage, the manifest's ``estimator``, the contract tests, the docs' table) reads it
+    from :data:`ESTIMATORS`, so adding an estimator is a kit header, a generator, a binding, a
+    settings type and one entry there.
 
-    default_settings: Callable[[DiscreteModel], Any]
-    generate: Callable[..., Any]
-    python: Callable[..., Any] | None  # None: no Python reference (RTI is defined by its C)
+    Attributes
+    ----------
+    name : the estimator's name (``--estimator``, the manifest's ``estimator``, the C prefix).
+    summary : one line for the CLI's help and the docs' table.
+    settings : its settings type; ``default_settings(model)`` makes the system's.
+    generator : ``"<module>:<function>"`` of ``learnest_codegen.codegen`` that writes and builds
+        its folder, imported on use: loading a compiled library (the bindings, the pipeline)
+        does not load the code generators (tests/test_layout.py).
+    python : its Python reference (None: its C defines it).
+    compiled : its ctypes binding (``runtime/``).
+    kit : the C kit header that holds its algorithm.
+    precisions : the C real types it is generated in.
+    horizon : whether it has a moving horizon (``horizon`` applies).
+    reference : ``(estimator, rtol)``: the compiled library equals that estimator's Python
+        reference to ``rtol`` relative (tests/test_estimator_contract.py).
+    default : compiled by ``learnest-compile`` when no ``--estimator`` is given.
+    float32_defaults : what the default settings become in float32 (None: the same).
+    """
+
+    name: str
+    summary: str
+    settings: type
+    default_settings: Callable[..., Any]
+    generator: str
+    python: Callable[..., Any] | None
     compiled: Callable[..., Any]
+    kit: str
     precisions: tuple[str, ...] = ("float64",)
+    horizon: bool = False
+    reference: tuple[str, float] | None = None
+    default: bool = False
+    float32_defaults: Callable[[Any], Any] | None = None
+
+    def generate(self, model: DiscreteModel, settings: Any, directory: Path, **options) -> Any:
+        """Write, build and describe the estimator of ``model`` in ``directory`` (the manifest's
+        ``estimator`` is :attr:`name`)."""
+        module, function = self.generator.split(":")
+        return getattr(importlib.import_module(f"learnest_codegen.codegen.{module}"), function)(
+            model, settings, directory, name=self.name, **options)
 
 
-def _registry() -> dict[str, EstimatorKind]:
-    from .codegen.mhe import generate_mhe
-    from .codegen.mhe_gn import generate_embedded_mhe
-    from .codegen.ukf import generate_ukf
-    from .estimators.mhe import MHE
-    from .estimators.mhe_gn import GaussNewtonSettings
-    from .estimators.mhe_problem import mhe_settings
-    from .estimators.precision import PRECISIONS
-    from .estimators.ukf import UKF, UKFSettings
-    from .runtime.mhe import CompiledMHE
-    from .runtime.mhe_gn import CompiledEmbeddedMHE
-    from .runtime.ukf import CompiledUKF
-
-    def mhe_defaults(model: DiscreteModel, **overrides):
-        return mhe_settings(model, **overrides)
-
-    def ukf_defaults(model: DiscreteModel, **overrides):
-        return UKFSettings.from_system(model.system, **overrides)
-
-    def embedded(mode: str) -> Callable[..., Any]:
-        def generate(model, settings, directory, *, model_hash: str = "", precision: str = "float64"):
-            solver = GaussNewtonSettings(mode=mode, precision=precision)
-            return generate_embedded_mhe(model, settings, directory, solver=solver,
-                                         model_hash=model_hash)
-        return generate
-
-    return {
-        "mhe": EstimatorKind(mhe_defaults, generate_mhe, MHE, CompiledMHE),
-        "ukf": EstimatorKind(ukf_defaults, generate_ukf, UKF, CompiledUKF, tuple(PRECISIONS)),
-        # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser,
-        # so that MHE is its Python reference
-        "mhe_gn": EstimatorKind(mhe_defaults, embedded("converged"), MHE, CompiledEmbeddedMHE,
-                                tuple(PRECISIONS)),
-        "mhe_rti": EstimatorKind(mhe_defaults, embedded("rti"), None, CompiledEmbeddedMHE,
-                                 tuple(PRECISIONS)),
-    }
+def _mhe_defaults(model: DiscreteModel, **overrides):
+    return mhe_settings(model, **overrides)
 
 
-# mhe: Ipopt; mhe_gn / mhe_rti: the embedded Gauss-Newton MHE, converged / real-time iteration
-ESTIMATOR_NAMES = ("mhe", "ukf", "mhe_gn", "mhe_rti")
-DEFAULT_ESTIMATORS = ("mhe", "ukf")
-PRECISION_NAMES = ("float64", "float32")
+def _kalman_defaults(settings: type) -> Callable[..., Any]:
+    def defaults(model: DiscreteModel, **overrides):
+        return settings.from_system(model.system, **overrides)
+    return defaults
+
+
+PRECISION_NAMES = tuple(PRECISIONS)
+
+#: The estimators, by name, in the order the CLI and the docs list them.
+ESTIMATORS: dict[str, EstimatorKind] = {kind.name: kind for kind in (
+    EstimatorKind("mhe", "the MHE solved by Ipopt (the reference)", MHESettings, _mhe_defaults,
+                  "mhe:generate_mhe", MHE, CompiledMHE, "learnest_mhe_ipopt.h", horizon=True,
+                  reference=("mhe", 1e-6), default=True),
+    EstimatorKind("ukf", "the unscented Kalman filter", UKFSettings, _kalman_defaults(UKFSettings),
+                  "ukf:generate_ukf", UKF, CompiledUKF, "learnest_ukf.h", PRECISION_NAMES,
+                  reference=("ukf", 1e-9), default=True,
+                  float32_defaults=lambda settings: float32_ukf_settings(settings)),
+    # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser, so
+    # that MHE is its Python reference
+    EstimatorKind("mhe_gn", "the embedded MHE (Gauss-Newton, no Ipopt, no malloc) iterated to "
+                  "convergence, the same estimates as mhe", MHESettings, _mhe_defaults,
+                  "mhe_gn:generate_mhe_gn", MHE, CompiledEmbeddedMHE, "learnest_mhe_gn.h",
+                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-6)),
+    # the real-time iteration takes one warm-started Gauss-Newton step per sample (9e-8 from
+    # the converged MHE on the contract tests' run)
+    EstimatorKind("mhe_rti", "the embedded MHE with one Gauss-Newton iteration per sample "
+                  "(real-time iteration, fastest)", MHESettings, _mhe_defaults,
+                  "mhe_gn:generate_mhe_rti", None, CompiledEmbeddedMHE, "learnest_mhe_gn.h",
+                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-5)),
+    EstimatorKind("ekf", "the extended Kalman filter (the model's Jacobians by CasADi's AD)",
+                  EKFSettings, _kalman_defaults(EKFSettings), "ekf:generate_ekf", EKF, CompiledEKF,
+                  "learnest_ekf.h", PRECISION_NAMES, reference=("ekf", 1e-9)),
+)}
+
+
+class _Names(Sequence):
+    """The names of :data:`ESTIMATORS` an entry filter keeps, read at each use (an entry added
+    later is in it)."""
+
+    def __init__(self, keep: Callable[[EstimatorKind], bool] = lambda kind: True):
+        self._keep = keep
+
+    def __getitem__(self, i):
+        return tuple(n for n, kind in ESTIMATORS.items() if self._keep(kind))[i]
+
+    def __len__(self) -> int:
+        return sum(1 for kind in ESTIMATORS.values() if self._keep(kind))
+
+    def __repr__(self) -> str:
+        return repr(tuple(self))
+
+
+ESTIMATOR_NAMES: Sequence[str] = _Names()
+#: The estimators with a moving horizon (``horizon`` applies to them).
+MHE_NAMES: Sequence[str] = _Names(lambda kind: kind.horizon)
+#: What ``learnest-compile`` builds when no ``--estimator`` is given.
+DEFAULT_ESTIMATORS: Sequence[str] = _Names(lambda kind: kind.default)
 
 
 def estimator_kind(name: str) -> EstimatorKind:
     """Look up an estimator by name (one of :data:`ESTIMATOR_NAMES`)."""
-    if name not in ESTIMATOR_NAMES:
+    if name not in ESTIMATORS:
         raise UnknownNameError(f"unknown estimator {name!r}; choose from {list(ESTIMATOR_NAMES)}")
-    return _registry()[name]
+    return ESTIMATORS[name]
+
+
+def estimator_help() -> str:
+    """``name: summary; ...`` of every estimator (the CLI's help)."""
+    return "; ".join(f"{kind.name}: {kind.summary}" for kind in ESTIMATORS.values())
+
+
+def estimator_table() -> str:
+    """The estimators as a Markdown table (docs/guide/python_api.md shows it)."""
+    rows = ["| Estimator | What it is | Settings | Python reference | Binding | C kit | Precisions |",
+            "|---|---|---|---|---|---|---|"]
+    for kind in ESTIMATORS.values():
+        python = f"`{kind.python.__name__}`" if kind.python else "none (its C defines it)"
+        rows.append(f"| `{kind.name}` | {kind.summary} | `{kind.settings.__name__}` | {python} | "
+                    f"`{kind.compiled.__name__}` | `{kind.kit}` | {', '.join(kind.precisions)} |")
+    return "\n".join(rows)
 
 
 #: Whether a KNODE model's net inputs are clamped to their training range when
@@ -138,8 +222,6 @@ def float32_ukf_settings(settings):
     A small alpha makes the sigma-point weights cancel, which single precision cannot afford
     (see ``codegen/ukf.py``); explicit settings with a smaller alpha are refused there.
     """
-    from .codegen.ukf import FLOAT32_MIN_ALPHA
-
     return replace(settings, alpha=max(settings.alpha, FLOAT32_MIN_ALPHA))
 
 
@@ -154,14 +236,8 @@ def precision_problem(estimators: tuple[str, ...], precision: str) -> str | None
     return None
 
 
-#: The estimators with a moving horizon (``horizon`` applies to them).
-MHE_NAMES = ("mhe", "mhe_gn", "mhe_rti")
-
-
 def default_horizon() -> int:
     """The MHE horizon N when none is given (``MHESettings``' default)."""
-    from .estimators.mhe_problem import MHESettings
-
     return MHESettings.__dataclass_fields__["horizon"].default
 
 
@@ -200,13 +276,11 @@ def estimator_settings(name: str, model: DiscreteModel, settings: Any = None, *,
     if horizon is not None and name not in MHE_NAMES:
         raise SettingsError(f"{name}: a horizon applies to the MHEs {list(MHE_NAMES)} only")
     chosen = settings or kind.default_settings(model)
-    if name == "ukf" and precision == "float32" and settings is None:
-        chosen = float32_ukf_settings(chosen)
+    if precision == "float32" and settings is None and kind.float32_defaults is not None:
+        chosen = kind.float32_defaults(chosen)
     if gate is not None:
         chosen = replace(chosen, gate=gate)
-    if name in MHE_NAMES:
-        from .estimators.mhe_problem import mhe_settings
-
+    if kind.horizon:
         chosen = mhe_settings(model, chosen, **({} if horizon is None else {"horizon": horizon}))
     return chosen
 
@@ -245,8 +319,6 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
 def _reusable(old: Path, new: Path) -> None:
     """Link the library, its build stamp and a sound manifest of ``old`` into ``new``, so the
     toolchain reuses an unchanged library (it rebuilds one that no longer matches its stamp)."""
-    from .runtime.manifest import MANIFEST, read_manifest
-
     if not old.is_dir():
         return
     for path in [*old.glob("lib*.so"), *old.glob("lib*.so.stamp")]:

@@ -1,6 +1,6 @@
 """Generated estimators on a Cortex-M4F in QEMU: instructions per step, flash, RAM and stack.
 
-Two models, each estimator (the UKF, ``mhe_rti`` and ``mhe_gn`` at the system's horizon) in
+Two models, each estimator (the UKF, the EKF, ``mhe_rti`` and ``mhe_gn`` at the system's horizon) in
 float32 (the M4F's FPU is single precision), generated as ``learnest-compile`` generates them
 and run in ``examples/cortex_m``'s firmware loop (``mps2-an386``, ``-icount shift=0``: one
 nanosecond of the virtual clock per executed instruction) and in the same loop built for the
@@ -33,7 +33,7 @@ MINUTES = 20
 ORDER = 30
 EXAMPLE = figures.ROOT / "examples" / "cortex_m"
 BUILD = figures.ROOT / "build" / "bench" / "cortex_m"
-ESTIMATORS = ("ukf", "mhe_rti", "mhe_gn")
+ESTIMATORS = ("ukf", "ekf", "mhe_rti", "mhe_gn")
 PRECISION = "float32"
 MACHINE = "mps2-an386"
 QUADROTOR_FLIGHT = "B2_circle_medium_rep1"

@@ -340,32 +340,26 @@ def test_learnest_compile_needs_force_to_replace_a_folder(tmp_path):
 def test_an_interrupted_compile_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
     """Ctrl-C while an estimator's folder is written: no empty or partial folder, no temporary
     one, and an existing folder unchanged."""
+    import dataclasses
+
     from learnest_codegen import compilation
 
-    real = compilation._registry
+    real = compilation.ESTIMATORS["ukf"]
 
-    def interrupted():
-        kinds = real()
-
-        def generate(model, settings, directory, **kw):
+    class Interrupted(compilation.EstimatorKind):
+        def generate(self, model, settings, directory, **kw):
             (directory / "half.c").write_text("/* half */")
             raise KeyboardInterrupt
-        kinds["ukf"] = replace_kind(kinds["ukf"], generate)
-        return kinds
 
-    def replace_kind(kind, generate):
-        import dataclasses
-
-        return dataclasses.replace(kind, generate=generate)
-
-    monkeypatch.setattr(compilation, "_registry", interrupted)
+    interrupted = Interrupted(**{f.name: getattr(real, f.name) for f in dataclasses.fields(real)})
+    monkeypatch.setitem(compilation.ESTIMATORS, "ukf", interrupted)
     with pytest.raises(KeyboardInterrupt):
         _nominal_ukf(tmp_path / "new")
     assert list((tmp_path / "new").iterdir()) == []
-    monkeypatch.setattr(compilation, "_registry", real)
+    monkeypatch.setitem(compilation.ESTIMATORS, "ukf", real)
     _nominal_ukf(tmp_path / "old")
     before = {p.name: p.read_bytes() for p in (tmp_path / "old" / "cartpole_nominal_ukf").iterdir()}
-    monkeypatch.setattr(compilation, "_registry", interrupted)
+    monkeypatch.setitem(compilation.ESTIMATORS, "ukf", interrupted)
     with pytest.raises(KeyboardInterrupt):
         _nominal_ukf(tmp_path / "old")
     after = {p.name: p.read_bytes() for p in (tmp_path / "old" / "cartpole_nominal_ukf").iterdir()}

@@ -30,11 +30,11 @@ from learnest_codegen.runtime.status import STATUS_NAMES
 
 CODES = {name: code for code, name in STATUS_NAMES.items()}
 BUILDS = [("ukf", "float64"), ("mhe", "float64"), ("mhe_gn", "float64"), ("mhe_rti", "float64"),
-          ("ukf", "float32"), ("mhe_rti", "float32")]
+          ("ekf", "float64"), ("ukf", "float32"), ("mhe_rti", "float32"), ("ekf", "float32")]
 T = 150
-# C against the Python reference of the same estimator: the UKF is FilterPy's arithmetic; the
-# converged MHEs solve the same NLP; RTI takes one Gauss-Newton step a sample.
-REFERENCE_ATOL = {"ukf": 1e-9, "mhe": 1e-6, "mhe_gn": 1e-6, "mhe_rti": 1e-4}
+# C against the Python reference of the same estimator: the UKF and the EKF are FilterPy's
+# arithmetic; the converged MHEs solve the same NLP; RTI takes one Gauss-Newton step a sample.
+REFERENCE_ATOL = {"ukf": 1e-9, "ekf": 1e-9, "mhe": 1e-6, "mhe_gn": 1e-6, "mhe_rti": 1e-4}
 
 
 @pytest.fixture(scope="module")
@@ -61,8 +61,8 @@ def run(cartpole):
 
 
 def reference(name, model, settings):
-    """The Python reference of ``name`` with the compiled estimator's ``settings``."""
-    return estimator_kind("mhe" if name.startswith("mhe") else name).python(model, settings)
+    """The Python reference of ``name`` (the table's) with the compiled estimator's ``settings``."""
+    return estimator_kind(estimator_kind(name).reference[0]).python(model, settings)
 
 
 @pytest.mark.parametrize("name, precision", BUILDS, ids=lambda v: str(v))
@@ -149,13 +149,13 @@ def test_set_noise_keeps_the_state_and_equals_the_reference(folders, model, run,
         e.reset(cartpole.x0)
         for k in range(40):
             e.step(data.u[max(k - 1, 0)], data.y[k])
-    before = est.window if name != "ukf" else est.P
+    before = est.window if estimator_kind(name).horizon else est.P
     Q, R = np.diag(np.square(cartpole.noise.process_std)) * 4, np.eye(2) * 4e-4
     x = est.x
     est.set_noise(Q, R)
     ref.set_noise(Q, R)
     np.testing.assert_array_equal(est.x, x)
-    np.testing.assert_array_equal(est.window if name != "ukf" else est.P, before)
+    np.testing.assert_array_equal(est.window if estimator_kind(name).horizon else est.P, before)
     atol = REFERENCE_ATOL[name] if precision == "float64" else 5e-3
     for k in range(40, 80):
         np.testing.assert_allclose(est.step(data.u[k - 1], data.y[k]), ref.step(data.u[k - 1], data.y[k]),

@@ -22,7 +22,7 @@ import pytest
 from conftest import rounding
 
 from learnest_codegen import NoiseModel, Signal, System, get_system
-from learnest_codegen.codegen.templates import kit_files, write_kit
+from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_problem import MHESettings, mhe_settings
@@ -41,7 +41,8 @@ N = 5  # kit_core.c's horizon; its sizes are the cartpole's (NX 4, NU 1, NY 2)
 
 @pytest.fixture(scope="module")
 def kit(tmp_path_factory):
-    """The kit (with its rendered status header) in one folder."""
+    """The kit as a generated folder gets it (``write_kit``; the kit's own folder, compiled
+    in place, is the same files: ``test_the_kit_is_what_a_folder_gets``)."""
     root = tmp_path_factory.mktemp("kit")
     write_kit(root)
     return root
@@ -119,7 +120,9 @@ def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
 
 def test_the_kit_is_what_a_folder_gets(kit):
     names = {p.name for p in kit_files()}
-    assert {"learnest_kit.h", "learnest_gn.h", "learnest_window.h", "learnest_ukf.h"} <= names
+    assert {"learnest_kit.h", "learnest_gn.h", "learnest_window.h", "learnest_ukf.h",
+            "learnest_status.h"} <= names
+    assert {p.name for p in kit.iterdir() if p.suffix == ".h"} == names
     assert all((kit / name).read_text() == (p.read_text()) for name, p in
                ((p.name, p) for p in kit_files()))
     status = (kit / "learnest_status.h").read_text()
@@ -127,6 +130,22 @@ def test_the_kit_is_what_a_folder_gets(kit):
         high = re.search(rf"#define LEARNEST_{limit.c_name}_MAX (\S+)", status).group(1)
         assert float(high) == limit.high
     assert "#define LEARNEST_INPUT_REJECTED (2)" in status
+
+
+def test_the_status_header_is_the_status_table():
+    """ckit/learnest_status.h is a header of the kit (it builds without Python) and the
+    rendering of runtime/status.py and limits.py; after a change to either, run
+    ``python -c "from learnest_codegen.codegen.templates import write_status_header as w; w()"``."""
+    assert (KIT / "learnest_status.h").read_text() == status_header_text()
+
+
+@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+def test_builds_from_the_kit_folder_alone(source):
+    """Every test source compiles against learnest_codegen/ckit itself: no file written by
+    Python."""
+    proc = subprocess.run(["gcc", *FLAGS, "-DKIT_REAL=double", f"-I{KIT}", "-fsyntax-only",
+                           str(SOURCES / f"{source}.c")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
 
 
 # -- dense algebra -----------------------------------------------------------------------

@@ -5,8 +5,8 @@ The checks: the protocol; ``run`` equals ``reset`` plus ``step``; ``reset`` rest
 bad input (wrong shape, NaN, step before reset) raises the documented error and leaves the state
 as it was; on a simulated cartpole run the measured states are estimated better than the
 measurement noise with the true model (a bound independent of every estimator); and each compiled
-library agrees with its independent reference (FilterPy's UKF for the UKF, CasADi's ``nlpsol``
-with Ipopt for every MHE).
+library agrees with its independent reference, the table's ``reference`` (FilterPy's UKF and
+EKF for the Kalman filters, CasADi's ``nlpsol`` with Ipopt for every MHE).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import learnest_codegen as ln
-from learnest_codegen.compilation import ESTIMATOR_NAMES, estimator_kind
+from learnest_codegen.compilation import ESTIMATOR_NAMES, ESTIMATORS, estimator_kind
 from learnest_codegen.errors import DataError, LearnestError, ShapeError
 from learnest_codegen.estimators.contract import Estimator, takes_missing_outputs
 
@@ -23,15 +23,15 @@ T = 250  # samples (0.5 s of the cartpole): enough for the filters to settle
 #: Every estimator and backend: the C library of each, and the Python reference where it has one.
 CASES = [(name, backend) for name in ESTIMATOR_NAMES for backend in ("python", "c")
          if backend == "c" or estimator_kind(name).python is not None]
-#: (estimator, reference estimator) and the largest relative difference allowed between them:
-#: the UKF's C is FilterPy's arithmetic; mhe and mhe_gn solve the same NLP to convergence; the
-#: real-time iteration takes one warm-started Gauss-Newton step per sample (9e-8 on this run).
-REFERENCE = {"ukf": ("ukf", 1e-9), "mhe": ("mhe", 1e-6), "mhe_gn": ("mhe", 1e-6), "mhe_rti": ("mhe", 1e-5)}
+#: estimator -> (reference estimator, the largest relative difference allowed between them),
+#: from the table: the Kalman filters' C is FilterPy's arithmetic; mhe and mhe_gn solve the same
+#: NLP to convergence; the real-time iteration takes one warm-started Gauss-Newton step per sample.
+REFERENCE = {name: kind.reference for name, kind in ESTIMATORS.items()}
 
 
 def test_every_registered_estimator_is_covered():
     assert {name for name, _ in CASES} == set(ESTIMATOR_NAMES)
-    assert set(REFERENCE) == set(ESTIMATOR_NAMES)
+    assert None not in REFERENCE.values()
 
 
 @pytest.fixture(scope="module")

@@ -22,6 +22,7 @@ from filterpy.kalman import KalmanFilter
 from learnest_codegen import NoiseModel, Signal, System, get_system, simulation
 from learnest_codegen.data import Run, read_run, resample, write_run
 from learnest_codegen.errors import DataError
+from learnest_codegen.estimators.ekf import EKF
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_problem import MHESettings
@@ -112,9 +113,12 @@ def linear():
     return system, model, A, C, U, Y, kalman(system, A, B, C, U, Y)
 
 
-def test_ukf_with_missing_outputs_is_the_kalman_filter_that_skips_them(linear):
+@pytest.mark.parametrize("kind", [UKF, EKF])
+def test_kalman_filters_with_missing_outputs_are_the_kalman_filter_that_skips_them(linear, kind):
+    """The UKF and the EKF on the linear model, outputs missing at two rates and a dropout:
+    both are the Kalman filter that skips the missing outputs (x and P to 1e-10)."""
     system, model, _, _, U, Y, (Xs, Ps, _, _) = linear
-    ukf = UKF(model, UKFSettings.from_system(system))
+    ukf = kind(model, kind.SETTINGS.from_system(system))
     ukf.reset(system.x0)
     for k in range(T):
         ukf.step(U[max(k - 1, 0)], Y[k])

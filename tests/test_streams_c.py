@@ -3,7 +3,7 @@
 On a linear-Gaussian model (two rates and a dropout, started 3 standard deviations off with the
 initial covariance, so the MHEs carry their first prior's covariance forward) and on the KNODE
 cartpole (a fixture model, missing outputs, a wrong start and a few implausible inputs), the
-compiled UKF equals the Python UKF to 1e-9, the compiled Ipopt MHE and the Gauss-Newton MHE
+compiled UKF and EKF equal the Python UKF and EKF to 1e-9, the compiled Ipopt MHE and the Gauss-Newton MHE
 equal the Python MHE at their solver tolerances, and the float32 builds equal them to what
 float32 holds (stated per test). The input check: a non-finite or out-of-range ``u`` is replaced
 by the held one in C as in Python (status bit 2), and the per-step statuses agree.
@@ -20,18 +20,25 @@ from test_streams import linear_matrices, masked_data, oscillator
 
 from learnest_codegen import get_system
 from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
-from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.ukf import UKF
 from learnest_codegen.export import prior_model
 from learnest_codegen.pipeline import resolve
 
 MODEL_DIR = Path(__file__).parent / "data" / "model_b12bfa1"
 #: (estimator, precision) -> absolute tolerance on every estimate, in units of the largest
-#: |x|: UKF 1e-9 (the same arithmetic in another order); Ipopt MHE C vs Python nlpsol: the
+#: |x|: UKF and EKF 1e-9 (the same arithmetic in another order); Ipopt MHE C vs Python nlpsol: the
 #: same solver and problem; Gauss-Newton vs Ipopt: both converged to their tolerances;
 #: float32: its 7 digits through the carried covariance's inverse.
 TOLERANCE = {("ukf", "float64"): 1e-9, ("mhe", "float64"): 1e-6, ("mhe_gn", "float64"): 1e-5,
-             ("ukf", "float32"): 2e-3, ("mhe_gn", "float32"): 2e-3}
+             ("ekf", "float64"): 1e-9, ("ukf", "float32"): 2e-3, ("mhe_gn", "float32"): 2e-3,
+             ("ekf", "float32"): 2e-3}
+BUILDS = {p: tuple(n for n, q in TOLERANCE if q == p) for p in ("float64", "float32")}
+
+
+def reference_of(name: str, model, settings=None):
+    """The Python estimator the compiled ``name`` is compared with (the table's reference)."""
+    python = estimator_kind(estimator_kind(name).reference[0]).python
+    return python(model) if settings is None else python(model, dataclasses.replace(settings))
 
 
 def _steps(est, U, Y, x0, P0):
@@ -51,8 +58,7 @@ def linear(tmp_path_factory):
     U, Y = masked_data(system, A, B, C)
     out = tmp_path_factory.mktemp("streams_c")
     built = {}
-    for precision in ("float64", "float32"):
-        names = ("ukf", "mhe", "mhe_gn") if precision == "float64" else ("ukf", "mhe_gn")
+    for precision, names in BUILDS.items():
         compile_estimators(model, out, model_hash="linear", estimators=names, precision=precision)
         for name in names:
             built[name, precision] = estimator_kind(name).compiled(
@@ -67,14 +73,14 @@ def test_compiled_equals_python_with_missing_outputs_and_a_wrong_start(linear, n
     system, model, U, Y, built = linear
     std = np.asarray(system.noise.initial_std)
     x0, P0 = np.asarray(system.x0) + 3 * std * np.array([1.0, -1.0]), np.diag(std ** 2)
-    reference = UKF(model) if name == "ukf" else MHE(model)
+    reference = reference_of(name, model)
     X_py, s_py = _steps(reference, U, Y, x0, P0)
     X_c, s_c = _steps(built[name, precision], U, Y, x0, P0)
     scale = np.abs(X_py).max()
     assert np.max(np.abs(X_c - X_py)) <= TOLERANCE[name, precision] * scale, \
         np.max(np.abs(X_c - X_py)) / scale
     np.testing.assert_array_equal(s_c, s_py)
-    if name != "ukf":  # the first prior's covariance was carried, then settled (Python and C)
+    if estimator_kind(name).horizon:  # the first prior's covariance was carried, then settled (Python and C)
         np.testing.assert_allclose(built[name, precision].arrival_weight, reference.arrival_weight,
                                    rtol=1e-6 if precision == "float64" else 2e-2)
 
@@ -101,7 +107,7 @@ def knode(tmp_path_factory):
     resolved = resolve(str(MODEL_DIR), system)
     out = tmp_path_factory.mktemp("streams_knode")
     built = {}
-    for precision, names in (("float64", ("ukf", "mhe", "mhe_gn")), ("float32", ("ukf", "mhe_gn"))):
+    for precision, names in BUILDS.items():
         compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=names,
                            precision=precision)
         for name in names:
@@ -123,7 +129,7 @@ def knode_stream(system, T: int = 250):
     return U, Y
 
 
-@pytest.mark.slow  # five KNODE builds (the Ipopt MHE's takes minutes on a loaded machine)
+@pytest.mark.slow  # seven KNODE builds (the Ipopt MHE's takes minutes on a loaded machine)
 @pytest.mark.parametrize("name, precision", list(TOLERANCE))
 def test_compiled_knode_equals_python_on_a_stream(knode, name, precision):
     """The KNODE cartpole fixture on a multi-rate stream with a dropout, implausible inputs
@@ -133,11 +139,11 @@ def test_compiled_knode_equals_python_on_a_stream(knode, name, precision):
     std = np.asarray(system.noise.initial_std)
     x0 = np.asarray(system.x0) + 3 * std * np.array([1.0, -1.0, 1.0, -1.0])
     settings = built[name, precision].settings
-    reference = UKF(model, settings) if name == "ukf" else MHE(model, dataclasses.replace(settings))
+    reference = reference_of(name, model, settings)
     X_py, s_py = _steps(reference, U, Y, x0, np.diag(std ** 2))
     X_c, s_c = _steps(built[name, precision], U, Y, x0, np.diag(std ** 2))
     scale = np.abs(X_py).max()
-    tol = TOLERANCE[name, precision] * (10 if name != "ukf" else 1)  # a nonlinear NLP
+    tol = TOLERANCE[name, precision] * (10 if estimator_kind(name).horizon else 1)  # a nonlinear NLP
     assert np.max(np.abs(X_c - X_py)) <= tol * scale, np.max(np.abs(X_c - X_py)) / scale
     np.testing.assert_array_equal(s_c & 2, s_py & 2)  # the same inputs replaced
     assert reference.input_rejections == built[name, precision].input_rejections == 3

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from learnest_codegen import get_system
+from learnest_codegen.compilation import ESTIMATORS as TABLE
 from learnest_codegen.compilation import compile_estimators
 from learnest_codegen.errors import BuildError, LearnestError, SolverError
 from learnest_codegen.export import DiscreteModel
@@ -92,7 +93,8 @@ def write_run_header(path: Path, U: np.ndarray, Y: np.ndarray, dt: float) -> Pat
     return path
 
 
-ESTIMATORS = ("ukf", "mhe_rti", "mhe_gn")
+#: The estimators a microcontroller runs: those generated in float32 (the Ipopt MHE is not).
+ESTIMATORS = tuple(name for name, kind in TABLE.items() if "float32" in kind.precisions)
 PRECISIONS = ("float64", "float32")
 
 
@@ -136,7 +138,8 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
     """Generate ``estimator``'s C in ``precision`` for ``model`` (any system) under ``out``, and
     both headers into its folder, for ``steps`` samples of run ``seed``.
 
-    ``estimator`` is ``"ukf"``, ``"mhe_rti"`` or ``"mhe_gn"``, generated as ``learnest-compile``
+    ``estimator`` is one of :data:`ESTIMATORS` (``"ukf"``, ``"ekf"``, ``"mhe_rti"``,
+    ``"mhe_gn"``), generated as ``learnest-compile``
     does (the same door: the system's default tuning, a float32 UKF with alpha raised); the
     firmware starts it from the tuned defaults of its own header. ``horizon`` replaces the
     MHEs' N (as ``learnest-compile --horizon``).
@@ -150,7 +153,7 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
     system = model.system
     gen = compile_estimators(model, Path(out), model_hash=f"cortex_m-{model.kind}",
                              estimators=(estimator,), precision=precision,
-                             horizon=horizon if estimator != "ukf" else None)[estimator]
+                             horizon=horizon if TABLE[estimator].horizon else None)[estimator]
     run = simulate(system, seed=seed, duration=steps * system.dt)
     U, Y = run.u[:steps], run.y[:steps]
     write_run_header(gen.directory / "run_data.h", U, Y, system.dt)
@@ -398,8 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--machine", choices=list(MACHINES), default="mps2-an386",
                         help="QEMU machine: " + "; ".join(f"{k} = {v}" for k, v in MACHINES.items()))
     parser.add_argument("--estimator", choices=ESTIMATORS, default="ukf",
-                        help="ukf, mhe_rti (one Gauss-Newton iteration per sample) or mhe_gn "
-                             "(converged Gauss-Newton) (default: ukf)")
+                        help="ukf, ekf, mhe_rti (one Gauss-Newton iteration per sample) or "
+                             "mhe_gn (converged Gauss-Newton) (default: ukf)")
     parser.add_argument("--precision", choices=PRECISIONS, default="float64",
                         help="the C real type of the generated estimator (default: float64)")
     parser.add_argument("--horizon", type=int, default=None,

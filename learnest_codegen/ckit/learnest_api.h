@@ -220,11 +220,16 @@ int LEARNEST_API(set_gate)(LEARNEST_HANDLE* h, learnest_real threshold, int reco
   return learnest_gate_set(&h->c.gate, threshold, recover_after, inflation);
 }
 
-int LEARNEST_API(get_rejected)(const LEARNEST_HANDLE* h, int* rejected) {
+/* The n flags of src (of the handle h) into the caller's out. */
+LEARNEST_KIT int learnest_flags_out(const LEARNEST_HANDLE* h, const int* src, int n, int* out) {
   if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
-  if (!rejected) return LEARNEST_BAD_ARGUMENT;
-  memcpy(rejected, h->c.rejected, sizeof h->c.rejected);
+  if (!out) return LEARNEST_BAD_ARGUMENT;
+  memcpy(out, src, (size_t)n * sizeof *src);
   return LEARNEST_OK;
+}
+
+int LEARNEST_API(get_rejected)(const LEARNEST_HANDLE* h, int* rejected) {
+  return learnest_flags_out(h, h ? h->c.rejected : 0, LEARNEST_NY, rejected);
 }
 
 int LEARNEST_API(rejections)(const LEARNEST_HANDLE* h) {
@@ -232,10 +237,7 @@ int LEARNEST_API(rejections)(const LEARNEST_HANDLE* h) {
 }
 
 int LEARNEST_API(get_input_rejected)(const LEARNEST_HANDLE* h, int* rejected) {
-  if (!learnest_handle_ok(h)) return LEARNEST_NOT_INITIALISED;
-  if (!rejected) return LEARNEST_BAD_ARGUMENT;
-  memcpy(rejected, h->c.input_rejected, sizeof h->c.input_rejected);
-  return LEARNEST_OK;
+  return learnest_flags_out(h, h ? h->c.input_rejected : 0, LEARNEST_NU, rejected);
 }
 
 int LEARNEST_API(input_rejections)(const LEARNEST_HANDLE* h) {

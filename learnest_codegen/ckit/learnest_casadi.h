@@ -39,44 +39,43 @@ LEARNEST_KIT int learnest_casadi_call(struct learnest_model* md, learnest_casadi
   return f(md->arg, md->res, md->iw, md->w, 0);
 }
 
+/* f(x, u) -> (a, b), or -> a when b is NULL, on the work arrays of md: the model hooks (inlined
+ * into each, so every hook calls its CasADi function directly). */
+LEARNEST_KIT_INLINE void learnest_casadi_xu(struct learnest_model* md, learnest_casadi_function f,
+                                     const learnest_real* x, const learnest_real* u,
+                                     learnest_real* a, learnest_real* b) {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+  in[0] = x, in[1] = u, out[0] = a, out[1] = b;
+  (void)learnest_casadi_call(md, f, in, 2, out, b ? 2 : 1);
+}
+
 #ifdef LEARNEST_MODEL_STAGE
 LEARNEST_KIT void learnest_model_stage(struct learnest_model* md, const learnest_real* x,
                                        const learnest_real* u, learnest_real* F,
                                        learnest_real* A) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = F, out[1] = A;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_STAGE, in, 2, out, 2);
+  learnest_casadi_xu(md, LEARNEST_MODEL_STAGE, x, u, F, A);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_NODE
 LEARNEST_KIT void learnest_model_node(struct learnest_model* md, const learnest_real* x,
                                       const learnest_real* u, learnest_real* h, learnest_real* C) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = h, out[1] = C;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_NODE, in, 2, out, 2);
+  learnest_casadi_xu(md, LEARNEST_MODEL_NODE, x, u, h, C);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_F
 LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_real* x,
                                    const learnest_real* u, learnest_real* F) {
-  const learnest_real* in[2];
-  learnest_real* out[1];
-  in[0] = x, in[1] = u, out[0] = F;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_F, in, 2, out, 1);
+  learnest_casadi_xu(md, LEARNEST_MODEL_F, x, u, F, 0);
 }
 #endif
 
 #ifdef LEARNEST_MODEL_H
 LEARNEST_KIT void learnest_model_h(struct learnest_model* md, const learnest_real* x,
                                    const learnest_real* u, learnest_real* h) {
-  const learnest_real* in[2];
-  learnest_real* out[1];
-  in[0] = x, in[1] = u, out[0] = h;
-  (void)learnest_casadi_call(md, LEARNEST_MODEL_H, in, 2, out, 1);
+  learnest_casadi_xu(md, LEARNEST_MODEL_H, x, u, h, 0);
 }
 #endif
 
@@ -108,16 +107,20 @@ LEARNEST_KIT int learnest_model_update(struct learnest_model* md, const learnest
 #endif
 
 #ifdef LEARNEST_MODEL_SOLVER
-/* The NLP solver: x = argmin of the problem with parameters p from the warm start x0.
- * Its memory is checked out of CasADi's static pool for the call and given back. */
+/* The NLP solver: x = argmin of the problem with parameters p from the warm start x0, with
+ * the variable bounds lbx and ubx (NULL: none). Its memory is checked out of CasADi's static
+ * pool for the call and given back. */
 LEARNEST_KIT int learnest_model_solve(struct learnest_model* md, const learnest_real* p,
-                                      const learnest_real* x0, learnest_real* x) {
+                                      const learnest_real* x0, const learnest_real* lbx,
+                                      const learnest_real* ubx, learnest_real* x) {
   int i, flag, mem = LEARNEST_MODEL_SOLVER_CHECKOUT();
   if (mem < 0) return LEARNEST_NO_MEMORY;
-  for (i = 0; i <= LEARNEST_CASADI_SZ_ARG; ++i) md->arg[i] = 0;  /* no bounds, no multipliers */
+  for (i = 0; i <= LEARNEST_CASADI_SZ_ARG; ++i) md->arg[i] = 0;  /* no multipliers */
   for (i = 0; i <= LEARNEST_CASADI_SZ_RES; ++i) md->res[i] = 0;
   md->arg[0] = x0;
   md->arg[1] = p;
+  md->arg[2] = lbx;  /* nlpsol's inputs: x0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0 */
+  md->arg[3] = ubx;
   md->res[0] = x;
   flag = LEARNEST_MODEL_SOLVER(md->arg, md->res, md->iw, md->w, mem);
   LEARNEST_MODEL_SOLVER_RELEASE(mem);

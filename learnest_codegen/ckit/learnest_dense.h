@@ -147,30 +147,30 @@ LEARNEST_KIT int learnest_covariance_ok(const learnest_real* A, int n, learnest_
   return 1;
 }
 
-/* C (m x n) = A (m x k) B (k x n); all column-major. */
-LEARNEST_KIT void learnest_mat_mul(const learnest_real* A, const learnest_real* B, int m, int k,
-                                   int n, learnest_real* C) {
+/* C (m x n) = A (m x k) B, B's entry (l, j) at B[l * bl + j * bj]; A and C column-major.
+ * Inlined into its two callers, so each loop indexes with its constant strides. */
+LEARNEST_KIT_INLINE void learnest_mat_mul_strided(const learnest_real* A, const learnest_real* B, int bl,
+                                           int bj, int m, int k, int n, learnest_real* C) {
   int i, j, l;
   for (j = 0; j < n; ++j) {
     for (i = 0; i < m; ++i) {
       learnest_real v = 0;
-      for (l = 0; l < k; ++l) v += A[i + l * m] * B[l + j * k];
+      for (l = 0; l < k; ++l) v += A[i + l * m] * B[l * bl + j * bj];
       C[i + j * m] = v;
     }
   }
 }
 
+/* C (m x n) = A (m x k) B (k x n); all column-major. */
+LEARNEST_KIT void learnest_mat_mul(const learnest_real* A, const learnest_real* B, int m, int k,
+                                   int n, learnest_real* C) {
+  learnest_mat_mul_strided(A, B, 1, k, m, k, n, C);
+}
+
 /* C (m x n) = A (m x k) B^T (B: n x k); all column-major. */
 LEARNEST_KIT void learnest_mat_mul_t(const learnest_real* A, const learnest_real* B, int m, int k,
                                      int n, learnest_real* C) {
-  int i, j, l;
-  for (j = 0; j < n; ++j) {
-    for (i = 0; i < m; ++i) {
-      learnest_real v = 0;
-      for (l = 0; l < k; ++l) v += A[i + l * m] * B[j + l * n];
-      C[i + j * m] = v;
-    }
-  }
+  learnest_mat_mul_strided(A, B, n, 1, m, k, n, C);
 }
 
 /* 1 when every variance (diagonal entry) of the n x n A is in the precision's range

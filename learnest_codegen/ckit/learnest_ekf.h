@@ -11,6 +11,7 @@
 #define LEARNEST_EKF_H
 
 #include "learnest_kalman.h"
+#include "learnest_update.h"
 
 /* The predicted outputs' covariance S = C P C' + R and P C' (column-major) of the prior P. */
 LEARNEST_KIT void learnest_ekf_innovation(const LEARNEST_HANDLE* h, const learnest_real* P,
@@ -25,17 +26,15 @@ LEARNEST_KIT void learnest_ekf_innovation(const LEARNEST_HANDLE* h, const learne
 }
 
 /* One sample: x = F(x, u), P = A P A' + Q (not on the first sample), then the Kalman update on
- * the valid outputs the gate keeps (K = P C' M S^-1 with S = M (C P C' + R) M + I - M); a lost
- * estimate re-seeds: the update of the prior covariance diag(ceiling) by every valid output. */
+ * the valid outputs the gate keeps (learnest_masked_gain_update); a lost estimate re-seeds: the
+ * update of the prior covariance diag(ceiling) by every valid output. */
 LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    int* rejected) {
   learnest_real x[LEARNEST_NX], P[LEARNEST_KF_NXX], A[LEARNEST_KF_NXX], AP[LEARNEST_KF_NXX];
   learnest_real hx[LEARNEST_NY], C[LEARNEST_NY * LEARNEST_NX], PCt[LEARNEST_NX * LEARNEST_NY];
-  learnest_real S[LEARNEST_KF_NYY], Si[LEARNEST_KF_NYY], z[LEARNEST_NY], d2[LEARNEST_NY];
-  learnest_real K[LEARNEST_NX * LEARNEST_NY];
-  learnest_real work[LEARNEST_KF_NYY];
-  int i, j, k, keep[LEARNEST_NY];
+  learnest_real S[LEARNEST_KF_NYY], z[LEARNEST_NY], d2[LEARNEST_NY];
+  int i, j, keep[LEARNEST_NY];
   memcpy(x, h->x, sizeof x);
   memcpy(P, h->P, sizeof P);
   if (h->c.samples > 0) {
@@ -56,28 +55,8 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     learnest_ekf_innovation(h, P, C, PCt, S);
   }
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = valid[j] && !rejected[j];
-  for (j = 0; j < LEARNEST_NY; ++j) {
-    for (k = 0; k < LEARNEST_NY; ++k) {
-      S[j + k * LEARNEST_NY] = (keep[j] && keep[k]) ? S[j + k * LEARNEST_NY] : (learnest_real)(j == k);
-    }
-  }
-  if (!learnest_spd_inverse(S, LEARNEST_NY, Si, work)) return LEARNEST_NOT_POSITIVE_DEFINITE;
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* K = P C' M S^-1, x += K M z */
-    for (j = 0; j < LEARNEST_NY; ++j) {
-      learnest_real v = 0;
-      for (k = 0; k < LEARNEST_NY; ++k) v += keep[k] ? PCt[i + k * LEARNEST_NX] * Si[k + j * LEARNEST_NY] : 0;
-      K[i + j * LEARNEST_NX] = v;
-      x[i] += keep[j] ? v * z[j] : 0;
-    }
-  }
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* P -= K M C P, with C P = (P C')' */
-    for (k = 0; k < LEARNEST_NX; ++k) {
-      learnest_real v = P[i + k * LEARNEST_NX];
-      for (j = 0; j < LEARNEST_NY; ++j) v -= keep[j] ? K[i + j * LEARNEST_NX] * PCt[k + j * LEARNEST_NX] : 0;
-      AP[i + k * LEARNEST_NX] = v;
-    }
-  }
-  return learnest_kalman_commit(h, x, AP, rejected, valid);
+  if (!learnest_masked_gain_update(P, PCt, S, keep, z, x)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+  return learnest_kalman_commit(h, x, P, rejected, valid);
 }
 
 #endif /* LEARNEST_EKF_H */

@@ -78,7 +78,7 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
   s->dr = learnest_is_diagonal(s->R, LEARNEST_NY);
   s->dp = learnest_is_diagonal(s->P, LEARNEST_NX);
 #if LEARNEST_NCOMP > 1
-  s->split = learnest_gn_split(s);
+  s->split = LEARNEST_BOUNDED ? 0 : learnest_gn_split(s);  /* bounds: learnest_box_hold's system */
 #else
   s->split = 0;
 #endif
@@ -330,6 +330,7 @@ LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learn
 #endif
   {
     learnest_gn_build(s, w, X);
+    learnest_box_hold(X, s->D, s->E, s->g);  /* state bounds: the active ones held */
     if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   }
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
@@ -354,6 +355,7 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     learnest_real trial_cost;
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
+    learnest_box_clamp(s->Xt, LEARNEST_N + 1);  /* a projected step under state bounds */
     learnest_gn_linearise(md, w, s->Xt, trial);
     trial_cost = learnest_gn_cost(s, w, s->Xt, trial);
     /* Armijo; a step below tol is taken whole (its cost change is round-off). */

@@ -17,9 +17,17 @@
 #ifndef LEARNEST_MHE_H
 #define LEARNEST_MHE_H
 
+#include "learnest_bounds.h"
 #include "learnest_dense.h"
 #include "learnest_gate.h"
+#include "learnest_update.h"
 #include "learnest_window.h"
+
+/* 1: the arrival covariance is carried by the EKF recursion (learnest_mhe_carry) from reset on
+ * and never settles back to the running weight (MHESettings.arrival_update). */
+#ifndef LEARNEST_ARRIVAL_UPDATE
+#define LEARNEST_ARRIVAL_UPDATE 0
+#endif
 
 #define LEARNEST_NXX (LEARNEST_NX * LEARNEST_NX)
 #define LEARNEST_NYY (LEARNEST_NY * LEARNEST_NY)
@@ -152,7 +160,7 @@ LEARNEST_KIT void learnest_mhe_reset(struct learnest_mhe* m, const learnest_real
   memcpy(m->W, t->W, sizeof m->W);
   memcpy(m->Q_cov, t->Q_cov, sizeof m->Q_cov);
   memcpy(m->R_cov, t->R_cov, sizeof m->R_cov);
-  m->carried = !learnest_mhe_settled(m, t->P_cov);
+  m->carried = LEARNEST_ARRIVAL_UPDATE || !learnest_mhe_settled(m, t->P_cov);
   if (m->carried) memcpy(m->C, t->P_cov, sizeof m->C);
   learnest_window_fill(m->X, x0);
 }
@@ -182,41 +190,10 @@ LEARNEST_KIT void learnest_mhe_set_tuning(struct learnest_mhe* m, const struct l
  * (NX x NX), both column-major; cov row-major (symmetric). */
 LEARNEST_KIT void learnest_mhe_carry(const struct learnest_mhe* m, const learnest_real* H,
                                      const learnest_real* A, learnest_real* cov) {
-  learnest_real HP[LEARNEST_NY * LEARNEST_NX], S[LEARNEST_NYY], Si[LEARNEST_NYY], L[LEARNEST_NYY];
   learnest_real AP[LEARNEST_NXX];
-  const learnest_real* G = m->now.w.G;
-  int i, j, l, any = 0;
-  for (j = 0; j < LEARNEST_NY; ++j) any |= G[j] == 1;
-  if (any) {
-    for (j = 0; j < LEARNEST_NY; ++j) {  /* HP = M H cov (row j of output j) */
-      for (i = 0; i < LEARNEST_NX; ++i) {
-        learnest_real v = 0;
-        for (l = 0; l < LEARNEST_NX; ++l) v += H[j + l * LEARNEST_NY] * cov[l * LEARNEST_NX + i];
-        HP[j * LEARNEST_NX + i] = G[j] == 1 ? v : 0;
-      }
-    }
-    for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (H cov H^T + R) M + (I - M) */
-      for (l = 0; l < LEARNEST_NY; ++l) {
-        learnest_real v = m->R_cov[j * LEARNEST_NY + l];
-        for (i = 0; i < LEARNEST_NX; ++i) v += HP[j * LEARNEST_NX + i] * H[l + i * LEARNEST_NY];
-        S[j * LEARNEST_NY + l] = (G[j] == 1 && G[l] == 1) ? v : (j == l ? 1 : 0);
-      }
-    }
-    if (learnest_spd_inverse(S, LEARNEST_NY, Si, L)) {
-      for (i = 0; i < LEARNEST_NX; ++i) {  /* cov -= HP^T Si HP */
-        for (l = 0; l < LEARNEST_NX; ++l) {
-          learnest_real v = 0;
-          for (j = 0; j < LEARNEST_NY; ++j) {
-            learnest_real t = 0;
-            int k;
-            for (k = 0; k < LEARNEST_NY; ++k) t += Si[j * LEARNEST_NY + k] * HP[k * LEARNEST_NX + l];
-            v += HP[j * LEARNEST_NX + i] * t;
-          }
-          cov[i * LEARNEST_NX + l] -= v;
-        }
-      }
-    }
-  }
+  int i, j, l, keep[LEARNEST_NY];
+  for (j = 0; j < LEARNEST_NY; ++j) keep[j] = m->now.w.G[j] == 1;
+  (void)learnest_masked_update(cov, H, m->R_cov, keep, 0, 0);  /* S not PD: the prediction */
   for (i = 0; i < LEARNEST_NX; ++i) {  /* AP = A cov */
     for (l = 0; l < LEARNEST_NX; ++l) {
       learnest_real v = 0;
@@ -261,7 +238,7 @@ LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
         learnest_mhe_carry(m, H, A, m->Cn);
         learnest_mhe_ceiling(m, LEARNEST_ARRIVAL_CEILING, ceiling);
         (void)learnest_cap_variances(m->Cn, LEARNEST_NX, ceiling, work);
-        if (learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
+        if (!LEARNEST_ARRIVAL_UPDATE && learnest_mhe_settled(m, m->Cn)) m->carried_next = 0;
       } else {
         m->carried_next = 0;
       }
@@ -282,42 +259,11 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
                                          const learnest_real* pd, const learnest_real* R_cov,
                                          const learnest_real* nu, const int* keep,
                                          learnest_real* xbar, learnest_real* cov) {
-  learnest_real PCt[LEARNEST_NX * LEARNEST_NY], S[LEARNEST_NYY], Si[LEARNEST_NYY];
-  learnest_real L[LEARNEST_NYY], z[LEARNEST_NY];
-  int i, j, l;
+  int i;
   for (i = 0; i < LEARNEST_NX; ++i) xbar[i] = x_pred[i];
   for (i = 0; i < LEARNEST_NXX; ++i) cov[i] = 0;
   for (i = 0; i < LEARNEST_NX; ++i) cov[i * LEARNEST_NX + i] = pd[i];
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* PCt = diag(pd) C^T M */
-    for (j = 0; j < LEARNEST_NY; ++j) PCt[i * LEARNEST_NY + j] = keep[j] ? pd[i] * C[j + i * LEARNEST_NY] : 0;
-  }
-  for (j = 0; j < LEARNEST_NY; ++j) {  /* S = M (C diag(pd) C^T + R) M + (I - M) */
-    for (l = 0; l < LEARNEST_NY; ++l) {
-      learnest_real v = R_cov[j * LEARNEST_NY + l];
-      for (i = 0; i < LEARNEST_NX; ++i) v += C[j + i * LEARNEST_NY] * PCt[i * LEARNEST_NY + l];
-      S[j * LEARNEST_NY + l] = (keep[j] && keep[l]) ? v : (j == l ? 1 : 0);
-    }
-  }
-  if (!learnest_spd_inverse(S, LEARNEST_NY, Si, L)) return;
-  for (j = 0; j < LEARNEST_NY; ++j) {
-    z[j] = 0;
-    for (l = 0; l < LEARNEST_NY; ++l) z[j] += Si[j * LEARNEST_NY + l] * (keep[l] ? nu[l] : 0);
-  }
-  for (i = 0; i < LEARNEST_NX; ++i) {
-    for (j = 0; j < LEARNEST_NY; ++j) xbar[i] += PCt[i * LEARNEST_NY + j] * z[j];
-  }
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* cov -= PCt Si PCt^T */
-    for (l = 0; l < LEARNEST_NX; ++l) {
-      learnest_real v = 0;
-      for (j = 0; j < LEARNEST_NY; ++j) {
-        learnest_real t = 0;
-        int k;
-        for (k = 0; k < LEARNEST_NY; ++k) t += Si[j * LEARNEST_NY + k] * PCt[l * LEARNEST_NY + k];
-        v += PCt[i * LEARNEST_NY + j] * t;
-      }
-      cov[i * LEARNEST_NX + l] -= v;
-    }
-  }
+  (void)learnest_masked_update(cov, C, R_cov, keep, nu, xbar);  /* S not PD: the prediction */
   learnest_symmetrise(cov, LEARNEST_NX);
 }
 
@@ -368,6 +314,7 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
     learnest_window_reset(&m->next.w, xbar);
     learnest_window_open(&m->next.w, u);
     learnest_window_fill(m->Xn, xbar);
+    learnest_box_clamp(m->Xn, LEARNEST_N + 1);
     memcpy(m->Cn, cov, sizeof m->Cn);
     m->carried_next = 1;
     learnest_mhe_weigh_arrival(m, m->Cn, &m->carried_next, m->next.P);

@@ -46,13 +46,14 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
                                    const learnest_real* y, const unsigned char* valid,
                                    int* rejected) {
   struct learnest_mhe* m = &h->m;
-  learnest_real yhat[LEARNEST_NY], C[LEARNEST_NY * LEARNEST_NX];
+  learnest_real yhat[LEARNEST_NY], C[LEARNEST_NY * LEARNEST_NX], lo[LEARNEST_NW], hi[LEARNEST_NW];
   int has_previous = h->c.samples > 0, code, any, restarted;
+  const int bounded = learnest_box_tile(lo, hi, LEARNEST_N + 1);
   learnest_mhe_slide(m, &h->model, has_previous, u);
   learnest_model_node(&h->model, m->Xn + LEARNEST_N * LEARNEST_NX, u, yhat, C);
   any = learnest_mhe_gate(m, &h->c.gate, has_previous, u, y, valid, yhat, C, rejected, &restarted);
   code = learnest_model_solve(&h->model, (const learnest_real*)(const void*)&m->next, m->Xn,
-                              h->solution);
+                              bounded ? lo : 0, bounded ? hi : 0, h->solution);
   if (code == LEARNEST_OK && !learnest_all_finite(h->solution, LEARNEST_NW)) {
     code = LEARNEST_NONFINITE_RESULT;
   }
@@ -61,6 +62,7 @@ LEARNEST_KIT int learnest_est_step(LEARNEST_HANDLE* h, const learnest_real* u,
     return code;
   }
   memcpy(m->Xn, h->solution, sizeof h->solution);
+  learnest_box_clamp(m->Xn, LEARNEST_N + 1);  /* an interior point's last 1e-12 into the box */
   learnest_mhe_commit(m);
   (void)learnest_gate_record(&h->c.gate, rejected, valid);
   return any ? LEARNEST_MEASUREMENT_REJECTED : LEARNEST_OK;

@@ -12,7 +12,8 @@
 
 /* The window moves on by one sample with input u (learnest_mhe_advance), the arrival's
  * covariance carried along the model's linearisation at the old first node when the window
- * is full, and the warm start's new last node predicted by the model from the old last one. */
+ * is full, and the warm start's new last node predicted by the model from the old last one
+ * (the warm start then clamped into the state bounds, learnest_bounds.h). */
 LEARNEST_KIT_INLINE void learnest_mhe_slide(struct learnest_mhe* m, struct learnest_model* md,
                                             int has_previous, const learnest_real* u) {
   learnest_real H0[LEARNEST_NY * LEARNEST_NX], A0[LEARNEST_NXX], v0[LEARNEST_NX];
@@ -25,6 +26,7 @@ LEARNEST_KIT_INLINE void learnest_mhe_slide(struct learnest_mhe* m, struct learn
   if (has_previous) {
     learnest_model_F(md, m->X + LEARNEST_N * LEARNEST_NX, u, m->Xn + LEARNEST_N * LEARNEST_NX);
   }
+  learnest_box_clamp(m->Xn, LEARNEST_N + 1);  /* the warm start inside the state bounds */
 }
 
 #endif /* LEARNEST_MHE_MODEL_H */

@@ -1,7 +1,8 @@
 """What every ``learnest`` command shares: one-line user errors, ``--force``/``--resample``, run
-reading and the estimator option texts.
+reading and the estimator option texts (from the one table of estimators,
+:data:`~learnest_codegen.compilation.ESTIMATORS`).
 
-Imports neither torch nor CasADi (``learnest --help`` stays fast).
+Imports no torch (``learnest --help`` stays fast).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 import click
 import numpy as np
 
+from ..compilation import ESTIMATOR_NAMES, ESTIMATORS, estimator_help
 from ..errors import LearnestError
 from ..runtime.limits import LIMITS
 
@@ -122,14 +124,26 @@ def resolve_system(system_name: str | None, model: str | None = None, compiled: 
 
 
 
-# the names of compilation.ESTIMATOR_NAMES (not imported here: it would load casadi for --help)
-ESTIMATOR_CHOICES = ["mhe", "ukf", "mhe_gn", "mhe_rti"]
-ESTIMATOR_HELP = ("mhe: the MHE solved by Ipopt (the reference); ukf: the UKF; mhe_gn: the "
-                  "embedded MHE (Gauss-Newton, no Ipopt, no malloc) iterated to convergence, the "
-                  "same estimates as mhe; mhe_rti: the embedded MHE with one Gauss-Newton "
-                  "iteration per sample (real-time iteration, fastest)")
-PRECISION_HELP = ("C real type: float32 for single-precision FPUs (ukf, mhe_gn and mhe_rti; the "
-                  "float32 UKF uses sigma-point spread alpha = 0.5)")
+class EstimatorChoice(click.Choice):
+    """``--estimator``: a name of :data:`~learnest_codegen.compilation.ESTIMATORS`, read when the
+    command runs or shows its help (the one table of estimators)."""
+
+    def __init__(self):
+        super().__init__([])
+
+    @property
+    def choices(self):
+        return tuple(ESTIMATOR_NAMES)
+
+    @choices.setter
+    def choices(self, value):  # click sets it in __init__; the table is the list
+        pass
+
+
+ESTIMATOR_HELP = estimator_help()
+PRECISION_HELP = ("C real type: float32 for single-precision FPUs ("
+                  + ", ".join(n for n, k in ESTIMATORS.items() if "float32" in k.precisions)
+                  + "; the float32 UKF uses sigma-point spread alpha = 0.5)")
 
 
 class InRange(click.ParamType):

@@ -9,15 +9,27 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ..compilation import (
+    DEFAULT_ESTIMATORS,
+    PRECISION_NAMES,
+    check_horizon,
+    estimator_dir,
+    estimator_kind,
+    precision_problem,
+)
+from ..errors import LearnestError, SolverError
+from ..evaluation import mse, run_estimator
+from ..outputs import atomic_file, claim_output
+from ..pipeline import compile_model, expected_manifest, load_estimator, make_estimator, resolve
 from .common import (
     CLAMP_INPUTS,
-    ESTIMATOR_CHOICES,
     ESTIMATOR_HELP,
     FORCE,
     HORIZON,
     PRECISION_HELP,
     RESAMPLE,
     SYSTEM_HELP,
+    EstimatorChoice,
     friendly,
     gate_settings,
     missing_note,
@@ -35,9 +47,6 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
              force: bool = False, horizon: int | None = None,
              clamp_inputs: bool | None = None, target: str = "host") -> dict:
     from ..codegen import crazyflie
-    from ..compilation import DEFAULT_ESTIMATORS, check_horizon, estimator_dir, precision_problem
-    from ..outputs import claim_output
-    from ..pipeline import compile_model, resolve
 
     if target == "crazyflie":
         estimators, precision = estimators or (crazyflie.DEFAULT_ESTIMATOR,), precision or crazyflie.PRECISION
@@ -45,7 +54,7 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
             raise click.UsageError(f"--target crazyflie builds one estimator into the app, got "
                                    f"{list(estimators)}")
         crazyflie.check_target(estimators[0], precision, None)
-    estimators, precision = estimators or DEFAULT_ESTIMATORS, precision or "float64"
+    estimators, precision = estimators or tuple(DEFAULT_ESTIMATORS), precision or "float64"
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
     try:
@@ -95,9 +104,10 @@ COMPILE_OPTIONS = [
     click.option("--system", "system_name", default=None,
                  help=SYSTEM_HELP + " (default: the one the model records; cartpole with --nominal)"),
     click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
-    click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
-                 help=ESTIMATOR_HELP + " (default: mhe and ukf; ukf with --target crazyflie)"),
-    click.option("--precision", type=click.Choice(["float64", "float32"]), default=None,
+    click.option("--estimator", "estimators", multiple=True, type=EstimatorChoice(),
+                 help=ESTIMATOR_HELP + f" (default: {' and '.join(DEFAULT_ESTIMATORS)}; ukf with "
+                      "--target crazyflie)"),
+    click.option("--precision", type=click.Choice(PRECISION_NAMES), default=None,
                  help=PRECISION_HELP + " (default: float64; float32 with --target crazyflie)"),
     click.option("--target", type=click.Choice(["host", "crazyflie"]), default="host", show_default=True,
                  help="host: the estimator folders; crazyflie: also <prefix>_crazyflie/, an "
@@ -143,13 +153,13 @@ ON_DEMAND = ".learnest_compiled"
 @click.option("--data", multiple=True, required=True,
               help="run CSV (empty y_ cells: missing measurements); give --data several times, a "
                    "folder or a glob to estimate many runs (then --out is a folder)")
-@click.option("--estimator", type=click.Choice(ESTIMATOR_CHOICES), required=True, help=ESTIMATOR_HELP)
+@click.option("--estimator", type=EstimatorChoice(), required=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--backend", type=click.Choice(["python", "c"]), default="c", show_default=True)
 @click.option("--compiled", type=click.Path(file_okay=False), default=None,
               help="compiled estimator directory (C backend; default: compile on demand into "
                    f"{ON_DEMAND}/ beside --out, said on stderr)")
-@click.option("--precision", type=click.Choice(["float64", "float32"]), default="float64",
+@click.option("--precision", type=click.Choice(PRECISION_NAMES), default="float64",
               show_default=True, help=PRECISION_HELP + "; C backend, when compiling on demand")
 @HORIZON
 @click.option("--x0", "x0_text", default=None,
@@ -202,8 +212,6 @@ def _estimate_run(system_name, data, estimator, model, backend, compiled, precis
                   P0_text, out, clamp_inputs, gate_threshold, gate_recover_after, gate_inflation,
                   resample, force) -> None:
     """One run of :func:`estimate`."""
-    from ..compilation import check_horizon, estimator_kind, precision_problem
-
     if backend == "c" and compiled is None and precision_problem((estimator,), precision):
         raise click.UsageError(precision_problem((estimator,), precision))
     if backend == "python" and estimator_kind(estimator).python is None:
@@ -212,10 +220,6 @@ def _estimate_run(system_name, data, estimator, model, backend, compiled, precis
         check_horizon((estimator,), horizon)
     except ValueError as exc:
         raise click.UsageError(f"--horizon: {exc}") from exc
-    from ..errors import LearnestError, SolverError
-    from ..evaluation import mse, run_estimator
-    from ..outputs import atomic_file, claim_output
-    from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
 
     claim_output(out, inputs=(data, compiled, None if model in ("nominal", "true") else model),
                  force=force)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from .common import ESTIMATOR_CHOICES, ESTIMATOR_HELP, FORCE, RESAMPLE, SYSTEM_HELP, friendly, resolve_system
+from .common import ESTIMATOR_HELP, FORCE, RESAMPLE, SYSTEM_HELP, EstimatorChoice, friendly, resolve_system
 
 
 def _references(references: tuple[str, ...], names: list[str], runs, system) -> list:
@@ -59,7 +59,7 @@ def _paired_summary(per_run: dict, groups: list[str]) -> dict:
               help="reference states of a run: a CSV of t and any x_<state> columns (empty cells: "
                    "no reference there), one per --data in order, or a folder of <run>.csv "
                    "(default: the runs' x_ columns)")
-@click.option("--estimator", "estimators", multiple=True, type=click.Choice(ESTIMATOR_CHOICES),
+@click.option("--estimator", "estimators", multiple=True, type=EstimatorChoice(),
               default=("ukf",), show_default=True, help=ESTIMATOR_HELP)
 @click.option("--model", default="nominal", show_default=True, help="nominal, true, or a model directory")
 @click.option("--against", default="nominal", show_default=True,

@@ -11,6 +11,7 @@ problem struct being the solver's parameter vector (checked at compile time agai
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import casadi as cs
@@ -31,7 +32,7 @@ from .emit import Design, comment, emit, resolve_prefix
 
 def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False) -> GeneratedEstimator:
+                 force: bool = False, name: str = "mhe") -> GeneratedEstimator:
     """Generate, compile and describe the Ipopt MHE of ``model`` in ``out_dir``.
 
     Parameters
@@ -44,9 +45,11 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     prefix : C symbol prefix, default ``"<system>_<kind>_mhe_n<N>"`` (N the horizon).
     model_hash : hash of the model's weights, recorded in the manifest and the fingerprint.
     force : rebuild the library even when nothing changed.
+    name : the estimator's name (its entry in ``compilation.ESTIMATORS``): the manifest's
+        ``estimator`` and the default prefix's.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
-    prefix = resolve_prefix(prefix, model, "mhe", "float64", settings.horizon)
+    prefix = resolve_prefix(prefix, model, name, "float64", settings.horizon)
     problem = build_problem(model, settings, f"{prefix}_model_nlp")
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     F = cs.Function(f"{prefix}_model_F", [x, u], [model.F(x, u)], ["x", "u"], ["x_next"])
@@ -57,7 +60,7 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
     offsets = problem.layout.offsets()
     include, lib = toolchain.casadi_dirs()
     design = Design(
-        estimator="mhe", title="Moving horizon estimator (Ipopt)", kit="learnest_mhe_ipopt.h",
+        estimator=name, title="Moving horizon estimator (Ipopt)", kit="learnest_mhe_ipopt.h",
         functions=functions,
         hooks={"LEARNEST_MODEL_SOLVER": problem.solver.name(),
                "LEARNEST_MODEL_SOLVER_CHECKOUT": f"{problem.solver.name()}_checkout",
@@ -69,7 +72,8 @@ def generate_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Pa
         doc=header_doc(settings, "Ipopt"), declarations=("mhe.h.in",),
         workspace=mhe_workspace(model.nx, model.nu, model.ny, settings.horizon, solution=True),
         glue_defines={"LEARNEST_NP": str(problem.layout.size),
-                      **{f"LEARNEST_OFF_{name.upper()}": str(off) for name, off in offsets.items()}},
+                      **{f"LEARNEST_OFF_{key.upper()}": str(off) for key, off in offsets.items()},
+                      **bounds_defines(settings), **arrival_defines(settings)},
         link={"include_dirs": (include,), "lib_dirs": (lib,), "libs": ("ipopt",)},
         extra={"ipopt_options": dict(IPOPT_OPTIONS)})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
@@ -89,6 +93,34 @@ def mhe_workspace(nx: int, nu: int, ny: int, horizon: int, *, solution: bool) ->
     problem = nx + n1 * (nu + 2 * ny + 1) + 2 * nx * nx + ny * ny
     reals = 4 + nu + 2 * problem + 2 * nw + 5 * nx * nx + ny * ny + (nw if solution else 0)
     return {"reals": reals, "ints": 9 + ny + nu, "members": 34}
+
+
+def bounds_defines(settings: MHESettings, precision: str = "float64") -> dict[str, str]:
+    """The kit's ``LEARNEST_STATE_LO/_HI`` (learnest_bounds.h) of the settings' state bounds
+    (``HUGE_VAL``: an open side); nothing without bounds. In float32 each bound is the nearest
+    float inside the box (-0.85's nearest float is below it)."""
+    if settings.state_bounds is None:
+        return {}
+
+    def inside(v: float, toward: float) -> float:
+        if precision != "float32" or not math.isfinite(v):
+            return v
+        f = np.float32(v)
+        ok = float(f) >= v if toward > 0 else float(f) <= v  # compared in double
+        return float(f if ok else np.nextafter(f, np.float32(toward)))
+
+    def side(i: int) -> str:
+        values = [inside(pair[i], math.inf if i == 0 else -math.inf) for pair in settings.state_bounds]
+        return "{" + ", ".join(repr(v) if math.isfinite(v) else ("HUGE_VAL" if v > 0 else "-HUGE_VAL")
+                               for v in values) + "}"
+
+    return {"LEARNEST_STATE_LO": side(0), "LEARNEST_STATE_HI": side(1)}
+
+
+def arrival_defines(settings: MHESettings) -> dict[str, str]:
+    """The kit's ``LEARNEST_ARRIVAL_UPDATE`` (learnest_mhe.h) when the arrival cost follows the
+    data (``MHESettings.arrival_update``); nothing otherwise."""
+    return {"LEARNEST_ARRIVAL_UPDATE": "1"} if settings.arrival_update else {}
 
 
 def header_doc(settings: MHESettings, solver: str) -> dict[str, str]:

@@ -18,31 +18,34 @@ from ..export import DiscreteModel
 from ..integrators import rk4_step_jacobian
 from ..runtime.manifest import GeneratedEstimator
 from .emit import Design, emit, resolve_prefix
-from .mhe import header_doc, mhe_defaults, mhe_workspace
+from .mhe import arrival_defines, bounds_defines, header_doc, mhe_defaults, mhe_workspace
 
 
 def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
                           solver: GaussNewtonSettings | None = None, prefix: str | None = None,
-                          model_hash: str = "", force: bool = False) -> GeneratedEstimator:
+                          model_hash: str = "", force: bool = False,
+                          name: str | None = None) -> GeneratedEstimator:
     """Generate, compile and describe the embedded (Gauss-Newton) MHE of ``model``.
 
     The arguments are :func:`~.mhe.generate_mhe`'s, and ``solver``: the mode, iteration limit,
     tolerance and precision (default converged, float64). The default prefix is
     ``"<system>_<kind>_<mhe_gn|mhe_rti>_n<N>"`` (N the horizon; ``_float32`` appended in
-    float32). The settings go through
+    float32); ``name`` replaces the estimator's name (``mhe_gn`` or ``mhe_rti`` by the mode) in
+    the manifest and the prefix. The settings go through
     :func:`~learnest_codegen.estimators.mhe_problem.mhe_settings`, as every MHE's.
     """
     settings = mhe_settings(model, settings)  # the one door (estimators/mhe_problem.py)
     solver = solver or GaussNewtonSettings()
     settings.check(model.nx, model.ny, f"embedded MHE for {model.system.name} ({model.kind})")
-    prefix = resolve_prefix(prefix, model, solver.estimator, solver.precision, settings.horizon)
+    name = name or solver.estimator
+    prefix = resolve_prefix(prefix, model, name, solver.precision, settings.horizon)
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
     groups = state_groups(functions[0], functions[1], nx, ny)
     counts = gn_workspace(nx, model.nu, ny, n)
     P = prefix.upper()
     design = Design(
-        estimator=solver.estimator,
+        estimator=name,
         title=f"Embedded moving horizon estimator ({'RTI' if solver.mode == 'rti' else 'converged'} "
               "Gauss-Newton)", kit="learnest_mhe_gn.h", functions=functions,
         hooks={"LEARNEST_MODEL_STAGE": functions[0].name(), "LEARNEST_MODEL_NODE": functions[1].name(),
@@ -54,10 +57,29 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
         options={"MODE": f"{int(solver.mode == 'rti')}  /* {P}_MODE_{solver.mode.upper()} */",
                  "MAX_ITER": str(solver.max_iterations), "TOL": repr(solver.tolerance)},
         glue_defines={**{f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
-                      **group_defines(groups)},
+                      **group_defines(groups), **bounds_defines(settings, solver.precision),
+                      **arrival_defines(settings)},
         extra={"model_instructions": model_instructions(model),
                "state_groups": [list(states) for states, _ in groups]})
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
+
+
+def _in_mode(mode: str, estimator: str):
+    """The generator of the embedded MHE in ``mode`` (``compilation.ESTIMATORS``' entry
+    ``estimator``): :func:`generate_embedded_mhe` with that solver, default prefix."""
+
+    def generate(model: DiscreteModel, settings: MHESettings | None, out_dir: Path, *,
+                 model_hash: str = "", precision: str = "float64",
+                 name: str = estimator) -> GeneratedEstimator:
+        return generate_embedded_mhe(model, settings, out_dir, model_hash=model_hash, name=name,
+                                     solver=GaussNewtonSettings(mode=mode, precision=precision))
+
+    generate.__doc__ = f"The embedded MHE in {mode} mode (``{estimator}``) of ``model`` in ``precision``."
+    return generate
+
+
+generate_mhe_gn = _in_mode("converged", "mhe_gn")
+generate_mhe_rti = _in_mode("rti", "mhe_rti")
 
 
 def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:

@@ -20,13 +20,12 @@ import numpy as np
 
 from ..errors import SettingsError
 from ..estimators.precision import check_precision
-from ..estimators.ukf import UKFSettings
+from ..estimators.ukf import FLOAT32_MIN_ALPHA, UKFSettings
 from ..export import DiscreteModel
 from ..runtime.manifest import GeneratedEstimator
-from .emit import Design, comment, emit, resolve_prefix
+from .emit import emit, resolve_prefix
+from .kalman import kalman_design
 
-# The smallest sigma-point spread a float32 UKF accepts (docs/reports/embedded_mhe.md, float32 table).
-FLOAT32_MIN_ALPHA = 0.5
 ARG_NAMES = ["x", "P", "u", "y", "Q", "R"]
 RES_NAMES = ["x_post", "P_post"]
 PREDICT_ARGS, PREDICT_RES = ["x", "P", "u", "Q"], ["x_prior", "P_prior"]
@@ -183,12 +182,14 @@ def ukf_update_function(model: DiscreteModel, settings: UKFSettings, *,
 
 def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                  prefix: str | None = None, model_hash: str = "",
-                 force: bool = False, precision: str = "float64") -> GeneratedEstimator:
+                 force: bool = False, precision: str = "float64",
+                 name: str = "ukf") -> GeneratedEstimator:
     """Write, compile and describe a C UKF for ``model`` in ``out_dir`` (``codegen/emit.py``).
 
-    ``precision`` (``"float64"`` or ``"float32"``) is the C real type. Unchanged inputs reuse
-    the library unless ``force``. Raises :class:`BuildError` with the compiler's stderr on
-    failure.
+    ``precision`` (``"float64"`` or ``"float32"``) is the C real type; ``name`` the estimator's
+    (its entry in ``compilation.ESTIMATORS``: the manifest's ``estimator``, the default
+    prefix's). Unchanged inputs reuse the library unless ``force``. Raises
+    :class:`BuildError` with the compiler's stderr on failure.
     """
     check_precision(precision, "generate_ukf")
     if precision == "float32" and settings.alpha < FLOAT32_MIN_ALPHA:
@@ -196,50 +197,24 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
                          f"{settings.alpha}: with a small alpha the sigma-point weights cancel "
                          "(W0 = -99 at alpha 0.1, nx 4) and single precision loses the covariance "
                          "(cartpole: +12 % MSE); alpha 0.5 costs +0.14 %")
-    prefix = resolve_prefix(prefix, model, "ukf", precision)
+    prefix = resolve_prefix(prefix, model, name, precision)
     settings.validate_for(model)
     x, u = cs.SX.sym("x", model.nx), cs.SX.sym("u", model.nu)
     functions = (cs.Function(f"{prefix}_model_F", [x, u], [cs.cse(model.F(x, u))], ["x", "u"], ["F"]),
                  cs.Function(f"{prefix}_model_h", [x, u], [cs.cse(model.h(x, u))], ["x", "u"], ["h"]))
-    nx, ny = model.nx, model.ny
-    design = Design(
-        estimator="ukf", title="Unscented Kalman Filter", kit="learnest_ukf.h",
+    design = kalman_design(
+        model, settings, estimator=name, title="Unscented Kalman Filter", kit="learnest_ukf.h",
         functions=functions,
         hooks={"LEARNEST_MODEL_F": functions[0].name(), "LEARNEST_MODEL_H": functions[1].name(),
                "LEARNEST_UKF_ALPHA": repr(float(settings.alpha)),
                "LEARNEST_UKF_BETA": repr(float(settings.beta)),
                "LEARNEST_UKF_KAPPA": repr(float(settings.kappa))},
-        defaults={"x0": np.asarray(model.system.x0, dtype=float), "P0": settings.P0(),
-                  "Q": settings.Q(), "R": settings.R()},
-        gate=settings.gate, precision=precision, settings=settings.to_json(), solver=None,
-        horizon=None, doc=header_doc(settings), declarations=("ukf.h.in",),
-        workspace={"reals": 4 + nx + 2 * nx * nx + ny * ny + model.nu, "ints": 6 + ny + model.nu,
-                   "members": 19})
+        precision=precision,
+        description="The filter: FilterPy 2.0.0's predict and update on Merwe scaled sigma points "
+                    f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), "
+                    "generated operation for operation by the C kit (learnest_ukf.h) over the "
+                    "model's generated code (<prefix>_model.c, one call per sigma point), so it "
+                    "equals FilterPy to rounding (tests/test_ukf.py)",
+        predicted=("zp", "zp and S = P_zz + R the predicted output and its covariance"))
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
-
-def header_doc(settings: UKFSettings) -> dict[str, str]:
-    """The UKF's paragraphs of its header."""
-    return {
-        "description": comment(
-            "The filter: FilterPy 2.0.0's predict and update on Merwe scaled sigma points "
-            f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), generated "
-            "operation for operation by the C kit (learnest_ukf.h) over the model's generated "
-            "code (<prefix>_model.c, one call per sigma point), so it equals FilterPy to "
-            "rounding (tests/test_ukf.py); the kit also runs the samples, the gate and the "
-            "covariance guards around it."),
-        "arrival_note": "", "reset_keeps": "", "init_options": "", "threads": "",
-        "covariance_rule": "P0 and Q must be symmetric positive semidefinite (to rounding) and R "
-                           "positive definite, else\n * LEARNEST_NOT_POSITIVE_DEFINITE; every "
-                           "variance in the precision's range (LEARNEST_VARIANCE_MIN/_MAX;\n * "
-                           "P0's and Q's may be 0), else LEARNEST_BAD_ARGUMENT.",
-        "set_noise_keeps": "the state, its covariance and the gate",
-        "gate_doc": "each step computes, per valid output j, d2_j = (y_j - zp_j)^2 / S_jj with\n"
-                    " *   zp and S = P_zz + R the predicted output and its covariance.",
-        "recovery_doc": "the variances (the diagonal of P; the covariances\n"
-                        " *   stay, so stale correlations fade) are multiplied by it. No variance "
-                        "of P exceeds\n *   its ceiling, the cap times the initial variance "
-                        "(the default P0's diagonal).",
-        "reseed_doc": "the update is redone from the prior covariance\n"
-                      " *   diag(ceiling) with every valid output.",
-    }

@@ -127,6 +127,10 @@ class MHE(GateReport):
         self._inputs = InputCheck(self.settings.input_limits, model.nu)
         self._missing = np.zeros(model.ny, dtype=bool)
         self._meas = measurement_function(model, "meas")
+        self._bounds = self.settings.bounds(model.nx)  # the box of every window state
+        n = self.layout.horizon + 1
+        self._box = ({} if self.settings.state_bounds is None else
+                     {"lbx": np.tile(self._bounds[0], n), "ubx": np.tile(self._bounds[1], n)})
         self._jac = arrival.transition_jacobian(model)
         self._weights: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # Q, R, P in force
         self._now: Window | None = None
@@ -167,7 +171,8 @@ class MHE(GateReport):
         Q, R, P = self.settings.weights()
         P_first = P if P0 is None else arrival_weight_from_covariance(P0, self.model.nx)
         carried = P0 is not None and not arrival.settled(np.asarray(P0, dtype=float), P)
-        self._arrival_cov = np.asarray(P0, dtype=float).copy() if carried else None
+        first = np.linalg.inv(P) if P0 is None else np.asarray(P0, dtype=float)
+        self._arrival_cov = first.copy() if carried or self.settings.arrival_update else None
         self._weights = (Q, R, P_first)
         self._P_run, self._P_run_cov = P, np.linalg.inv(P)
         self._R_cov = np.linalg.inv(R)
@@ -229,13 +234,14 @@ class MHE(GateReport):
                               "was; the window restarts at the next step)") from exc
         p = nxt.window.parameters(self.layout, self._weights[0], self._weights[1], nxt.P)
         try:
-            solution = self.problem.solver(x0=nxt.guess.ravel(), p=p)
+            solution = self.problem.solver(x0=nxt.guess.ravel(), p=p, **self._box)
         except RuntimeError as exc:  # error_on_fail: nlpsol raises when Ipopt did not succeed
             self._restart = True  # the same window would fail again: restart it next step
             status = self.problem.solver.stats().get("return_status", "unknown")
             raise SolverError(f"MHE.step (sample {self._count}): Ipopt returned {status}") from exc
         self.iterations = int(self.problem.solver.stats()["iter_count"])
-        self._commit(nxt, np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1))
+        X = np.asarray(solution["x"]).reshape(self.layout.horizon + 1, -1)
+        self._commit(nxt, np.clip(X, *self._bounds))  # an interior point's last 1e-12 (learnest_box_clamp)
         return self.x
 
     def predict(self, u: np.ndarray) -> np.ndarray:
@@ -270,6 +276,7 @@ class MHE(GateReport):
             window.shift(self._window)
             guess[:-1] = guess[1:]
             guess[-1] = self.model.step(self._window[-1], u)
+        guess = np.clip(guess, *self._bounds)  # the warm start inside the box (learnest_box_clamp)
         window.open(u)
         rho = self._gate.inflation
         h, C = (np.asarray(v) for v in self._meas(guess[-1], u))
@@ -290,7 +297,7 @@ class MHE(GateReport):
             P = _inverse(arrival_cov)
             window = Window.empty(self.layout, xbar)
             window.open(u)
-            guess = np.tile(xbar, (self.layout.horizon + 1, 1))
+            guess = np.clip(np.tile(xbar, (self.layout.horizon + 1, 1)), *self._bounds)
             keep = np.zeros_like(keep)  # the sample is in the prior
         window.weigh(y, keep)
         return _Next(window, guess, rejected, valid, u, u_rejected, P, arrival_cov)
@@ -318,6 +325,8 @@ class MHE(GateReport):
         cov = arrival.propagate(cov, A, np.asarray(C), window.G[0] == 1.0,
                                 _inverse(self._weights[0]), self._R_cov)
         cov = cap_variances(cov, self.ceiling)
+        if self.settings.arrival_update:  # the arrival follows the data: carried on and on
+            return cov
         return None if arrival.settled(cov, self._P_run) else cov
 
     @property

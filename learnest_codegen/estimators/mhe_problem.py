@@ -37,6 +37,10 @@ Hessian): 0.84 MB of C for the cartpole, 5.3 s to compile (KNODE: 1.25 MB, 10.4 
 Hessian is therefore supplied as ``hess_lag``: each stage's exact 8x8 Hessian from SX
 ``cs.hessian``, mapped and assembled into the block-tridiagonal matrix: 0.19 MB, 1.0 s
 (KNODE: 0.43 MB, 2.3 s). ``tests/test_mhe.py`` checks it against CasADi's own Hessian.
+
+Length: the settings (with their checks of the weights, the arrival and the state bounds), the
+parameter layout and the NLP with its Hessian are one problem's definition, which the Python
+MHE and the generators read together.
 """
 
 from __future__ import annotations
@@ -79,6 +83,14 @@ IPOPT_OPTIONS = MappingProxyType({
     "print_level": 0,
     "sb": "yes",
 })
+#: With state bounds: Ipopt does not relax them (by default by 1e-8), and its barrier goes to 0
+#: (adaptive, no floor) with a tolerance of 1e-14: with the defaults, a bound that is barely
+#: active left the solution 5e-7 inside it and the estimates 5e-6 from the exact bounded
+#: minimiser (the projected Gauss-Newton's, to which these settings take Ipopt within 1.4e-8 on
+#: the cartpole test of tests/test_bounds.py).
+BOUNDED_IPOPT_OPTIONS = MappingProxyType({"bound_relax_factor": 0.0, "honor_original_bounds": "yes",
+                                          "mu_strategy": "adaptive", "mu_target": 0.0,
+                                          "mu_min": 1e-20, "tol": 1e-14})
 # error_on_fail: the generated C then returns Ipopt's unified status (0 ok, 1 failed, 2 maximum
 # iterations) instead of 0; the Python solver raises. calc_lam_p: multipliers of p are unused.
 NLPSOL_OPTIONS = MappingProxyType({"print_time": False, "error_on_fail": True, "calc_lam_p": False})
@@ -106,6 +118,16 @@ class MHESettings:
     input_limits : ``((lo, hi), ...)`` per input, the plausible range of ``u``
         (:mod:`.inputs`; ``from_system`` takes :func:`~.inputs.plausible_inputs`); ``None``:
         only finiteness is checked.
+    arrival_update : ``True``: the arrival covariance follows the data, by the extended
+        Kalman filter's covariance recursion along the window's leaving stage (:mod:`.arrival`)
+        from the start (the running arrival covariance, or ``P0`` of ``reset``) on, instead of
+        the fixed running weight; ``False`` (default): that recursion only carries a first
+        prior larger than the running covariance until it has settled below it.
+    state_bounds : ``((lo, hi), ...)`` per state, a box every state of the window stays in
+        (``-inf``/``inf`` or ``None``: that side unbounded); ``None``: no bounds. Ipopt gets them
+        as variable bounds; the embedded MHE takes projected Gauss-Newton steps with the bounds
+        whose gradient points out of the box held (an active set), so both solve the same
+        bounded problem.
     """
 
     horizon: int = 20
@@ -116,10 +138,14 @@ class MHESettings:
     arrival: str = "steady_state"
     gate: GateSettings = GateSettings()
     input_limits: tuple[tuple[float, float], ...] | None = None
+    arrival_update: bool = False
+    state_bounds: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         object.__setattr__(self, "horizon", check_option("horizon", self.horizon, "MHESettings.horizon"))
+        if self.state_bounds is not None:
+            object.__setattr__(self, "state_bounds", box(self.state_bounds, "MHESettings.state_bounds"))
         if self.arrival not in ARRIVALS:
             raise SettingsError(f"MHESettings.arrival must be one of {ARRIVALS}, got {self.arrival!r}")
         if self.input_limits is not None:
@@ -161,6 +187,16 @@ class MHESettings:
                 raise ShapeError(f"{where}: MHESettings.{name} needs {n} values, got {got}")
         if nu is not None:
             check_limits(self.input_limits, nu, where)
+        if self.state_bounds is not None and len(self.state_bounds) != nx:
+            raise ShapeError(f"{where}: MHESettings.state_bounds needs {nx} (lo, hi) pairs, got "
+                             f"{len(self.state_bounds)}")
+
+    def bounds(self, nx: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo (nx,), hi (nx,))`` of :attr:`state_bounds` (``-inf``/``inf``: unbounded)."""
+        if self.state_bounds is None:
+            return np.full(nx, -np.inf), np.full(nx, np.inf)
+        pairs = np.asarray(self.state_bounds, dtype=float)
+        return pairs[:, 0].copy(), pairs[:, 1].copy()
 
     @property
     def resolved(self) -> bool:
@@ -195,8 +231,13 @@ class MHESettings:
         return np.diag(np.square(self.arrival_std))
 
     def to_json(self) -> dict:
-        skip = ("gate",) + (("input_limits",) if self.input_limits is None else ())
+        skip = (("gate",) + (("input_limits",) if self.input_limits is None else ())
+                + (("state_bounds",) if self.state_bounds is None else ())
+                + (() if self.arrival_update else ("arrival_update",)))  # older manifests' hash
         data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in skip}
+        if self.state_bounds is not None:  # an open side as null: JSON has no infinity
+            data["state_bounds"] = [[v if math.isfinite(v) else None for v in pair]
+                                    for pair in self.state_bounds]
         return {**json.loads(json.dumps(data)), "gate": self.gate.to_json()}  # tuples -> lists
 
     @classmethod
@@ -205,6 +246,22 @@ class MHESettings:
         if "arrival" not in data:  # written before the field: a covariance was given, or not
             data["arrival"] = "arrival_std" if data.get("arrival_covariance") is None else "steady_state"
         return cls(**data)
+
+
+def box(pairs, where: str) -> tuple[tuple[float, float], ...]:
+    """``((lo, hi), ...)`` as floats (``None``: that side open, ``-inf``/``inf``), each with
+    ``lo < hi`` and no NaN; else :class:`SettingsError`."""
+    out = []
+    for pair in pairs:
+        if len(tuple(pair)) != 2:
+            raise SettingsError(f"{where}: each bound is a (lo, hi) pair, got {pair!r}")
+        lo, hi = pair
+        lo = -math.inf if lo is None else float(lo)
+        hi = math.inf if hi is None else float(hi)
+        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+            raise SettingsError(f"{where}: need lo < hi in every (lo, hi) pair, got {pair!r}")
+        out.append((lo, hi))
+    return tuple(out)
 
 
 def mhe_settings(model: "DiscreteModel", settings: MHESettings | None = None,
@@ -323,8 +380,11 @@ def build_problem(model: "DiscreteModel", settings: MHESettings, name: str) -> M
     hessian = cs.Function(f"{name}_hess_l", [cs.vec(X), p, lam_f, lam_g],
                           [cs.triu((lam_f * scale) * blocks)], ["x", "p", "lam_f", "lam_g"],
                           ["triu_hess_gamma_x_x"])
+    ipopt = dict(IPOPT_OPTIONS)
+    if settings.state_bounds is not None:  # the solution inside the box, not 1e-8 beyond it
+        ipopt.update(BOUNDED_IPOPT_OPTIONS)
     solver = cs.nlpsol(name, "ipopt", {"x": cs.vec(X), "p": p, "f": cost},
-                       {**NLPSOL_OPTIONS, "ipopt": dict(IPOPT_OPTIONS), "hess_lag": hessian})
+                       {**NLPSOL_OPTIONS, "ipopt": ipopt, "hess_lag": hessian})
     return MHEProblem(name, layout, solver, hessian)
 
 

@@ -322,21 +322,24 @@ class CompiledEstimator:
             self._started("set_noise"), None if Q is None else Q.ctypes.data,
             None if R is None else R.ctypes.data))
 
+    def read(self, what: str, call: str, shape, dtype=None) -> np.ndarray:
+        """What the C getter ``call`` writes into an array of ``shape`` (the real type unless
+        ``dtype``), its status checked; ``what`` names it in errors. Hold the lock."""
+        out = np.zeros(shape, dtype=self.dtype if dtype is None else dtype)
+        self.check_status(what, self._c[call](self._started(what), out))
+        return out
+
     @property
     @_locked
     def x(self) -> np.ndarray:
         """The current estimate ``(nx,)``."""
-        x = np.empty(self.nx, dtype=self.dtype)
-        self.check_status("x", self._c["get_state"](self._started("x"), x))
-        return x.astype(float)
+        return self.read("x", "get_state", self.nx).astype(float)
 
     @property
     @_locked
     def rejected(self) -> np.ndarray:
         """(ny,) bool: the outputs the gate rejected in the last step."""
-        mask = np.zeros(self.ny, dtype=np.intc)
-        self.check_status("rejected", self._c["get_rejected"](self._started("rejected"), mask))
-        return mask.astype(bool)
+        return self.read("rejected", "get_rejected", self.ny, np.intc).astype(bool)
 
     @property
     def missing(self) -> np.ndarray:
@@ -347,10 +350,7 @@ class CompiledEstimator:
     @_locked
     def input_rejected(self) -> np.ndarray:
         """(nu,) bool: the input components the last step replaced by their held value."""
-        mask = np.zeros(self.nu, dtype=np.intc)
-        self.check_status("input_rejected", self._c["get_input_rejected"](
-            self._started("input_rejected"), mask))
-        return mask.astype(bool)
+        return self.read("input_rejected", "get_input_rejected", self.nu, np.intc).astype(bool)
 
     @property
     @_locked

@@ -90,27 +90,20 @@ class CompiledMHE(CompiledEstimator):
     @property
     @_locked
     def window(self) -> np.ndarray:
-        X = np.empty((self.horizon + 1, self.nx), dtype=self.dtype)
-        self.check_status("window", self._c["get_window"](self._started("window"), X))
-        return X.astype(float)
+        return self.read("window", "get_window", (self.horizon + 1, self.nx)).astype(float)
 
     @property
     @_locked
     def arrival_covariance(self) -> np.ndarray:
         """(nx, nx) the running arrival covariance (``set_noise(P_arrival=...)``'s)."""
-        P = np.empty((self.nx, self.nx), dtype=self.dtype)
-        self.check_status("arrival_covariance", self._c["get_arrival"](self._started("arrival"), P))
-        return P.astype(float)
+        return self.read("arrival_covariance", "get_arrival", (self.nx, self.nx)).astype(float)
 
     @property
     @_locked
     def arrival_weight(self) -> np.ndarray:
         """(nx, nx) the weight of the arrival cost in force: the running one, or the inverse of
         a first prior's covariance carried forward (as :attr:`MHE.arrival_weight`)."""
-        P = np.empty((self.nx, self.nx), dtype=self.dtype)
-        self.check_status("arrival_weight", self._c["get_arrival_weight"](
-            self._started("arrival_weight"), P))
-        return P.astype(float)
+        return self.read("arrival_weight", "get_arrival_weight", (self.nx, self.nx)).astype(float)
 
     @_locked
     def set_noise(self, Q: np.ndarray | None = None, R: np.ndarray | None = None,

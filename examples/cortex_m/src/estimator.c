@@ -1,4 +1,4 @@
-/* estimator.c: estimator.h over any generated estimator (UKF, embedded MHE): they share one
+/* estimator.c: estimator.h over any generated estimator (UKF, EKF, embedded MHE): they share one
  * C API (docs/c_api.md), so only the prefix differs; estimator_config.h names it. The
  * estimator starts from the tuned defaults of its generated header (<prefix>_init_default)
  * in a static workspace of <PREFIX>_WORKSPACE_BYTES bytes: no heap, no hand-copied numbers. */

@@ -1,6 +1,6 @@
 /* estimator.h: the estimator as the loop sees it.
  *
- * estimator.c implements this over any generated estimator (ukf, mhe_rti, mhe_gn): they share
+ * estimator.c implements this over any generated estimator (ukf, ekf, mhe_rti, mhe_gn): they share
  * one C API. The loop speaks double; the adapter rounds to the API's real type (float in a
  * float32 build) on the way in and widens (exactly) on the way out. */
 #ifndef ESTIMATOR_H
