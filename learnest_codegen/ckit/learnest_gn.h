@@ -26,12 +26,17 @@
 #ifndef LEARNEST_GN_H
 #define LEARNEST_GN_H
 
+#include <float.h>
+
 #include "learnest_mhe.h"
 
 #define LEARNEST_GN_CONVERGED 0
 #define LEARNEST_GN_RTI 1
 #define LEARNEST_GN_ARMIJO ((learnest_real)1e-4)
 #define LEARNEST_GN_MAX_HALVINGS 30
+/* The cost's round-off, in units of the cost: a step whose predicted decrease is below it is
+ * taken whole (Armijo's test would compare round-off with round-off). */
+#define LEARNEST_GN_ROUNDOFF ((learnest_real)(LEARNEST_IS_FLOAT ? 1e3 * FLT_EPSILON : 1e3 * DBL_EPSILON))
 
 #ifndef LEARNEST_NCOMP
 #define LEARNEST_NCOMP 1
@@ -179,14 +184,17 @@ LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, con
 
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
- * E_i = H_{i+1, i}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
+ * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
+ * Diagonal weights (the usual tuning) skip their zero terms. */
 LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
-                                    const learnest_real* X) {
+                                    const learnest_real* X, int hess) {
   const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
-  memset(s->D, 0, sizeof s->D);
-  memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  if (hess) {
+    memset(s->D, 0, sizeof s->D);
+    memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  }
   memset(s->g, 0, sizeof s->g);
   for (i = 0; i <= LEARNEST_N; ++i) {
     learnest_real* D = s->D + i * LEARNEST_NXX;
@@ -197,12 +205,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
         if (dp) {
-          D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
+          if (hess) D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
           g[c] += a * s->P[c + c * LEARNEST_NX] * s->rw[c];
           continue;
         }
         LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
-          if (r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
+          if (hess && r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
           g[r] += a * s->P[r + c * LEARNEST_NX] * s->rw[c];
         }
       }
@@ -219,12 +227,14 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
-      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_NX, Rv, RC);
+      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, hess ? LEARNEST_NX : 0, Rv, RC);
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
-          D[r + c * LEARNEST_NX] += m * v;
+        if (hess) {
+          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+            learnest_real v = 0;
+            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
+            D[r + c * LEARNEST_NX] += m * v;
+          }
         }
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
       }
@@ -236,14 +246,18 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
-      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_NX, Qw, QA);
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
+      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, hess ? LEARNEST_NX : 0, Qw, QA);
+      if (hess) {
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
+      }
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-          D[r + c * LEARNEST_NX] += m * v;
-          if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+        if (hess) {
+          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+            learnest_real v = 0;
+            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
+            D[r + c * LEARNEST_NX] += m * v;
+            if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+          }
         }
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
         gn[c] += m * Qw[c];
@@ -256,11 +270,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
  * (n x n, column-major, at D + i bs; lower triangles read) and N blocks E_i = H_{i+1, i} (at
  * E + i bs), z_i at z + i n, by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
  * B_i = E_i L_i^-T (solved column by column in place: every inner loop runs over a whole
- * column). D and E are overwritten by the factor. 0 if H is not positive definite. */
+ * column). D and E are overwritten by the factor; factor = 0: they hold it already (from an
+ * earlier call), and only the substitutions run. 0 if H is not positive definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
-                                      learnest_real* z) {
+                                      learnest_real* z, int factor) {
   int i, r, c, k;
-  for (i = 0; i <= LEARNEST_N; ++i) {
+  for (i = 0; factor && i <= LEARNEST_N; ++i) {
     learnest_real* Di = D + i * bs;
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * bs;
@@ -315,22 +330,28 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
                                     learnest_real* dx) {
   int j;
   for (j = 0; j < LEARNEST_NW; ++j) dx[j] = -g[j];
-  return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx);
+  return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx, 1);
 }
 
-/* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. */
+/* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. hess = 0: the step
+ * from the gradient at X and the factor of the Hessian the last call built (at the previous
+ * iterate; the Gauss-Newton Hessian moves with the Jacobians, so this step differs from X's own
+ * by a relative O(|last step|)): the gradient's cost and two substitutions, no factorisation. */
 LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
-                                       const learnest_real* X, learnest_real* big) {
+                                       const learnest_real* X, int hess, learnest_real* big) {
   int j;
 #if LEARNEST_NCOMP > 1
   if (s->split) {
-    learnest_gn_build_split(s, w, X);
-    if (!learnest_gn_solve_split(s)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+    learnest_gn_build_split(s, w, X, hess);
+    if (!learnest_gn_solve_split(s, hess)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   } else
 #endif
   {
-    learnest_gn_build(s, w, X);
-    if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+    learnest_gn_build(s, w, X, hess);
+    for (j = 0; j < LEARNEST_NW; ++j) s->dx[j] = -s->g[j];
+    if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, hess)) {
+      return LEARNEST_NOT_POSITIVE_DEFINITE;
+    }
   }
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
   *big = 0;
@@ -347,17 +368,19 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
                                          const struct learnest_window* w, learnest_real* X,
                                          learnest_real big) {
   learnest_real cost, slope = 0, alpha = 1;
-  int j, halvings;
+  int j, halvings, whole;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
   cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
   for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
+  /* A step below tol, or one whose predicted decrease (-slope) is within the cost's round-off,
+   * is taken whole: the cost cannot judge it (halving it on round-off makes a linearly
+   * converging tail of many short steps). */
+  whole = -slope <= LEARNEST_GN_ROUNDOFF * cost;
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
-    learnest_real trial_cost;
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
     learnest_gn_linearise(md, w, s->Xt, trial);
-    trial_cost = learnest_gn_cost(s, w, s->Xt, trial);
-    /* Armijo; a step below tol is taken whole (its cost change is round-off). */
-    if (trial_cost <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope || alpha * big <= s->tol) {
+    if (whole || alpha * big <= s->tol
+        || learnest_gn_cost(s, w, s->Xt, trial) <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope) {
       memcpy(X, s->Xt, sizeof s->Xt);
       s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
       return LEARNEST_OK;
@@ -367,23 +390,33 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
   return LEARNEST_LINE_SEARCH_FAILED;
 }
 
-/* Converged mode: steps until the next Gauss-Newton step is at most tol (that step is not
- * taken), at most max_iter steps (LEARNEST_MAX_ITERATIONS). RTI mode: one step. X (the warm
- * start, linearised in lin) becomes the solution; *steps = the steps taken. */
+/* Converged mode: Gauss-Newton steps until the next one moves no state by more than tol
+ * (that step is not taken), at most max_iter steps (LEARNEST_MAX_ITERATIONS). The test at a
+ * new iterate is its stationarity first: the gradient scaled by the last factorised Hessian
+ * (learnest_gn_direction with hess = 0), which is the next step to a relative O(|last step|);
+ * only when that is above tol is the Hessian rebuilt and factorised (and the test repeated on
+ * the exact step). RTI mode: one step. X (the warm start, linearised in lin) becomes the
+ * solution; *steps = the steps taken. */
 LEARNEST_KIT int learnest_gn_solve(struct learnest_gn* s, struct learnest_model* md,
                                    const struct learnest_window* w, learnest_real* X, int* steps) {
+  const int converged = s->mode == LEARNEST_GN_CONVERGED;
   int code;
   learnest_real big;
   *steps = 0;
   for (;;) {
-    code = learnest_gn_direction(s, w, X, &big);
+    if (converged && *steps > 0) {
+      code = learnest_gn_direction(s, w, X, 0, &big);
+      if (code != LEARNEST_OK) return code;
+      if (big <= s->tol) return LEARNEST_OK;
+    }
+    code = learnest_gn_direction(s, w, X, 1, &big);
     if (code != LEARNEST_OK) return code;
-    if (s->mode == LEARNEST_GN_CONVERGED && big <= s->tol) return LEARNEST_OK;
-    if (s->mode == LEARNEST_GN_CONVERGED && *steps == s->max_iter) return LEARNEST_MAX_ITERATIONS;
+    if (converged && big <= s->tol) return LEARNEST_OK;
+    if (converged && *steps == s->max_iter) return LEARNEST_MAX_ITERATIONS;
     code = learnest_gn_line_search(s, md, w, X, big);
     if (code != LEARNEST_OK) return code;
     ++*steps;
-    if (s->mode == LEARNEST_GN_RTI) return LEARNEST_OK;
+    if (!converged) return LEARNEST_OK;
   }
 }
 
