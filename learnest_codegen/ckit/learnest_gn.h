@@ -34,9 +34,9 @@
 #define LEARNEST_GN_RTI 1
 #define LEARNEST_GN_ARMIJO ((learnest_real)1e-4)
 #define LEARNEST_GN_MAX_HALVINGS 30
-/* The cost's round-off, in units of the cost: a step whose predicted decrease is below it is
- * taken whole (Armijo's test would compare round-off with round-off). */
-#define LEARNEST_GN_ROUNDOFF ((learnest_real)(LEARNEST_IS_FLOAT ? 1e3 * FLT_EPSILON : 1e3 * DBL_EPSILON))
+#define LEARNEST_GN_EPS ((learnest_real)(LEARNEST_IS_FLOAT ? FLT_EPSILON : DBL_EPSILON))
+/* The residuals the cost sums (arrival, process and measurement terms of every node). */
+#define LEARNEST_GN_TERMS ((LEARNEST_N + 1) * (2 * LEARNEST_NX + LEARNEST_NY))
 
 #ifndef LEARNEST_NCOMP
 #define LEARNEST_NCOMP 1
@@ -367,20 +367,26 @@ LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learn
 LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_model* md,
                                          const struct learnest_window* w, learnest_real* X,
                                          learnest_real big) {
-  learnest_real cost, slope = 0, alpha = 1;
-  int j, halvings, whole;
+  learnest_real cost, slope = 0, alpha = 1, top = 0, noise;
+  int j, halvings;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
   cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
-  for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
-  /* A step below tol, or one whose predicted decrease (-slope) is within the cost's round-off,
-   * is taken whole: the cost cannot judge it (halving it on round-off makes a linearly
-   * converging tail of many short steps). */
-  whole = -slope <= LEARNEST_GN_ROUNDOFF * cost;
+  for (j = 0; j < LEARNEST_NW; ++j) {
+    slope += s->g[j] * s->dx[j];  /* half the cost's slope */
+    if (LEARNEST_FABS(X[j]) > top) top = LEARNEST_FABS(X[j]);
+  }
+  /* A bound on the cost's round-off: each residual, a difference of numbers of size up to
+   * 1 + |X|, is off by up to eps (1 + |X|), which moves its term w r^2 by 2 w |r| eps (1 + |X|);
+   * over the terms (scaled weights <= 1, Cauchy-Schwarz) at most 2 eps (1 + |X|) sqrt(n cost). */
+  noise = 2 * LEARNEST_GN_EPS * (1 + top) * LEARNEST_SQRT(LEARNEST_GN_TERMS * cost);
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
     learnest_gn_linearise(md, w, s->Xt, trial);
-    if (whole || alpha * big <= s->tol
-        || learnest_gn_cost(s, w, s->Xt, trial) <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope) {
+    /* Armijo, relaxed by the cost's round-off (without it, a step whose decrease is below
+     * round-off is halved on noise, and the iteration crawls in many short steps); a step
+     * below tol is taken whole. */
+    if (alpha * big <= s->tol
+        || learnest_gn_cost(s, w, s->Xt, trial) <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope + noise) {
       memcpy(X, s->Xt, sizeof s->Xt);
       s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
       return LEARNEST_OK;
