@@ -162,9 +162,9 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
 
 /* Wv = W v and WM = W M (M: n x cols, column-major) for the n x n W; diag: W is diagonal (the
  * zero terms are skipped, which changes no bit: adding an exact 0 is exact). */
-LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
-                                    const learnest_real* M, int cols, learnest_real* Wv,
-                                    learnest_real* WM) {
+LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
+                                           const learnest_real* M, int cols, learnest_real* Wv,
+                                           learnest_real* WM) {
   int r, c, k;
   LEARNEST_UNROLL for (r = 0; r < n; ++r) {
     if (diag) {
@@ -186,8 +186,8 @@ LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, con
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
  * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
  * Diagonal weights (the usual tuning) skip their zero terms. */
-LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
-                                    const learnest_real* X, int hess) {
+LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
+                                           const learnest_real* X, int hess) {
   const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
@@ -337,8 +337,8 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
  * from the gradient at X and the factor of the Hessian the last call built (at the previous
  * iterate; the Gauss-Newton Hessian moves with the Jacobians, so this step differs from X's own
  * by a relative O(|last step|)): the gradient's cost and two substitutions, no factorisation. */
-LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
-                                       const learnest_real* X, int hess, learnest_real* big) {
+LEARNEST_KIT_INLINE int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
+                                              const learnest_real* X, int hess, learnest_real* big) {
   int j;
 #if LEARNEST_NCOMP > 1
   if (s->split) {
@@ -361,39 +361,46 @@ LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learn
   return LEARNEST_OK;
 }
 
+/* A bound on the round-off of the cost at X: each residual, a difference of numbers of size up
+ * to 1 + |X|, is off by up to eps (1 + |X|), which moves its term w r^2 by 2 w |r| eps (1 + |X|);
+ * over the n terms (scaled weights <= 1, Cauchy-Schwarz) at most 2 eps (1 + |X|) sqrt(n cost). */
+LEARNEST_KIT learnest_real learnest_gn_noise(const learnest_real* X, learnest_real cost) {
+  learnest_real top = 0;
+  int j;
+  for (j = 0; j < LEARNEST_NW; ++j) {
+    if (LEARNEST_FABS(X[j]) > top) top = LEARNEST_FABS(X[j]);
+  }
+  return 2 * LEARNEST_GN_EPS * (1 + top) * LEARNEST_SQRT(LEARNEST_GN_TERMS * cost);
+}
+
 /* Move X along dx by the longest of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the
  * cost; the linearisation at the new point (needed by the next iteration, or by the next
  * sample in RTI mode) comes from the line search's own evaluation. */
 LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_model* md,
                                          const struct learnest_window* w, learnest_real* X,
                                          learnest_real big) {
-  learnest_real cost, slope = 0, alpha = 1, top = 0, noise;
+  learnest_real cost, slope = 0, alpha = 1, noise = -1, bound, trial_cost;
   int j, halvings;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
   cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
-  for (j = 0; j < LEARNEST_NW; ++j) {
-    slope += s->g[j] * s->dx[j];  /* half the cost's slope */
-    if (LEARNEST_FABS(X[j]) > top) top = LEARNEST_FABS(X[j]);
-  }
-  /* A bound on the cost's round-off: each residual, a difference of numbers of size up to
-   * 1 + |X|, is off by up to eps (1 + |X|), which moves its term w r^2 by 2 w |r| eps (1 + |X|);
-   * over the terms (scaled weights <= 1, Cauchy-Schwarz) at most 2 eps (1 + |X|) sqrt(n cost). */
-  noise = 2 * LEARNEST_GN_EPS * (1 + top) * LEARNEST_SQRT(LEARNEST_GN_TERMS * cost);
+  for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
     learnest_gn_linearise(md, w, s->Xt, trial);
+    if (alpha * big <= s->tol) break;  /* a step below tol is taken whole */
     /* Armijo, relaxed by the cost's round-off (without it, a step whose decrease is below
-     * round-off is halved on noise, and the iteration crawls in many short steps); a step
-     * below tol is taken whole. */
-    if (alpha * big <= s->tol
-        || learnest_gn_cost(s, w, s->Xt, trial) <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope + noise) {
-      memcpy(X, s->Xt, sizeof s->Xt);
-      s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
-      return LEARNEST_OK;
-    }
+     * round-off is halved on noise, and the iteration crawls in many short steps). */
+    bound = cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope;
+    trial_cost = learnest_gn_cost(s, w, s->Xt, trial);
+    if (trial_cost <= bound) break;
+    if (noise < 0) noise = learnest_gn_noise(X, cost);
+    if (trial_cost <= bound + noise) break;
     alpha *= (learnest_real)0.5;
   }
-  return LEARNEST_LINE_SEARCH_FAILED;
+  if (halvings > LEARNEST_GN_MAX_HALVINGS) return LEARNEST_LINE_SEARCH_FAILED;
+  memcpy(X, s->Xt, sizeof s->Xt);
+  s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
+  return LEARNEST_OK;
 }
 
 /* Converged mode: Gauss-Newton steps until the next one moves no state by more than tol
