@@ -5,7 +5,8 @@
  * u_{i+1})|^2_Q and the measurement terms m_i |G_i (y_i - h(x_i, u_i))|^2_R. Each iteration
  * linearises F and h at every stage, assembles the block-tridiagonal normal equations,
  * factorises them by a block Cholesky recursion (O(N NX^3), no dense matrix) and takes the
- * longest step of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the cost.
+ * longest step of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the cost (relaxed by a
+ * bound on the cost's round-off).
  *
  * Include after learnest_mhe.h, with the model declared before:
  *   struct learnest_model;   (whatever the model needs; the kit passes a pointer through)
