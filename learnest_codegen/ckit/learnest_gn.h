@@ -5,7 +5,8 @@
  * u_{i+1})|^2_Q and the measurement terms m_i |G_i (y_i - h(x_i, u_i))|^2_R. Each iteration
  * linearises F and h at every stage, assembles the block-tridiagonal normal equations,
  * factorises them by a block Cholesky recursion (O(N NX^3), no dense matrix) and takes the
- * longest step of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the cost.
+ * longest step of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the cost (relaxed by a
+ * bound on the cost's round-off).
  *
  * Include after learnest_mhe.h, with the model declared before:
  *   struct learnest_model;   (whatever the model needs; the kit passes a pointer through)
@@ -26,12 +27,17 @@
 #ifndef LEARNEST_GN_H
 #define LEARNEST_GN_H
 
+#include <float.h>
+
 #include "learnest_mhe.h"
 
 #define LEARNEST_GN_CONVERGED 0
 #define LEARNEST_GN_RTI 1
 #define LEARNEST_GN_ARMIJO ((learnest_real)1e-4)
 #define LEARNEST_GN_MAX_HALVINGS 30
+#define LEARNEST_GN_EPS ((learnest_real)(LEARNEST_IS_FLOAT ? FLT_EPSILON : DBL_EPSILON))
+/* The residuals the cost sums (arrival, process and measurement terms of every node). */
+#define LEARNEST_GN_TERMS ((LEARNEST_N + 1) * (2 * LEARNEST_NX + LEARNEST_NY))
 
 #ifndef LEARNEST_NCOMP
 #define LEARNEST_NCOMP 1
@@ -157,9 +163,9 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
 
 /* Wv = W v and WM = W M (M: n x cols, column-major) for the n x n W; diag: W is diagonal (the
  * zero terms are skipped, which changes no bit: adding an exact 0 is exact). */
-LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
-                                    const learnest_real* M, int cols, learnest_real* Wv,
-                                    learnest_real* WM) {
+LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
+                                           const learnest_real* M, int cols, learnest_real* Wv,
+                                           learnest_real* WM) {
   int r, c, k;
   LEARNEST_UNROLL for (r = 0; r < n; ++r) {
     if (diag) {
@@ -179,14 +185,17 @@ LEARNEST_KIT void learnest_gn_weigh(const learnest_real* W, int n, int diag, con
 
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
- * E_i = H_{i+1, i}, gradient g. Diagonal weights (the usual tuning) skip their zero terms. */
-LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
-                                    const learnest_real* X) {
+ * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
+ * Diagonal weights (the usual tuning) skip their zero terms. */
+LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
+                                           const learnest_real* X, int hess) {
   const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
-  memset(s->D, 0, sizeof s->D);
-  memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  if (hess) {
+    memset(s->D, 0, sizeof s->D);
+    memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  }
   memset(s->g, 0, sizeof s->g);
   for (i = 0; i <= LEARNEST_N; ++i) {
     learnest_real* D = s->D + i * LEARNEST_NXX;
@@ -197,12 +206,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
         if (dp) {
-          D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
+          if (hess) D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
           g[c] += a * s->P[c + c * LEARNEST_NX] * s->rw[c];
           continue;
         }
         LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
-          if (r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
+          if (hess && r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
           g[r] += a * s->P[r + c * LEARNEST_NX] * s->rw[c];
         }
       }
@@ -219,12 +228,14 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
-      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_NX, Rv, RC);
+      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, hess ? LEARNEST_NX : 0, Rv, RC);
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
-          D[r + c * LEARNEST_NX] += m * v;
+        if (hess) {
+          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+            learnest_real v = 0;
+            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
+            D[r + c * LEARNEST_NX] += m * v;
+          }
         }
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
       }
@@ -236,14 +247,18 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
       learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
       LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
-      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_NX, Qw, QA);
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
+      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, hess ? LEARNEST_NX : 0, Qw, QA);
+      if (hess) {
+        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
+      }
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-          learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-          D[r + c * LEARNEST_NX] += m * v;
-          if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+        if (hess) {
+          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+            learnest_real v = 0;
+            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
+            D[r + c * LEARNEST_NX] += m * v;
+            if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+          }
         }
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
         gn[c] += m * Qw[c];
@@ -256,11 +271,12 @@ LEARNEST_KIT void learnest_gn_build(struct learnest_gn* s, const struct learnest
  * (n x n, column-major, at D + i bs; lower triangles read) and N blocks E_i = H_{i+1, i} (at
  * E + i bs), z_i at z + i n, by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
  * B_i = E_i L_i^-T (solved column by column in place: every inner loop runs over a whole
- * column). D and E are overwritten by the factor. 0 if H is not positive definite. */
+ * column). D and E are overwritten by the factor; factor = 0: they hold it already (from an
+ * earlier call), and only the substitutions run. 0 if H is not positive definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
-                                      learnest_real* z) {
+                                      learnest_real* z, int factor) {
   int i, r, c, k;
-  for (i = 0; i <= LEARNEST_N; ++i) {
+  for (i = 0; factor && i <= LEARNEST_N; ++i) {
     learnest_real* Di = D + i * bs;
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * bs;
@@ -315,23 +331,32 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
                                     learnest_real* dx) {
   int j;
   for (j = 0; j < LEARNEST_NW; ++j) dx[j] = -g[j];
-  return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx);
+  return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx, 1);
 }
 
-/* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. */
-LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
-                                       const learnest_real* X, learnest_real* big) {
+/* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. hess = 0: the step
+ * from the gradient at X and the factor of the Hessian the last call built (at the previous
+ * iterate; the Gauss-Newton Hessian moves with the Jacobians, so this step differs from X's own
+ * by a relative O(|last step|)): the gradient's cost and two substitutions, no factorisation. */
+LEARNEST_KIT_INLINE int learnest_gn_direction(struct learnest_gn* s, const struct learnest_window* w,
+                                              const learnest_real* X, int hess, learnest_real* big) {
   int j;
 #if LEARNEST_NCOMP > 1
   if (s->split) {
-    learnest_gn_build_split(s, w, X);
-    if (!learnest_gn_solve_split(s)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+    learnest_gn_build_split(s, w, X, hess);
+    if (!learnest_gn_solve_split(s, hess)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   } else
 #endif
   {
-    learnest_gn_build(s, w, X);
+    /* under state bounds the active set can change between iterates: every step factorises
+     * the Hessian with the active bounds held (a factor from another active set is not reused) */
+    const int full = hess || LEARNEST_BOUNDED;
+    learnest_gn_build(s, w, X, full);
     learnest_box_hold(X, s->D, s->E, s->g);  /* state bounds: the active ones held */
-    if (!learnest_btd_solve(s->D, s->E, s->g, s->dx)) return LEARNEST_NOT_POSITIVE_DEFINITE;
+    for (j = 0; j < LEARNEST_NW; ++j) s->dx[j] = -s->g[j];
+    if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, full)) {
+      return LEARNEST_NOT_POSITIVE_DEFINITE;
+    }
   }
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
   *big = 0;
@@ -341,51 +366,76 @@ LEARNEST_KIT int learnest_gn_direction(struct learnest_gn* s, const struct learn
   return LEARNEST_OK;
 }
 
+/* A bound on the round-off of the cost at X: each residual, a difference of numbers of size up
+ * to 1 + |X|, is off by up to eps (1 + |X|), which moves its term w r^2 by 2 w |r| eps (1 + |X|);
+ * over the n terms (scaled weights <= 1, Cauchy-Schwarz) at most 2 eps (1 + |X|) sqrt(n cost). */
+LEARNEST_KIT learnest_real learnest_gn_noise(const learnest_real* X, learnest_real cost) {
+  learnest_real top = 0;
+  int j;
+  for (j = 0; j < LEARNEST_NW; ++j) {
+    if (LEARNEST_FABS(X[j]) > top) top = LEARNEST_FABS(X[j]);
+  }
+  return 2 * LEARNEST_GN_EPS * (1 + top) * LEARNEST_SQRT(LEARNEST_GN_TERMS * cost);
+}
+
 /* Move X along dx by the longest of 1, 1/2, 1/4, ... that satisfies Armijo's condition on the
  * cost; the linearisation at the new point (needed by the next iteration, or by the next
  * sample in RTI mode) comes from the line search's own evaluation. */
 LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_model* md,
                                          const struct learnest_window* w, learnest_real* X,
                                          learnest_real big) {
-  learnest_real cost, slope = 0, alpha = 1;
+  learnest_real cost, slope = 0, alpha = 1, noise = -1, bound, trial_cost;
   int j, halvings;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
   cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
   for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
-    learnest_real trial_cost;
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
     learnest_box_clamp(s->Xt, LEARNEST_N + 1);  /* a projected step under state bounds */
     learnest_gn_linearise(md, w, s->Xt, trial);
+    if (alpha * big <= s->tol) break;  /* a step below tol is taken whole */
+    /* Armijo, relaxed by the cost's round-off (without it, a step whose decrease is below
+     * round-off is halved on noise, and the iteration crawls in many short steps). */
+    bound = cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope;
     trial_cost = learnest_gn_cost(s, w, s->Xt, trial);
-    /* Armijo; a step below tol is taken whole (its cost change is round-off). */
-    if (trial_cost <= cost + 2 * LEARNEST_GN_ARMIJO * alpha * slope || alpha * big <= s->tol) {
-      memcpy(X, s->Xt, sizeof s->Xt);
-      s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
-      return LEARNEST_OK;
-    }
+    if (trial_cost <= bound) break;
+    if (noise < 0) noise = learnest_gn_noise(X, cost);
+    if (trial_cost <= bound + noise) break;
     alpha *= (learnest_real)0.5;
   }
-  return LEARNEST_LINE_SEARCH_FAILED;
+  if (halvings > LEARNEST_GN_MAX_HALVINGS) return LEARNEST_LINE_SEARCH_FAILED;
+  memcpy(X, s->Xt, sizeof s->Xt);
+  s->cur = 1 - s->cur;  /* the trial's linearisation becomes the iterate's */
+  return LEARNEST_OK;
 }
 
-/* Converged mode: steps until the next Gauss-Newton step is at most tol (that step is not
- * taken), at most max_iter steps (LEARNEST_MAX_ITERATIONS). RTI mode: one step. X (the warm
- * start, linearised in lin) becomes the solution; *steps = the steps taken. */
+/* Converged mode: Gauss-Newton steps until the next one moves no state by more than tol
+ * (that step is not taken), at most max_iter steps (LEARNEST_MAX_ITERATIONS). The test at a
+ * new iterate is its stationarity first: the gradient scaled by the last factorised Hessian
+ * (learnest_gn_direction with hess = 0), which is the next step to a relative O(|last step|);
+ * only when that is above tol is the Hessian rebuilt and factorised (and the test repeated on
+ * the exact step). RTI mode: one step. X (the warm start, linearised in lin) becomes the
+ * solution; *steps = the steps taken. */
 LEARNEST_KIT int learnest_gn_solve(struct learnest_gn* s, struct learnest_model* md,
                                    const struct learnest_window* w, learnest_real* X, int* steps) {
+  const int converged = s->mode == LEARNEST_GN_CONVERGED;
   int code;
   learnest_real big;
   *steps = 0;
   for (;;) {
-    code = learnest_gn_direction(s, w, X, &big);
+    if (converged && *steps > 0) {
+      code = learnest_gn_direction(s, w, X, 0, &big);
+      if (code != LEARNEST_OK) return code;
+      if (big <= s->tol) return LEARNEST_OK;
+    }
+    code = learnest_gn_direction(s, w, X, 1, &big);
     if (code != LEARNEST_OK) return code;
-    if (s->mode == LEARNEST_GN_CONVERGED && big <= s->tol) return LEARNEST_OK;
-    if (s->mode == LEARNEST_GN_CONVERGED && *steps == s->max_iter) return LEARNEST_MAX_ITERATIONS;
+    if (converged && big <= s->tol) return LEARNEST_OK;
+    if (converged && *steps == s->max_iter) return LEARNEST_MAX_ITERATIONS;
     code = learnest_gn_line_search(s, md, w, X, big);
     if (code != LEARNEST_OK) return code;
     ++*steps;
-    if (s->mode == LEARNEST_GN_RTI) return LEARNEST_OK;
+    if (!converged) return LEARNEST_OK;
   }
 }
 

@@ -25,7 +25,7 @@ static const unsigned char learnest_comp_of_y[LEARNEST_NY] = LEARNEST_COMP_OF_Y;
 #endif
 
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
-                                      learnest_real* z);
+                                      learnest_real* z, int factor);
 
 /* Whether the n x n W couples no two entries of different groups (of: each entry's group). */
 LEARNEST_KIT int learnest_gn_apart(const learnest_real* W, int n, const unsigned char* of) {
@@ -47,13 +47,16 @@ LEARNEST_KIT int learnest_gn_split(const struct learnest_gn* s) {
 
 /* The normal equations of learnest_gn_build for a model whose states, outputs and weights
  * fall apart in groups: H is block diagonal in the groups. Group k's blocks (n_k x n_k) sit at
- * offset sum_{j<k} n_j^2 of each node's D and E slot; g stays in state order. */
+ * offset sum_{j<k} n_j^2 of each node's D and E slot; g stays in state order; hess = 0: the
+ * gradient alone. */
 LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct learnest_window* w,
-                                          const learnest_real* X) {
+                                          const learnest_real* X, int hess) {
   const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   int i, k, r, c, q, xo = 0, yo = 0, bo = 0;
-  memset(s->D, 0, sizeof s->D);
-  memset(s->E, 0, sizeof s->E);
+  if (hess) {
+    memset(s->D, 0, sizeof s->D);
+    memset(s->E, 0, sizeof s->E);
+  }
   memset(s->g, 0, sizeof s->g);
   for (k = 0; k < LEARNEST_NCOMP; ++k) {
     const int n = LEARNEST_GROUP_NX(k), ny = LEARNEST_GROUP_NY(k);
@@ -68,7 +71,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
         for (c = 0; c < n; ++c) {
           for (r = s->dp ? c : 0; r < (s->dp ? c + 1 : n); ++r) {
             const learnest_real P = a * s->P[S[r] + S[c] * LEARNEST_NX];
-            if (r >= c) D[r + c * n] += P;
+            if (hess && r >= c) D[r + c * n] += P;
             g[S[r]] += P * (x[S[c]] - w->xbar[S[c]]);
           }
         }
@@ -98,7 +101,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
           }
         }
         for (c = 0; c < n; ++c) {
-          for (r = c; r < n; ++r) {
+          for (r = c; hess && r < n; ++r) {
             learnest_real v = 0;
             for (q = 0; q < ny; ++q) v += C[q + r * ny] * RC[q + c * ny];
             D[r + c * n] += m * v;
@@ -122,7 +125,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
             Qw[r] = Q * s->rw[r];
             for (c = 0; c < n; ++c) {
               QA[r + c * n] = Q * A[r + c * n];
-              E[r + c * n] = -m * QA[r + c * n];  /* H_{i+1,i} = -m Q A */
+              if (hess) E[r + c * n] = -m * QA[r + c * n];  /* H_{i+1,i} = -m Q A */
             }
             continue;
           }
@@ -132,11 +135,11 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
             learnest_real v = 0;
             for (q = 0; q < n; ++q) v += s->Q[S[r] + S[q] * LEARNEST_NX] * A[q + c * n];
             QA[r + c * n] = v;
-            E[r + c * n] = -m * v;  /* H_{i+1,i} = -m Q A */
+            if (hess) E[r + c * n] = -m * v;  /* H_{i+1,i} = -m Q A */
           }
         }
         for (c = 0; c < n; ++c) {
-          for (r = c; r < n; ++r) {
+          for (r = c; hess && r < n; ++r) {
             learnest_real v = 0;
             for (q = 0; q < n; ++q) v += A[q + r * n] * QA[q + c * n];
             D[r + c * n] += m * v;
@@ -153,8 +156,9 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
   }
 }
 
-/* Solve the split normal equations group by group (Xt as the groups' right-hand sides). */
-LEARNEST_KIT int learnest_gn_solve_split(struct learnest_gn* s) {
+/* Solve the split normal equations group by group (Xt as the groups' right-hand sides);
+ * factor = 0: D and E hold the groups' factors already. */
+LEARNEST_KIT int learnest_gn_solve_split(struct learnest_gn* s, int factor) {
   int i, k, r, xo = 0, bo = 0;
   for (k = 0; k < LEARNEST_NCOMP; ++k) {
     const int n = LEARNEST_GROUP_NX(k);
@@ -163,7 +167,7 @@ LEARNEST_KIT int learnest_gn_solve_split(struct learnest_gn* s) {
     for (i = 0; i <= LEARNEST_N; ++i) {
       for (r = 0; r < n; ++r) z[i * n + r] = -s->g[i * LEARNEST_NX + S[r]];
     }
-    if (!learnest_btd_solve_n(n, LEARNEST_NXX, s->D + bo, s->E + bo, z)) return 0;
+    if (!learnest_btd_solve_n(n, LEARNEST_NXX, s->D + bo, s->E + bo, z, factor)) return 0;
     for (i = 0; i <= LEARNEST_N; ++i) {
       for (r = 0; r < n; ++r) s->dx[i * LEARNEST_NX + S[r]] = z[i * n + r];
     }
