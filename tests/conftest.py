@@ -3,24 +3,17 @@ tolerance rule of tests/README.md (:func:`rounding`)."""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from learnest_codegen import get_system
 from learnest_codegen.simulation import simulate
 
-
-def load_file(path, name: str):
-    """The Python file ``path`` imported as module ``name`` (an example or a script outside any
-    package); registered in ``sys.modules`` first, because dataclasses look their module up by name."""
-    import importlib.util
-    import sys
-
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from figures import load_file  # noqa: E402,F401  (the examples' loader, one for scripts and tests)
 
 
 def rounding(dtype=np.float64, *, ops: int = 1, cond: float = 1.0) -> float:
