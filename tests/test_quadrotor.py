@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,9 +11,11 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
+import learnest_codegen
 from learnest_codegen.errors import DataError, SettingsError, UnknownNameError
 from learnest_codegen.experiments import quadrotor as fs
 from learnest_codegen.experiments.quadrotor_cases import GROUP_INDICES
+from learnest_codegen.experiments.store import code_hash, tree_hash
 from learnest_codegen.recordings import crazyflie as nb
 from learnest_codegen.recordings import data_root
 from learnest_codegen.simulation import simulate
@@ -654,3 +657,18 @@ def test_a_study_model_with_a_fitted_prior_and_a_net_compiles_without_its_system
     estimator = load_estimator(folder, expect=expected_manifest(model))  # refuses another model
     found = estimator_system(estimator)  # from the folder's record, checked against its manifest
     assert found.params == fitted and found.fingerprint() == model.system.fingerprint()
+
+
+def test_a_study_result_is_keyed_on_the_c_kit_as_well_as_the_python(tmp_path):
+    """A resumed study reuses a result only if the code that made it is the same: a change to a C
+    header (the estimators' own code) changes the hash as a Python change does."""
+    (tmp_path / "ckit").mkdir()
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "ckit" / "k.h").write_text("#define K 1\n")
+    before = tree_hash(tmp_path)
+    (tmp_path / "__pycache__").mkdir()
+    (tmp_path / "__pycache__" / "a.pyc").write_bytes(b"\0")
+    assert tree_hash(tmp_path) == before
+    (tmp_path / "ckit" / "k.h").write_text("#define K 2\n")
+    assert tree_hash(tmp_path) != before
+    assert code_hash() == tree_hash(Path(learnest_codegen.__file__).parent)

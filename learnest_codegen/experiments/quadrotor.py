@@ -68,6 +68,7 @@ from .quadrotor_models import training_record
 from .quadrotor_protocols import PROTOCOLS as PROTOCOLS
 from .quadrotor_protocols import folds, pooled
 from .quadrotor_report import ONBOARD, Summary, summarise
+from .store import code_hash
 from .store import content_hash as _hash
 from .store import write_json as _write_json
 
@@ -170,6 +171,7 @@ def _tuned(model, train: Sequence[Case], out: Path, settings: StudySettings, *, 
     for name in settings.estimators:
         cache = out / name / "tuning.json"
         ident = _hash({"model": _model_hash(model, system), "estimator": name, "outputs": TUNING_OUTPUTS,
+                       "code": code_hash(),
                        "train": [_case_hash(c) for c in train], "version": TUNING_VERSION,
                        **({"parameters": [[p, list(v)] for p, v in parameters]} if parameters else {})})
         stored = json.loads(cache.read_text()) if cache.is_file() else {}
@@ -237,7 +239,7 @@ def nominal_results(cases: Sequence[Case], out: Path, settings: StudySettings,
     results, estimators = {}, None
     for i, case in enumerate(cases):
         path = out / "nominal" / f"{case.name}.json"
-        ident = _case_hash(case)
+        ident = _hash({"case": _case_hash(case), "settings": settings.to_json(), "code": code_hash()})
         stored = json.loads(path.read_text()) if path.is_file() else {}
         done = stored.get("methods", {}) if stored.get("hash") == ident else {}
         missing = [(label, est) for label, est in labels if label not in done]
@@ -268,7 +270,7 @@ def train_and_test(train: Case | Sequence[Case], tests: Sequence[Case], features
     path = out / "runs" / label / f"{features}.json"
     ident = _hash({"train": [c.name for c in train], "samples": [len(c.run) for c in train],
                    "features": features, "tests": [c.name for c in tests], "settings": settings.to_json(),
-                   "references": [_case_hash(c) for c in tests]})
+                   "references": [_case_hash(c) for c in tests], "code": code_hash()})
     if not force and path.is_file() and json.loads(path.read_text()).get("hash") == ident:
         say(progress, f"{label}, {features}: results reused ({path})")
         return json.loads(path.read_text())

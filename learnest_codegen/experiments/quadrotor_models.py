@@ -40,6 +40,7 @@ from ..systems.quadrotor import (
     QUADROTOR_THRUST_LINEAR_BIAS,
 )
 from .quadrotor_cases import Case
+from .store import code_hash
 from .store import content_hash as _hash
 
 if TYPE_CHECKING:
@@ -147,7 +148,7 @@ def trained_model(train: Sequence[Case], features: str, out: Path, settings: Stu
     if not spec.trained:
         return prior_model(system)
     ident = _hash({"train": [c.name for c in train], "samples": [len(c.run) for c in train],
-                   "features": features, "training": settings.training.to_json(),
+                   "features": features, "training": settings.training.to_json(), "code": code_hash(),
                    "observer": settings.observer, "fit_prior": list(spec.fit_prior),
                    "start_at_prior": spec.start_at_prior, "net": spec.net,
                    "observer_system": spec.observer_system.name,

@@ -31,9 +31,16 @@ def write_json(path: Path, content: Any) -> None:
 
 @functools.lru_cache(maxsize=1)
 def code_hash() -> str:
-    """Hash of the package's Python sources (paths and contents): which code made a result."""
-    root = Path(__file__).resolve().parents[1]
+    """Hash of the package's sources (paths and contents: the Python modules, the C kit and the
+    generators' templates): which code made a result. A change to the C an estimator is built
+    from changes its results as much as a change to the Python around it."""
+    return tree_hash(Path(__file__).resolve().parents[1])
+
+
+def tree_hash(root: Path) -> str:
+    """16 hex digits of the SHA-256 of every file under ``root`` (relative paths and contents,
+    in sorted order; byte-code caches left out)."""
     h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    for path in sorted(p for p in Path(root).rglob("*") if p.is_file() and "__pycache__" not in p.parts):
         h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()[:16]
