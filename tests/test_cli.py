@@ -106,10 +106,12 @@ def test_demo_end_to_end(tmp_path):
     assert r.exit_code == 0, r.output
     report = json.loads((tmp_path / "report.json").read_text())
     rows = {(row["method"], row["backend"]): row for row in report["rows"]}
-    for method in ("MHE", "UKF", "KNODE-MHE", "KNODE-UKF", "MHE (true dynamics)", "UKF (true dynamics)"):
+    for method in (f"{k}{e}{t}" for k in ("", "KNODE-") for e in ("MHE", "UKF", "EKF")
+                   for t in ("", " (true dynamics)") if not (k and t)):
         c, py = rows[method, "C"], rows[method, "python"]
         assert np.isfinite(c["mse"]) and c["mse"] == pytest.approx(py["mse"], rel=1e-5)
     assert rows["UKF (true dynamics)", "C"]["mse"] < rows["UKF", "C"]["mse"]
+    assert rows["EKF (true dynamics)", "C"]["mse"] < rows["EKF", "C"]["mse"]
     for png in ("estimates.png", "errors.png", "training_loss.png"):
         assert (tmp_path / png).stat().st_size > 10_000
 

@@ -21,3 +21,6 @@ def test_full_demo_knode_beats_nominal(tmp_path):
     assert mse["MHE (true dynamics)", "C"] < mse["KNODE-MHE", "C"]
     assert mse["UKF (true dynamics)", "C"] < mse["KNODE-UKF", "C"]
     assert mse["KNODE-UKF", "python"] == pytest.approx(mse["KNODE-UKF", "C"], rel=1e-9)
+    assert mse["EKF", "C"] / mse["KNODE-EKF", "C"] > 25
+    assert mse["EKF (true dynamics)", "C"] < mse["KNODE-EKF", "C"]
+    assert mse["KNODE-EKF", "python"] == pytest.approx(mse["KNODE-EKF", "C"], rel=1e-9)
