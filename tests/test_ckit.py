@@ -2,7 +2,8 @@
 
 ``tests/ckit/*.c`` wrap the kit (``learnest_codegen/ckit``) in plain functions (``kit_core.c``:
 dense algebra, the block-tridiagonal solve, the gate, the MHE window) or instantiate its
-estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``). Each is compiled
+estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``;
+``kit_gn_groups.c``: a model whose states fall apart in groups). Each is compiled
 under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float,
 and as C++ with g++; the results are compared with numpy.linalg, a dense solve, the Python
 gate (``estimators/gate.py``), the Python MHE's window bookkeeping (``estimators/mhe.py``,
@@ -15,6 +16,7 @@ import ctypes
 import re
 import shutil
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +38,7 @@ FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fno-ma
          "-ffp-contract=off"]
 DTYPES = {"double": np.float64, "float": np.float32}
 CODES = {name: code for code, name in STATUS_NAMES.items()}
+SOURCE_NAMES = ["kit_core", "kit_gn", "kit_gn_groups", "kit_ukf", "kit_ekf"]
 N = 5  # kit_core.c's horizon; its sizes are the cartpole's (NX 4, NU 1, NY 2)
 
 
@@ -103,7 +106,7 @@ def tolerance(dtype) -> float:
 # -- builds ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cc", COMPILERS)
-@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+@pytest.mark.parametrize("source", SOURCE_NAMES)
 def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
     """Every test source (so every kit header) under -Werror with gcc and clang in double and
     float (the library fixture), and as C++11 with g++."""
@@ -139,7 +142,7 @@ def test_the_status_header_is_the_status_table():
     assert (KIT / "learnest_status.h").read_text() == status_header_text()
 
 
-@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+@pytest.mark.parametrize("source", SOURCE_NAMES)
 def test_builds_from_the_kit_folder_alone(source):
     """Every test source compiles against learnest_codegen/ckit itself: no file written by
     Python."""
@@ -524,3 +527,67 @@ def test_failed_init_leaves_a_live_estimator_as_it_was(libraries, linear, prefix
         k(f"{prefix}_get_state", h, x_h)
         k(f"{prefix}_get_state", twin, x_t)
         np.testing.assert_array_equal(x_h, x_t)
+
+
+def two_oscillators() -> System:
+    """Two mass-spring-dampers driven by one force, states ``[q1, q2, v1, v2]``, outputs
+    ``[q1, q2, v2]``: no Jacobian entry couples ``(q1, v1)`` with ``(q2, v2)``
+    (``kit_gn_groups.c``'s two groups)."""
+    def dynamics(ops, x, u, p):
+        return [x[2], x[3], (-p["k1"] * x[0] - p["c1"] * x[2] + u[0]) / p["m1"],
+                (-p["k2"] * x[1] - p["c2"] * x[3] - u[0]) / p["m2"]]
+
+    params = {"m1": 2.0, "k1": 3.0, "c1": 0.4, "m2": 0.5, "k2": 5.0, "c2": 0.2}
+    return System(
+        name="msd2x2", states=(Signal("q1", "m"), Signal("q2", "m"), Signal("v1", "m/s"),
+                               Signal("v2", "m/s")),
+        inputs=(Signal("F", "N"),), outputs=(Signal("q1", "m"), Signal("q2", "m"), Signal("v2", "m/s")),
+        params=params, true_params=params, dynamics=dynamics,
+        measurement=lambda ops, x, u, p: [x[0], x[1], x[3]],
+        noise=NoiseModel(measurement_std=(0.05, 0.05, 0.1), state_std=(0.01,) * 4,
+                         process_std=(1e-3, 1e-3, 1e-2, 1e-2), initial_std=(0.5,) * 4),
+        dt=0.05, duration=10.0, x0=(1.0, -0.5, 0.0, 0.0),
+        excitation=lambda t, rng: np.sin(t + rng.uniform())[:, None])
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+def test_grouped_embedded_mhe_solves_group_by_group_and_equals_the_ipopt_mhe(libraries, cc):
+    """learnest_gn_groups.h without generated code: the kit's Gauss-Newton MHE over two
+    oscillators apart, with diagonal and then within-group dense weights, solves the two
+    groups' normal equations one by one (kt_split) and equals the Python MHE (CasADi's nlpsol
+    with Ipopt) of the same model, outputs missing at random, to 1e-7 as the ungrouped one
+    does; a process covariance that couples the groups makes it solve the whole window at
+    once, to the same estimates."""
+    from learnest_codegen.simulation import simulate
+
+    k = libraries("kit_gn_groups", cc, "double")
+    system = two_oscillators()
+    model = prior_model(system)
+    Phi = np.stack([model.step(e, np.zeros(1)) for e in np.eye(4)], axis=1)
+    Gamma = model.step(np.zeros(4), np.ones(1))[:, None]
+    C = np.eye(4)[[0, 1, 3]]
+    run = simulate(system, seed=0, duration=6.0)
+    valid = np.random.default_rng(5).random(run.y.shape) < 0.7
+    Y = np.where(valid, run.y, np.nan)
+    x0 = np.array(system.x0, dtype=float)
+    base = MHESettings.from_system(system, horizon=6, arrival="arrival_std")
+    Q, R, P = mhe_settings(model, base).covariances()
+    Qd, Rd, Qc = Q.copy(), R.copy(), Q.copy()
+    Qd[0, 2] = Qd[2, 0] = 0.3 * np.sqrt(Q[0, 0] * Q[2, 2])  # within group 0
+    Rd[1, 2] = Rd[2, 1] = 0.3 * np.sqrt(R[1, 1] * R[2, 2])  # within group 1
+    Qc[2, 3] = Qc[3, 2] = 0.3 * np.sqrt(Q[2, 2] * Q[3, 3])  # across the groups
+    for (Qs, Rs, Ps), split in (((Q, R, P), 1), ((Qd, Rd, P), 1), ((Qc, R, P), 0)):
+        settings = mhe_settings(model, replace(base, arrival_covariance=tuple(map(tuple, Ps))))
+        memory, h = start(k, "tgg", (Phi, Gamma, C), x0, Ps, Qs, Rs)
+        assert k("tgg_set_arrival", h, k.a(Ps)) == 0
+        gate = settings.gate
+        assert k("tgg_set_gate", h, gate.threshold, gate.recover_after, gate.inflation) == 0
+        X_c = k.a(np.zeros((len(Y), 4)))
+        assert k("tgg_run", h, len(Y), k.a(run.u), k.a(Y), valid.astype(np.uint8), X_c) == 0
+        assert k("kt_split", h) == split
+        mhe = MHE(model, settings)
+        mhe.reset(x0, Ps)  # as init: the first prior's covariance, the running one
+        mhe.set_noise(Q=Qs, R=Rs)
+        X_py = np.array([mhe.step(run.u[max(i - 1, 0)], Y[i], valid[i]) for i in range(len(Y))])
+        np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
+        assert np.abs(X_c - run.x).mean() < 0.1  # it tracks states of amplitude ~1 (v1 unmeasured)
