@@ -3,11 +3,15 @@
 ``tests/ckit/*.c`` wrap the kit (``learnest_codegen/ckit``) in plain functions (``kit_core.c``:
 dense algebra, the block-tridiagonal solve, the gate, the MHE window) or instantiate its
 estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``;
-``kit_gn_groups.c``: a model whose states fall apart in groups). Each is compiled
-under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float,
-and as C++ with g++; the results are compared with numpy.linalg, a dense solve, the Python
-gate (``estimators/gate.py``), the Python MHE's window bookkeeping (``estimators/mhe.py``,
-``mhe_window.py``), the Ipopt MHE and FilterPy's Kalman filter.
+``kit_gn_groups.c``: a model whose states fall apart in groups), or over that model written by
+hand in CasADi's calling convention (``kit_casadi.h``) behind ``learnest_casadi.h``'s hooks
+(``kit_casadi_gn.c``; ``kit_casadi_ukf.c``: the UKF's own sigma points; ``kit_ipopt.c``: the
+Ipopt MHE over a hand-written nlpsol linked to the casadi wheel's libipopt). Each is compiled
+under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float
+(``kit_ipopt.c``: double, Ipopt's precision), and as C++ with g++; the results are compared
+with numpy.linalg, a dense solve, the Python gate (``estimators/gate.py``), the Python MHE's
+window bookkeeping (``estimators/mhe.py``, ``mhe_window.py``), the Ipopt MHE (CasADi's
+nlpsol) and FilterPy's Kalman and unscented Kalman filters.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import rounding
+from conftest import rounding, unscented_rounding
+from test_ukf import update_gain
 
 from learnest_codegen import NoiseModel, Signal, System, get_system
 from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
@@ -31,6 +36,7 @@ from learnest_codegen.estimators.mhe_problem import MHESettings, mhe_settings
 from learnest_codegen.export import prior_model
 from learnest_codegen.runtime.limits import LIMITS
 from learnest_codegen.runtime.status import STATUS_NAMES
+from learnest_codegen.toolchain import casadi_dirs
 
 SOURCES = Path(__file__).resolve().parent / "ckit"
 COMPILERS = [cc for cc in ("gcc", "clang") if shutil.which(cc)]
@@ -38,7 +44,15 @@ FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fno-ma
          "-ffp-contract=off"]
 DTYPES = {"double": np.float64, "float": np.float32}
 CODES = {name: code for code, name in STATUS_NAMES.items()}
-SOURCE_NAMES = ["kit_core", "kit_gn", "kit_gn_groups", "kit_ukf", "kit_ekf"]
+SOURCE_NAMES = ["kit_core", "kit_gn", "kit_gn_groups", "kit_ukf", "kit_ekf", "kit_casadi_gn",
+                "kit_casadi_ukf", "kit_ipopt"]
+CASADI_INCLUDE, CASADI_LIB = casadi_dirs()
+#: What a source needs besides the kit: Ipopt's headers and library (the casadi wheel's, as
+#: codegen/mhe.py links a generated Ipopt MHE).
+EXTRA = {"kit_ipopt": {"compile": [f"-I{CASADI_INCLUDE / 'coin-or'}"],
+                       "link": [f"-L{CASADI_LIB}", f"-Wl,-rpath,{CASADI_LIB}", "-lipopt"]}}
+#: The precisions a source builds in (Ipopt solves in double only).
+REALS = {"kit_ipopt": ("double",)}
 N = 5  # kit_core.c's horizon; its sizes are the cartpole's (NX 4, NU 1, NY 2)
 
 
@@ -60,8 +74,10 @@ def libraries(kit):
         key = (source, cc, real)
         if key not in cache:
             library = kit / f"{source}_{cc}_{real}.so"
-            command = [cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fPIC", "-shared",
-                       str(SOURCES / f"{source}.c"), "-o", str(library), "-lm"]
+            extra = EXTRA.get(source, {})
+            command = [cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", *extra.get("compile", []),
+                       "-fPIC", "-shared", str(SOURCES / f"{source}.c"), "-o", str(library),
+                       *extra.get("link", []), "-lm"]
             proc = subprocess.run(command, capture_output=True, text=True)
             assert proc.returncode == 0, f"{' '.join(command)}\n{proc.stderr}"
             cache[key] = Kit(ctypes.CDLL(str(library)), DTYPES[real])
@@ -110,14 +126,15 @@ def tolerance(dtype) -> float:
 def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
     """Every test source (so every kit header) under -Werror with gcc and clang in double and
     float (the library fixture), and as C++11 with g++."""
-    for real in DTYPES:
-        proc = subprocess.run([cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fsyntax-only",
+    include = EXTRA.get(source, {}).get("compile", [])
+    for real in REALS.get(source, DTYPES):
+        proc = subprocess.run([cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", *include, "-fsyntax-only",
                                str(SOURCES / f"{source}.c")], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
     if cc == "gcc" and shutil.which("g++"):
         proc = subprocess.run(["g++", "-x", "c++", "-std=c++11", "-Wall", "-Wextra", "-Werror",
-                               "-pedantic", f"-I{kit}", "-fsyntax-only", str(SOURCES / f"{source}.c")],
-                              capture_output=True, text=True)
+                               "-pedantic", f"-I{kit}", *include, "-fsyntax-only",
+                               str(SOURCES / f"{source}.c")], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
 
 
@@ -146,7 +163,8 @@ def test_the_status_header_is_the_status_table():
 def test_builds_from_the_kit_folder_alone(source):
     """Every test source compiles against learnest_codegen/ckit itself: no file written by
     Python."""
-    proc = subprocess.run(["gcc", *FLAGS, "-DKIT_REAL=double", f"-I{KIT}", "-fsyntax-only",
+    proc = subprocess.run(["gcc", *FLAGS, "-DKIT_REAL=double", f"-I{KIT}",
+                           *EXTRA.get(source, {}).get("compile", []), "-fsyntax-only",
                            str(SOURCES / f"{source}.c")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
 
@@ -591,3 +609,134 @@ def test_grouped_embedded_mhe_solves_group_by_group_and_equals_the_ipopt_mhe(lib
         X_py = np.array([mhe.step(run.u[max(i - 1, 0)], Y[i], valid[i]) for i in range(len(Y))])
         np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
         assert np.abs(X_c - run.x).mean() < 0.1  # it tracks states of amplitude ~1 (v1 unmeasured)
+
+
+# -- the CasADi hooks and the Ipopt glue over a hand-written model ---------------------------
+
+@pytest.mark.parametrize("cc", COMPILERS)
+def test_casadi_hooks_run_the_embedded_mhe_as_the_direct_model_does(libraries, linear, cc):
+    """learnest_casadi.h's stage, node and F hooks (kit_casadi_gn.c: the linear model written
+    in CasADi's calling convention) under the kit's Gauss-Newton MHE: the same estimates as the
+    Python MHE (CasADi's nlpsol with Ipopt) to 1e-7 as kit_gn.c's, and bit for bit kit_gn.c's
+    (the same operations, reached through the hooks instead of direct calls)."""
+    k, direct = libraries("kit_casadi_gn", cc, "double"), libraries("kit_gn", cc, "double")
+    system, model, matrices, run, valid = linear
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    out = {}
+    for name, lib, prefix in (("casadi", k, "tcg"), ("direct", direct, "tgn")):
+        memory, h = start(lib, prefix, matrices, x0, P0, Q, R)
+        assert lib(f"{prefix}_set_arrival", h, lib.a(P0)) == 0
+        X = lib.a(np.zeros((T, 2)))
+        assert lib(f"{prefix}_run", h, T, lib.a(run.u[:T]), lib.a(Y), valid[:T].astype(np.uint8), X) == 0
+        out[name] = X
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(out["casadi"], X_py, rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(out["casadi"], out["direct"])
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_kit_sigma_points_equal_filterpys_ukf(libraries, linear, cc, real):
+    """learnest_ukf.h's own sigma points, transforms and masked update (LEARNEST_UKF_ALPHA, as a
+    generated UKF builds it) over learnest_casadi.h's F and h hooks (kit_casadi_ukf.c) against
+    FilterPy's UnscentedKalmanFilter with the same Merwe points (alpha 0.5, beta 2, kappa 1),
+    updating on the outputs present only (none: the prediction), sample by sample, in double and
+    float. Each step's rounding is ``unscented_rounding`` with its update's gain
+    (tests/test_ukf.py's ``update_gain``); a stable filter carries the earlier steps' errors
+    forward without growth, so step ``k`` may differ by the sum of the bounds so far."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    k = libraries("kit_casadi_ukf", cc, real)
+    system, model, matrices, run, valid = linear
+    Phi, Gamma, C = matrices
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
+    memory, h = start(k, "tcu", matrices, x0, P0, Q, R)
+    points = MerweScaledSigmaPoints(2, 0.5, 2.0, 1.0)
+    ukf = UnscentedKalmanFilter(2, 2, system.dt, hx=lambda s, **_: C @ s,
+                                fx=lambda s, dt, u: Phi @ s + Gamma @ u, points=points)
+    ukf.x, ukf.P, ukf.Q = x0.copy(), P0.copy(), Q
+    x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
+    bound_x = bound_P = 0.0
+    for i in range(len(run.y)):
+        u = run.u[max(i - 1, 0)]
+        if i > 0:
+            ukf.predict(u=u)
+        else:  # no transition on the first sample: the points of (x0, P0) itself
+            ukf.sigmas_f = points.sigma_points(ukf.x, ukf.P)
+            ukf.x_prior, ukf.P_prior = ukf.x.copy(), ukf.P.copy()
+        keep = valid[i]
+        gain_x = gain_P = 1.0
+        if keep.any():
+            ukf.update(run.y[i][keep], R=R[np.ix_(keep, keep)], hx=lambda s, keep=keep: (C @ s)[keep])
+            gain_x, gain_P = update_gain(ukf, ukf.sigmas_h, ukf.P_prior)
+        else:
+            ukf.x, ukf.P = ukf.x_prior.copy(), ukf.P_prior.copy()
+        assert k("tcu_step", h, k.a(u), k.a(np.where(keep, run.y[i], np.nan)), keep.astype(np.uint8)) == 0
+        k("tcu_get_state", h, x)
+        k("tcu_get_covariance", h, P)
+        bound_x += unscented_rounding(points.Wm, points.Wc, k.dtype, gain=gain_x)
+        bound_P += unscented_rounding(points.Wm, points.Wc, k.dtype, gain=gain_P)
+        np.testing.assert_allclose(x, ukf.x, rtol=0, atol=bound_x * np.abs(ukf.x).max(), err_msg=f"{i}")
+        np.testing.assert_allclose(P, ukf.P, rtol=0, atol=bound_P * np.abs(ukf.P).max(), err_msg=f"{i}")
+    assert k("tcu_samples", h) == len(run.y)
+
+
+def test_ipopt_glue_solves_the_nlp_as_casadis_ipopt(libraries, linear):
+    """learnest_casadi.h's solver glue and learnest_mhe_ipopt.h over a hand-written nlpsol
+    (kit_ipopt.c: eq. (2) of the linear model given to Ipopt's C interface, the casadi wheel's
+    libipopt) against the Python MHE, whose nlpsol CasADi builds over the same Ipopt, with
+    outputs missing at random; its parameter vector is ParamLayout's; a refused solver memory
+    and Ipopt's iteration limit come back as NO_MEMORY and MAX_ITERATIONS, restart the window,
+    and the memory is given back."""
+    from learnest_codegen.estimators.mhe_problem import ParamLayout
+
+    k = libraries("kit_ipopt", "gcc", "double")
+    system, model, matrices, run, valid = linear
+    layout = np.zeros(9, dtype=np.intc)
+    k("kt_layout", layout, restype=None)
+    expected = ParamLayout(2, 1, 2, 6)
+    assert layout.tolist() == [expected.size, *expected.offsets().values()]
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    memory, h = start(k, "tip", matrices, x0, P0, Q, R)
+    assert k("tip_set_arrival", h, k.a(P0)) == 0
+    X_c = k.a(np.zeros((T, 2)))
+    solves = k("kt_solves")
+    assert k("tip_run", h, T, k.a(run.u[:T]), k.a(Y), valid[:T].astype(np.uint8), X_c) == 0
+    assert k("kt_solves") - solves == T and k("kt_checked_out") == 0
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=ipopt_resolution(model, settings, matrices[0]))
+    for max_iter, refuse, code in ((0, 0, "MAX_ITERATIONS"), (100, 1, "NO_MEMORY")):
+        k("kt_solver_set", max_iter, refuse, restype=None)
+        assert k("tip_step", h, k.a(run.u[T]), k.a(run.y[T + 1]), None) == CODES[code]
+        assert k("kt_checked_out") == 0
+    k("kt_solver_set", 100, 0, restype=None)
+    assert k("tip_step", h, k.a(run.u[T]), k.a(run.y[T + 1]), None) == 0
+
+
+def ipopt_resolution(model, settings, Phi) -> float:
+    """How far two Ipopt solutions of one window's unconstrained, strongly convex quadratic NLP
+    may lie apart: each stops with a scaled gradient of at most ``tol`` (IPOPT_OPTIONS), so
+    lies within ``sqrt(NW) tol / lambda_min(H)`` of the minimiser, ``H`` the scaled cost's
+    Hessian. Its smallest eigenvalue is that of the window with every output missing (the
+    measurement terms only add positive semidefinite blocks): the arrival and process terms."""
+    from learnest_codegen.estimators.mhe_problem import IPOPT_OPTIONS
+
+    Qw, Rw, Pw = settings.weights()
+    scale = 1 / max(np.diag(Qw).max(), np.diag(Rw).max(), np.diag(Pw).max())
+    n, nx = settings.horizon, model.nx
+    H = np.zeros(((n + 1) * nx, (n + 1) * nx))
+    H[:nx, :nx] += Pw
+    for i in range(n):
+        J = np.zeros((nx, (n + 1) * nx))
+        J[:, i * nx:(i + 1) * nx], J[:, (i + 1) * nx:(i + 2) * nx] = -Phi, np.eye(nx)
+        H += J.T @ Qw @ J
+    return 2 * np.sqrt(len(H)) * IPOPT_OPTIONS["tol"] / np.linalg.eigvalsh(2 * scale * H).min()
