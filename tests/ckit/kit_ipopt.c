@@ -2,7 +2,7 @@
  * solver glue over a hand-written nlpsol: eq. (2) for the linear model of kit_casadi.h, whose
  * cost is the quadratic 1/2 X'H X + b'X + c, given to Ipopt through its C interface
  * (IpStdCInterface.h; the casadi wheel's libipopt) with the options of estimators/
- * mhe_problem.py's IPOPT_OPTIONS, and behind CasADi's nlpsol calling convention: inputs x0, p,
+ * mhe_problem.py's IPOPT_OPTIONS (and BOUNDED_IPOPT_OPTIONS with bounds), and behind CasADi's nlpsol calling convention: inputs x0, p,
  * lbx, ubx, ...; output x; status 0 solved, 1 failed, 2 maximum iterations; memory checked
  * out and released. Prefix tip, horizon 6, double only (Ipopt's precision). */
 #include <IpStdCInterface.h>
@@ -186,6 +186,14 @@ static int kc_solver(const casadi_real** arg, casadi_real** res, casadi_int* iw,
   AddIpoptStrOption(nlp, (char*)"hessian_approximation", (char*)"exact");
   AddIpoptIntOption(nlp, (char*)"print_level", 0);
   AddIpoptStrOption(nlp, (char*)"sb", (char*)"yes");
+  if (arg[2] || arg[3]) {  /* BOUNDED_IPOPT_OPTIONS: the solution inside the box */
+    AddIpoptNumOption(nlp, (char*)"bound_relax_factor", 0.0);
+    AddIpoptStrOption(nlp, (char*)"honor_original_bounds", (char*)"yes");
+    AddIpoptStrOption(nlp, (char*)"mu_strategy", (char*)"adaptive");
+    AddIpoptNumOption(nlp, (char*)"mu_target", 0.0);
+    AddIpoptNumOption(nlp, (char*)"mu_min", 1e-20);
+    AddIpoptNumOption(nlp, (char*)"tol", 1e-14);
+  }
   memcpy(res[0], arg[0], KC_NW * sizeof(double));
   status = IpoptSolve(nlp, res[0], NULL, NULL, NULL, NULL, NULL, &q);
   FreeIpoptProblem(nlp);
