@@ -791,3 +791,84 @@ def test_mhe_options_from_the_kit_alone_equal_the_python_mhe(libraries, linear, 
         assert np.all((X_c[:, 0] >= -0.5) & (X_c[:, 0] <= 0.95)) and np.any(X_c[:, 0] >= 0.95 - 1e-7)
         assert np.any(MHE(model, replace(settings, state_bounds=None)).run(
             run.u[:T], Y, x0, valid=valid[:T])[:, 0] > 0.95 + 1e-3)  # which unbounded it leaves
+
+
+def test_the_apis_other_doors_from_the_kit_alone(libraries, linear):
+    """The API's doors besides init and step, on the kit's EKF over the linear model (where it
+    is FilterPy's Kalman filter, to 1e-12 as above): the build's sizes, real size, dt and
+    fingerprint; init_default (the build's defaults, which are the linear system's tuning);
+    predict (a step without outputs); set_noise (Q and R from the next step on); reset. On
+    the Gauss-Newton MHE: set_options (one iteration per sample, RTI, which on a linear model
+    is the converged solution: the Python MHE's to 1e-7 as above; out-of-range options
+    refused), iterations, get_arrival and get_arrival_weight (its inverse, to rounding)."""
+    from filterpy.kalman import KalmanFilter
+
+    k = libraries("kit_ekf", "gcc", "double")
+    system, model, matrices, run, valid = linear
+    sizes = [ctypes.c_int() for _ in range(4)]
+    k("tekf_sizes", *(ctypes.byref(s) for s in sizes), restype=None)
+    assert [s.value for s in sizes] == [2, 1, 2, 0]
+    assert k("tekf_real_size") == 8 and k("tekf_dt", restype=ctypes.c_double) == system.dt
+    assert k("tekf_fingerprint", restype=ctypes.c_char_p).startswith(b"learnest kit test")
+    memory = np.zeros(k("tekf_workspace_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    h = ctypes.c_void_p()
+    assert k("tekf_init_default", memory, ctypes.c_size_t(memory.nbytes), ctypes.byref(h)) == 0
+    Phi, Gamma, C = matrices
+    assert k("kt_set_model", h, k.a(Phi.T), k.a(Gamma.T), k.a(C.T)) == 0
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    kf = KalmanFilter(dim_x=2, dim_z=2)
+    kf.F, kf.B, kf.H, kf.Q, kf.R = Phi, Gamma, C, Q, R
+    kf.x, kf.P = np.array([1.0, 0.0]), np.diag([0.25, 0.25])  # kit_linear.h's defaults
+    x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
+
+    def same():
+        k("tekf_get_state", h, x)
+        k("tekf_get_covariance", h, P)
+        np.testing.assert_allclose(x, kf.x, rtol=0, atol=1e-12 * np.abs(kf.x).max())
+        np.testing.assert_allclose(P, kf.P, rtol=0, atol=1e-12 * np.abs(kf.P).max())
+
+    same()
+    for i in range(60):
+        u, y = run.u[max(i - 1, 0)], run.y[i]
+        if i == 20:
+            Q, R = 4 * Q, 0.25 * R
+            assert k("tekf_set_noise", h, k.a(Q), k.a(R)) == 0
+            kf.Q, kf.R = Q, R
+        if i == 40:
+            x0, P0 = np.array([0.5, -0.2]), np.diag([0.1, 0.3])
+            assert k("tekf_reset", h, k.a(x0), k.a(P0), k.a(Q), k.a(R)) == 0
+            kf.x, kf.P = x0.copy(), P0.copy()
+        if i % 3 == 2:  # no outputs: the prediction
+            assert k("tekf_predict", h, k.a(u)) == 0
+        else:
+            assert k("tekf_step", h, k.a(u), k.a(y), None) == 0
+        if i not in (0, 40):  # the first sample after init or reset has no transition
+            kf.predict(u=u)
+        if i % 3 != 2:
+            kf.update(y)
+        same()
+
+    k = libraries("kit_gn", "gcc", "double")
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0
+    got, weight = k.a(np.zeros((2, 2))), k.a(np.zeros((2, 2)))
+    assert k("tgn_get_arrival", h, got) == 0 and k("tgn_get_arrival_weight", h, weight) == 0
+    np.testing.assert_array_equal(got, P0)  # copied
+    inverse = np.linalg.inv(P0)  # the kit's Cholesky inverse against LU: nx^3 operations
+    tol = rounding(ops=2**3, cond=np.linalg.cond(P0)) * np.abs(inverse).max()
+    np.testing.assert_allclose(weight, inverse, rtol=0, atol=tol)
+    for bad in ((2, 10, 1e-10), (1, 0, 1e-10), (1, 10, 0.0)):
+        assert k("tgn_set_options", h, bad[0], bad[1], bad[2]) == CODES["BAD_ARGUMENT"]
+    assert k("tgn_set_options", h, 1, 10, 1e-10) == 0  # RTI
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    X_c = k.a(np.zeros((T, 2)))
+    for i in range(T):
+        assert k("tgn_step", h, k.a(run.u[max(i - 1, 0)]), k.a(Y[i]), valid[i].astype(np.uint8)) == 0
+        assert k("tgn_iterations", h) == 1
+        k("tgn_get_state", h, X_c[i])
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
