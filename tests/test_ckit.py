@@ -2,11 +2,16 @@
 
 ``tests/ckit/*.c`` wrap the kit (``learnest_codegen/ckit``) in plain functions (``kit_core.c``:
 dense algebra, the block-tridiagonal solve, the gate, the MHE window) or instantiate its
-estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``). Each is compiled
-under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float,
-and as C++ with g++; the results are compared with numpy.linalg, a dense solve, the Python
-gate (``estimators/gate.py``), the Python MHE's window bookkeeping (``estimators/mhe.py``,
-``mhe_window.py``), the Ipopt MHE and FilterPy's Kalman filter.
+estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_ekf.c``;
+``kit_gn_groups.c``: a model whose states fall apart in groups), or over that model written by
+hand in CasADi's calling convention (``kit_casadi.h``) behind ``learnest_casadi.h``'s hooks
+(``kit_casadi_gn.c``; ``kit_casadi_ukf.c``: the UKF's own sigma points; ``kit_ipopt.c``: the
+Ipopt MHE over a hand-written nlpsol linked to the casadi wheel's libipopt). Each is compiled
+under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float
+(``kit_ipopt.c``: double, Ipopt's precision), and as C++ with g++; the results are compared
+with numpy.linalg, a dense solve, the Python gate (``estimators/gate.py``), the Python MHE's
+window bookkeeping (``estimators/mhe.py``, ``mhe_window.py``), the Ipopt MHE (CasADi's
+nlpsol) and FilterPy's Kalman and unscented Kalman filters.
 """
 
 from __future__ import annotations
@@ -15,13 +20,16 @@ import ctypes
 import re
 import shutil
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import rounding
+from conftest import rounding, unscented_rounding
+from test_ukf import update_gain
 
 from learnest_codegen import NoiseModel, Signal, System, get_system
+from learnest_codegen.codegen.mhe import arrival_defines, bounds_defines
 from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
@@ -29,6 +37,7 @@ from learnest_codegen.estimators.mhe_problem import MHESettings, mhe_settings
 from learnest_codegen.export import prior_model
 from learnest_codegen.runtime.limits import LIMITS
 from learnest_codegen.runtime.status import STATUS_NAMES
+from learnest_codegen.toolchain import casadi_dirs
 
 SOURCES = Path(__file__).resolve().parent / "ckit"
 COMPILERS = [cc for cc in ("gcc", "clang") if shutil.which(cc)]
@@ -36,6 +45,15 @@ FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fno-ma
          "-ffp-contract=off"]
 DTYPES = {"double": np.float64, "float": np.float32}
 CODES = {name: code for code, name in STATUS_NAMES.items()}
+SOURCE_NAMES = ["kit_core", "kit_gn", "kit_gn_groups", "kit_ukf", "kit_ekf", "kit_casadi_gn",
+                "kit_casadi_ukf", "kit_ipopt"]
+CASADI_INCLUDE, CASADI_LIB = casadi_dirs()
+#: What a source needs besides the kit: Ipopt's headers and library (the casadi wheel's, as
+#: codegen/mhe.py links a generated Ipopt MHE).
+EXTRA = {"kit_ipopt": {"compile": [f"-I{CASADI_INCLUDE / 'coin-or'}"],
+                       "link": [f"-L{CASADI_LIB}", f"-Wl,-rpath,{CASADI_LIB}", "-lipopt"]}}
+#: The precisions a source builds in (Ipopt solves in double only).
+REALS = {"kit_ipopt": ("double",)}
 N = 5  # kit_core.c's horizon; its sizes are the cartpole's (NX 4, NU 1, NY 2)
 
 
@@ -53,12 +71,16 @@ def libraries(kit):
     """(source, compiler, real) -> a loaded shared library, built on first use."""
     cache = {}
 
-    def get(source: str, cc: str = "gcc", real: str = "double"):
-        key = (source, cc, real)
+    def get(source: str, cc: str = "gcc", real: str = "double", defines: dict | None = None):
+        """``defines``: more macros, as a generated glue sets them (``{"LEARNEST_STATE_LO": ...}``)."""
+        macros = tuple(f"-D{name}={value}" for name, value in sorted((defines or {}).items()))
+        key = (source, cc, real, macros)
         if key not in cache:
-            library = kit / f"{source}_{cc}_{real}.so"
-            command = [cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fPIC", "-shared",
-                       str(SOURCES / f"{source}.c"), "-o", str(library), "-lm"]
+            library = kit / f"{source}_{cc}_{real}_{len(cache)}.so"
+            extra = EXTRA.get(source, {})
+            command = [cc, *FLAGS, f"-DKIT_REAL={real}", *macros, f"-I{kit}", *extra.get("compile", []),
+                       "-fPIC", "-shared", str(SOURCES / f"{source}.c"), "-o", str(library),
+                       *extra.get("link", []), "-lm"]
             proc = subprocess.run(command, capture_output=True, text=True)
             assert proc.returncode == 0, f"{' '.join(command)}\n{proc.stderr}"
             cache[key] = Kit(ctypes.CDLL(str(library)), DTYPES[real])
@@ -103,18 +125,19 @@ def tolerance(dtype) -> float:
 # -- builds ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cc", COMPILERS)
-@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+@pytest.mark.parametrize("source", SOURCE_NAMES)
 def test_builds_warning_free_in_c_and_cpp(kit, source, cc):
     """Every test source (so every kit header) under -Werror with gcc and clang in double and
     float (the library fixture), and as C++11 with g++."""
-    for real in DTYPES:
-        proc = subprocess.run([cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", "-fsyntax-only",
+    include = EXTRA.get(source, {}).get("compile", [])
+    for real in REALS.get(source, DTYPES):
+        proc = subprocess.run([cc, *FLAGS, f"-DKIT_REAL={real}", f"-I{kit}", *include, "-fsyntax-only",
                                str(SOURCES / f"{source}.c")], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
     if cc == "gcc" and shutil.which("g++"):
         proc = subprocess.run(["g++", "-x", "c++", "-std=c++11", "-Wall", "-Wextra", "-Werror",
-                               "-pedantic", f"-I{kit}", "-fsyntax-only", str(SOURCES / f"{source}.c")],
-                              capture_output=True, text=True)
+                               "-pedantic", f"-I{kit}", *include, "-fsyntax-only",
+                               str(SOURCES / f"{source}.c")], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr
 
 
@@ -139,11 +162,12 @@ def test_the_status_header_is_the_status_table():
     assert (KIT / "learnest_status.h").read_text() == status_header_text()
 
 
-@pytest.mark.parametrize("source", ["kit_core", "kit_gn", "kit_ukf", "kit_ekf"])
+@pytest.mark.parametrize("source", SOURCE_NAMES)
 def test_builds_from_the_kit_folder_alone(source):
     """Every test source compiles against learnest_codegen/ckit itself: no file written by
     Python."""
-    proc = subprocess.run(["gcc", *FLAGS, "-DKIT_REAL=double", f"-I{KIT}", "-fsyntax-only",
+    proc = subprocess.run(["gcc", *FLAGS, "-DKIT_REAL=double", f"-I{KIT}",
+                           *EXTRA.get(source, {}).get("compile", []), "-fsyntax-only",
                            str(SOURCES / f"{source}.c")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
 
@@ -524,3 +548,327 @@ def test_failed_init_leaves_a_live_estimator_as_it_was(libraries, linear, prefix
         k(f"{prefix}_get_state", h, x_h)
         k(f"{prefix}_get_state", twin, x_t)
         np.testing.assert_array_equal(x_h, x_t)
+
+
+def two_oscillators(outputs=(0, 1, 3)) -> System:
+    """Two mass-spring-dampers driven by one force, states ``[q1, q2, v1, v2]``, the states
+    ``outputs`` measured: no Jacobian entry couples ``(q1, v1)`` with ``(q2, v2)``
+    (``kit_gn_groups.c``'s two groups)."""
+    states = (Signal("q1", "m"), Signal("q2", "m"), Signal("v1", "m/s"), Signal("v2", "m/s"))
+    std = (0.05, 0.05, 0.1, 0.1)
+
+    def dynamics(ops, x, u, p):
+        return [x[2], x[3], (-p["k1"] * x[0] - p["c1"] * x[2] + u[0]) / p["m1"],
+                (-p["k2"] * x[1] - p["c2"] * x[3] - u[0]) / p["m2"]]
+
+    params = {"m1": 2.0, "k1": 3.0, "c1": 0.4, "m2": 0.5, "k2": 5.0, "c2": 0.2}
+    return System(
+        name="msd2x2", states=states, inputs=(Signal("F", "N"),),
+        outputs=tuple(states[i] for i in outputs), params=params, true_params=params,
+        dynamics=dynamics, measurement=lambda ops, x, u, p: [x[i] for i in outputs],
+        noise=NoiseModel(measurement_std=tuple(std[i] for i in outputs), state_std=(0.01,) * 4,
+                         process_std=(1e-3, 1e-3, 1e-2, 1e-2), initial_std=(0.5,) * 4),
+        dt=0.05, duration=10.0, x0=(1.0, -0.5, 0.0, 0.0),
+        excitation=lambda t, rng: np.sin(t + rng.uniform())[:, None])
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("outputs", [(0, 1, 3), (0, 1)])
+def test_grouped_embedded_mhe_solves_group_by_group_and_equals_the_ipopt_mhe(libraries, cc, outputs):
+    """learnest_gn_groups.h without generated code: the kit's Gauss-Newton MHE over two
+    oscillators apart, with diagonal and then within-group dense weights, solves the two
+    groups' normal equations one by one (kt_split) and equals the Python MHE (CasADi's nlpsol
+    with Ipopt) of the same model, outputs missing at random, to 1e-7 as the ungrouped one
+    does; a process covariance that couples the groups makes it solve the whole window at
+    once, to the same estimates. Outputs ``(0, 1)``: groups of one size, declared as such
+    (LEARNEST_COMP_SIZE)."""
+    from learnest_codegen.simulation import simulate
+
+    k = libraries("kit_gn_groups", cc, "double", {"KIT_UNIFORM_GROUPS": 1} if len(outputs) == 2 else {})
+    system = two_oscillators(outputs)
+    model = prior_model(system)
+    Phi = np.stack([model.step(e, np.zeros(1)) for e in np.eye(4)], axis=1)
+    Gamma = model.step(np.zeros(4), np.ones(1))[:, None]
+    C = np.eye(4)[list(outputs)]
+    run = simulate(system, seed=0, duration=6.0)
+    valid = np.random.default_rng(5).random(run.y.shape) < 0.7
+    Y = np.where(valid, run.y, np.nan)
+    x0 = np.array(system.x0, dtype=float)
+    base = MHESettings.from_system(system, horizon=6, arrival="arrival_std")
+    Q, R, P = mhe_settings(model, base).covariances()
+    Qd, Rd, Qc = Q.copy(), R.copy(), Q.copy()
+    Qd[0, 2] = Qd[2, 0] = 0.3 * np.sqrt(Q[0, 0] * Q[2, 2])  # within group 0
+    if len(outputs) == 3:
+        Rd[1, 2] = Rd[2, 1] = 0.3 * np.sqrt(R[1, 1] * R[2, 2])  # within group 1
+    Qc[2, 3] = Qc[3, 2] = 0.3 * np.sqrt(Q[2, 2] * Q[3, 3])  # across the groups
+    for (Qs, Rs, Ps), split in (((Q, R, P), 1), ((Qd, Rd, P), 1), ((Qc, R, P), 0)):
+        settings = mhe_settings(model, replace(base, arrival_covariance=tuple(map(tuple, Ps))))
+        memory, h = start(k, "tgg", (Phi, Gamma, C), x0, Ps, Qs, Rs)
+        assert k("tgg_set_arrival", h, k.a(Ps)) == 0
+        gate = settings.gate
+        assert k("tgg_set_gate", h, gate.threshold, gate.recover_after, gate.inflation) == 0
+        X_c = k.a(np.zeros((len(Y), 4)))
+        assert k("tgg_run", h, len(Y), k.a(run.u), k.a(Y), valid.astype(np.uint8), X_c) == 0
+        assert k("kt_split", h) == split
+        mhe = MHE(model, settings)
+        mhe.reset(x0, Ps)  # as init: the first prior's covariance, the running one
+        mhe.set_noise(Q=Qs, R=Rs)
+        X_py = np.array([mhe.step(run.u[max(i - 1, 0)], Y[i], valid[i]) for i in range(len(Y))])
+        np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
+        assert np.abs(X_c - run.x).mean() < 0.15  # it tracks states of amplitude ~1 (v1 unmeasured)
+
+
+# -- the CasADi hooks and the Ipopt glue over a hand-written model ---------------------------
+
+@pytest.mark.parametrize("cc", COMPILERS)
+def test_casadi_hooks_run_the_embedded_mhe_as_the_direct_model_does(libraries, linear, cc):
+    """learnest_casadi.h's stage, node and F hooks (kit_casadi_gn.c: the linear model written
+    in CasADi's calling convention) under the kit's Gauss-Newton MHE: the same estimates as the
+    Python MHE (CasADi's nlpsol with Ipopt) to 1e-7 as kit_gn.c's, and bit for bit kit_gn.c's
+    (the same operations, reached through the hooks instead of direct calls)."""
+    k, direct = libraries("kit_casadi_gn", cc, "double"), libraries("kit_gn", cc, "double")
+    system, model, matrices, run, valid = linear
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    out = {}
+    for name, lib, prefix in (("casadi", k, "tcg"), ("direct", direct, "tgn")):
+        memory, h = start(lib, prefix, matrices, x0, P0, Q, R)
+        assert lib(f"{prefix}_set_arrival", h, lib.a(P0)) == 0
+        X = lib.a(np.zeros((T, 2)))
+        assert lib(f"{prefix}_run", h, T, lib.a(run.u[:T]), lib.a(Y), valid[:T].astype(np.uint8), X) == 0
+        out[name] = X
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(out["casadi"], X_py, rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(out["casadi"], out["direct"])
+
+
+@pytest.mark.parametrize("cc", COMPILERS)
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_kit_sigma_points_equal_filterpys_ukf(libraries, linear, cc, real):
+    """learnest_ukf.h's own sigma points, transforms and masked update (LEARNEST_UKF_ALPHA, as a
+    generated UKF builds it) over learnest_casadi.h's F and h hooks (kit_casadi_ukf.c) against
+    FilterPy's UnscentedKalmanFilter with the same Merwe points (alpha 0.5, beta 2, kappa 1),
+    updating on the outputs present only (none: the prediction), sample by sample, in double and
+    float. Each step's rounding is ``unscented_rounding`` with its update's gain
+    (tests/test_ukf.py's ``update_gain``); a stable filter carries the earlier steps' errors
+    forward without growth, so step ``k`` may differ by the sum of the bounds so far."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    k = libraries("kit_casadi_ukf", cc, real)
+    system, model, matrices, run, valid = linear
+    Phi, Gamma, C = matrices
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
+    memory, h = start(k, "tcu", matrices, x0, P0, Q, R)
+    points = MerweScaledSigmaPoints(2, 0.5, 2.0, 1.0)
+    ukf = UnscentedKalmanFilter(2, 2, system.dt, hx=lambda s, **_: C @ s,
+                                fx=lambda s, dt, u: Phi @ s + Gamma @ u, points=points)
+    ukf.x, ukf.P, ukf.Q = x0.copy(), P0.copy(), Q
+    x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
+    bound_x = bound_P = 0.0
+    for i in range(len(run.y)):
+        u = run.u[max(i - 1, 0)]
+        if i > 0:
+            ukf.predict(u=u)
+        else:  # no transition on the first sample: the points of (x0, P0) itself
+            ukf.sigmas_f = points.sigma_points(ukf.x, ukf.P)
+            ukf.x_prior, ukf.P_prior = ukf.x.copy(), ukf.P.copy()
+        keep = valid[i]
+        gain_x = gain_P = 1.0
+        if keep.any():
+            ukf.update(run.y[i][keep], R=R[np.ix_(keep, keep)], hx=lambda s, keep=keep: (C @ s)[keep])
+            gain_x, gain_P = update_gain(ukf, ukf.sigmas_h, ukf.P_prior)
+        else:
+            ukf.x, ukf.P = ukf.x_prior.copy(), ukf.P_prior.copy()
+        assert k("tcu_step", h, k.a(u), k.a(np.where(keep, run.y[i], np.nan)), keep.astype(np.uint8)) == 0
+        k("tcu_get_state", h, x)
+        k("tcu_get_covariance", h, P)
+        bound_x += unscented_rounding(points.Wm, points.Wc, k.dtype, gain=gain_x)
+        bound_P += unscented_rounding(points.Wm, points.Wc, k.dtype, gain=gain_P)
+        np.testing.assert_allclose(x, ukf.x, rtol=0, atol=bound_x * np.abs(ukf.x).max(), err_msg=f"{i}")
+        np.testing.assert_allclose(P, ukf.P, rtol=0, atol=bound_P * np.abs(ukf.P).max(), err_msg=f"{i}")
+    assert k("tcu_samples", h) == len(run.y)
+
+
+def test_ipopt_glue_solves_the_nlp_as_casadis_ipopt(libraries, linear):
+    """learnest_casadi.h's solver glue and learnest_mhe_ipopt.h over a hand-written nlpsol
+    (kit_ipopt.c: eq. (2) of the linear model given to Ipopt's C interface, the casadi wheel's
+    libipopt) against the Python MHE, whose nlpsol CasADi builds over the same Ipopt, with
+    outputs missing at random; its parameter vector is ParamLayout's; a refused solver memory
+    and Ipopt's iteration limit come back as NO_MEMORY and MAX_ITERATIONS, restart the window,
+    and the memory is given back."""
+    from learnest_codegen.estimators.mhe_problem import ParamLayout
+
+    k = libraries("kit_ipopt", "gcc", "double")
+    system, model, matrices, run, valid = linear
+    layout = np.zeros(9, dtype=np.intc)
+    k("kt_layout", layout, restype=None)
+    expected = ParamLayout(2, 1, 2, 6)
+    assert layout.tolist() == [expected.size, *expected.offsets().values()]
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    memory, h = start(k, "tip", matrices, x0, P0, Q, R)
+    assert k("tip_set_arrival", h, k.a(P0)) == 0
+    X_c = k.a(np.zeros((T, 2)))
+    solves = k("kt_solves")
+    assert k("tip_run", h, T, k.a(run.u[:T]), k.a(Y), valid[:T].astype(np.uint8), X_c) == 0
+    assert k("kt_solves") - solves == T and k("kt_checked_out") == 0
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=ipopt_resolution(model, settings, matrices[0]))
+    for max_iter, refuse, code in ((0, 0, "MAX_ITERATIONS"), (100, 1, "NO_MEMORY")):
+        k("kt_solver_set", max_iter, refuse, restype=None)
+        assert k("tip_step", h, k.a(run.u[T]), k.a(run.y[T + 1]), None) == CODES[code]
+        assert k("kt_checked_out") == 0
+    k("kt_solver_set", 100, 0, restype=None)
+    assert k("tip_step", h, k.a(run.u[T]), k.a(run.y[T + 1]), None) == 0
+
+
+def ipopt_resolution(model, settings, Phi) -> float:
+    """How far two Ipopt solutions of one window's unconstrained, strongly convex quadratic NLP
+    may lie apart: each stops with a scaled gradient of at most ``tol`` (IPOPT_OPTIONS), so
+    lies within ``sqrt(NW) tol / lambda_min(H)`` of the minimiser, ``H`` the scaled cost's
+    Hessian. Its smallest eigenvalue is that of the window with every output missing (the
+    measurement terms only add positive semidefinite blocks): the arrival and process terms."""
+    from learnest_codegen.estimators.mhe_problem import IPOPT_OPTIONS
+
+    Qw, Rw, Pw = settings.weights()
+    scale = 1 / max(np.diag(Qw).max(), np.diag(Rw).max(), np.diag(Pw).max())
+    n, nx = settings.horizon, model.nx
+    H = np.zeros(((n + 1) * nx, (n + 1) * nx))
+    H[:nx, :nx] += Pw
+    for i in range(n):
+        J = np.zeros((nx, (n + 1) * nx))
+        J[:, i * nx:(i + 1) * nx], J[:, (i + 1) * nx:(i + 2) * nx] = -Phi, np.eye(nx)
+        H += J.T @ Qw @ J
+    return 2 * np.sqrt(len(H)) * IPOPT_OPTIONS["tol"] / np.linalg.eigvalsh(2 * scale * H).min()
+
+
+#: The MHE options a generated glue may set, each as MHESettings overrides.
+OPTIONS = {"state_bounds": {"state_bounds": ((-0.5, 0.95), (-np.inf, np.inf))},
+           "arrival_update": {"arrival_update": True},
+           "input_limits": {"input_limits": ((-0.8, 0.8),)}}
+
+
+@pytest.mark.parametrize("option", list(OPTIONS))
+@pytest.mark.parametrize("prefix, source", [("tgn", "kit_gn"), ("tip", "kit_ipopt")])
+def test_mhe_options_from_the_kit_alone_equal_the_python_mhe(libraries, linear, option, prefix, source):
+    """What a generated glue switches on, from the kit alone: state bounds (learnest_bounds.h:
+    the projected Gauss-Newton steps, Ipopt's variable bounds), the arrival cost that follows
+    the data (LEARNEST_ARRIVAL_UPDATE) and the input limits (learnest_api.h), with the macros
+    the generators write (codegen/mhe.py's bounds_defines, arrival_defines), in the
+    Gauss-Newton and the Ipopt MHE against the Python MHE with the same settings. A bounded
+    window never leaves its box and touches it; a rejected input sets the status bit 2."""
+    system, model, matrices, run, valid = linear
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6, **OPTIONS[option]))
+    defines = {**bounds_defines(settings), **arrival_defines(settings)}
+    if option == "input_limits":
+        defines.update({"LEARNEST_INPUT_LO": "{-0.8}", "LEARNEST_INPUT_HI": "{0.8}"})
+    k = libraries(source, "gcc", "double", defines)
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    memory, h = start(k, prefix, matrices, x0, P0, Q, R)
+    assert k(f"{prefix}_set_arrival", h, k.a(P0)) == 0
+    X_c = k.a(np.zeros((T, 2)))
+    code = k(f"{prefix}_run", h, T, k.a(run.u[:T]), k.a(Y), valid[:T].astype(np.uint8), X_c)
+    assert code >= 0 and bool(code & 2) == (option == "input_limits")
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    # both solve one window's problem: the unbounded one to Ipopt's resolution (the Gauss-Newton
+    # MHE to 1e-7 of Ipopt's, as unbounded above); the bounded one to 1e-7 as well (Ipopt with
+    # BOUNDED_IPOPT_OPTIONS meets the projected Gauss-Newton's KKT point within 1.4e-8 on the
+    # cartpole: estimators/mhe_problem.py)
+    bounded = option == "state_bounds"
+    atol = ipopt_resolution(model, settings, matrices[0]) if source == "kit_ipopt" and not bounded else 1e-7
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=atol)
+    if bounded:  # inside the box (clamped: exactly), and on its upper side at times
+        assert np.all((X_c[:, 0] >= -0.5) & (X_c[:, 0] <= 0.95)) and np.any(X_c[:, 0] >= 0.95 - 1e-7)
+        assert np.any(MHE(model, replace(settings, state_bounds=None)).run(
+            run.u[:T], Y, x0, valid=valid[:T])[:, 0] > 0.95 + 1e-3)  # which unbounded it leaves
+
+
+def test_the_apis_other_doors_from_the_kit_alone(libraries, linear):
+    """The API's doors besides init and step, on the kit's EKF over the linear model (where it
+    is FilterPy's Kalman filter, to 1e-12 as above): the build's sizes, real size, dt and
+    fingerprint; init_default (the build's defaults, which are the linear system's tuning);
+    predict (a step without outputs); set_noise (Q and R from the next step on); reset. On
+    the Gauss-Newton MHE: set_options (one iteration per sample, RTI, which on a linear model
+    is the converged solution: the Python MHE's to 1e-7 as above; out-of-range options
+    refused), iterations, get_arrival and get_arrival_weight (its inverse, to rounding)."""
+    from filterpy.kalman import KalmanFilter
+
+    k = libraries("kit_ekf", "gcc", "double")
+    system, model, matrices, run, valid = linear
+    sizes = [ctypes.c_int() for _ in range(4)]
+    k("tekf_sizes", *(ctypes.byref(s) for s in sizes), restype=None)
+    assert [s.value for s in sizes] == [2, 1, 2, 0]
+    assert k("tekf_real_size") == 8 and k("tekf_dt", restype=ctypes.c_double) == system.dt
+    assert k("tekf_fingerprint", restype=ctypes.c_char_p).startswith(b"learnest kit test")
+    memory = np.zeros(k("tekf_workspace_size", restype=ctypes.c_size_t), dtype=np.uint8)
+    h = ctypes.c_void_p()
+    assert k("tekf_init_default", memory, ctypes.c_size_t(memory.nbytes), ctypes.byref(h)) == 0
+    Phi, Gamma, C = matrices
+    assert k("kt_set_model", h, k.a(Phi.T), k.a(Gamma.T), k.a(C.T)) == 0
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    kf = KalmanFilter(dim_x=2, dim_z=2)
+    kf.F, kf.B, kf.H, kf.Q, kf.R = Phi, Gamma, C, Q, R
+    kf.x, kf.P = np.array([1.0, 0.0]), np.diag([0.25, 0.25])  # kit_linear.h's defaults
+    x, P = k.a(np.zeros(2)), k.a(np.zeros((2, 2)))
+
+    def same():
+        k("tekf_get_state", h, x)
+        k("tekf_get_covariance", h, P)
+        np.testing.assert_allclose(x, kf.x, rtol=0, atol=1e-12 * np.abs(kf.x).max())
+        np.testing.assert_allclose(P, kf.P, rtol=0, atol=1e-12 * np.abs(kf.P).max())
+
+    same()
+    for i in range(60):
+        u, y = run.u[max(i - 1, 0)], run.y[i]
+        if i == 20:
+            Q, R = 4 * Q, 0.25 * R
+            assert k("tekf_set_noise", h, k.a(Q), k.a(R)) == 0
+            kf.Q, kf.R = Q, R
+        if i == 40:
+            x0, P0 = np.array([0.5, -0.2]), np.diag([0.1, 0.3])
+            assert k("tekf_reset", h, k.a(x0), k.a(P0), k.a(Q), k.a(R)) == 0
+            kf.x, kf.P = x0.copy(), P0.copy()
+        if i % 3 == 2:  # no outputs: the prediction
+            assert k("tekf_predict", h, k.a(u)) == 0
+        else:
+            assert k("tekf_step", h, k.a(u), k.a(y), None) == 0
+        if i not in (0, 40):  # the first sample after init or reset has no transition
+            kf.predict(u=u)
+        if i % 3 != 2:
+            kf.update(y)
+        same()
+
+    k = libraries("kit_gn", "gcc", "double")
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0
+    got, weight = k.a(np.zeros((2, 2))), k.a(np.zeros((2, 2)))
+    assert k("tgn_get_arrival", h, got) == 0 and k("tgn_get_arrival_weight", h, weight) == 0
+    np.testing.assert_array_equal(got, P0)  # copied
+    inverse = np.linalg.inv(P0)  # the kit's Cholesky inverse against LU: nx^3 operations
+    tol = rounding(ops=2**3, cond=np.linalg.cond(P0)) * np.abs(inverse).max()
+    np.testing.assert_allclose(weight, inverse, rtol=0, atol=tol)
+    for bad in ((2, 10, 1e-10), (1, 0, 1e-10), (1, 10, 0.0)):
+        assert k("tgn_set_options", h, bad[0], bad[1], bad[2]) == CODES["BAD_ARGUMENT"]
+    assert k("tgn_set_options", h, 1, 10, 1e-10) == 0  # RTI
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    X_c = k.a(np.zeros((T, 2)))
+    for i in range(T):
+        assert k("tgn_step", h, k.a(run.u[max(i - 1, 0)]), k.a(Y[i]), valid[i].astype(np.uint8)) == 0
+        assert k("tgn_iterations", h) == 1
+        k("tgn_get_state", h, X_c[i])
+    X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
+    np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)

@@ -9,7 +9,6 @@
  *   LEARNEST_MODEL_NODE   (x, u) -> (h(x, u), dh/dx)           learnest_model_node
  *   LEARNEST_MODEL_F      (x, u) -> F(x, u)                    learnest_model_F
  *   LEARNEST_MODEL_H      (x, u) -> h(x, u)                    learnest_model_h
- *   LEARNEST_MODEL_PREDICT, LEARNEST_MODEL_UPDATE               the UKF's two halves
  *   LEARNEST_MODEL_SOLVER (+ _CHECKOUT, _RELEASE)               the Ipopt MHE's nlpsol
  * and LEARNEST_CASADI_SZ_ARG, _RES, _IW, _W (the largest over them). Every hook is static.
  */
@@ -76,33 +75,6 @@ LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_rea
 LEARNEST_KIT void learnest_model_h(struct learnest_model* md, const learnest_real* x,
                                    const learnest_real* u, learnest_real* h) {
   learnest_casadi_xu(md, LEARNEST_MODEL_H, x, u, h, 0);
-}
-#endif
-
-#ifdef LEARNEST_MODEL_PREDICT
-/* (x, P, u, Q) -> (x_prior, P_prior); matrices column-major. */
-LEARNEST_KIT int learnest_model_predict(struct learnest_model* md, const learnest_real* x,
-                                        const learnest_real* P, const learnest_real* u,
-                                        const learnest_real* Q, learnest_real* x_prior,
-                                        learnest_real* P_prior) {
-  const learnest_real* in[4];
-  learnest_real* out[2];
-  in[0] = x, in[1] = P, in[2] = u, in[3] = Q, out[0] = x_prior, out[1] = P_prior;
-  return learnest_casadi_call(md, LEARNEST_MODEL_PREDICT, in, 4, out, 2);
-}
-
-/* (x, P, u, y, R, mask) -> (x_post, P_post, d2): the update on the outputs mask keeps, and
- * each output's normalised innovation d2. */
-LEARNEST_KIT int learnest_model_update(struct learnest_model* md, const learnest_real* x,
-                                       const learnest_real* P, const learnest_real* u,
-                                       const learnest_real* y, const learnest_real* R,
-                                       const learnest_real* mask, learnest_real* x_post,
-                                       learnest_real* P_post, learnest_real* d2) {
-  const learnest_real* in[6];
-  learnest_real* out[3];
-  in[0] = x, in[1] = P, in[2] = u, in[3] = y, in[4] = R, in[5] = mask;
-  out[0] = x_post, out[1] = P_post, out[2] = d2;
-  return learnest_casadi_call(md, LEARNEST_MODEL_UPDATE, in, 6, out, 3);
 }
 #endif
 

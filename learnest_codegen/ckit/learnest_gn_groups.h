@@ -26,6 +26,18 @@ static const unsigned char learnest_comp_of_y[LEARNEST_NY] = LEARNEST_COMP_OF_Y;
 
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
                                       learnest_real* z, int factor);
+LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
+                                           const learnest_real* M, int cols, learnest_real* Wv,
+                                           learnest_real* WM);
+
+/* The n x n block of the ld x ld W at the rows and columns idx: a group's weight. */
+LEARNEST_KIT void learnest_gn_block(const learnest_real* W, int ld, const unsigned char* idx, int n,
+                                    learnest_real* Wk) {
+  int r, c;
+  for (c = 0; c < n; ++c) {
+    for (r = 0; r < n; ++r) Wk[r + c * n] = W[idx[r] + idx[c] * ld];
+  }
+}
 
 /* Whether the n x n W couples no two entries of different groups (of: each entry's group). */
 LEARNEST_KIT int learnest_gn_apart(const learnest_real* W, int n, const unsigned char* of) {
@@ -62,6 +74,9 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
     const int n = LEARNEST_GROUP_NX(k), ny = LEARNEST_GROUP_NY(k);
     const unsigned char* S = learnest_comp_x + xo;
     const unsigned char* O = learnest_comp_y + yo;
+    learnest_real Qk[LEARNEST_NXX], Rk[LEARNEST_NYY];  /* the group's weights */
+    learnest_gn_block(s->Q, LEARNEST_NX, S, n, Qk);
+    learnest_gn_block(s->R, LEARNEST_NY, O, ny, Rk);
     for (i = 0; i <= LEARNEST_N; ++i) {
       learnest_real* D = s->D + i * LEARNEST_NXX + bo;
       learnest_real* g = s->g + i * LEARNEST_NX;
@@ -85,21 +100,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
           s->rv[r] = Gi[O[r]] * (w->Y[i * LEARNEST_NY + O[r]] - L->h[i * LEARNEST_NY + O[r]]);
           for (c = 0; c < n; ++c) C[r + c * ny] = Gi[O[r]] * Ci[O[r] + S[c] * LEARNEST_NY];
         }
-        for (r = 0; r < ny; ++r) {
-          if (s->dr) {
-            const learnest_real R = s->R[O[r] + O[r] * LEARNEST_NY];
-            Rv[r] = R * s->rv[r];
-            for (c = 0; c < n; ++c) RC[r + c * ny] = R * C[r + c * ny];
-            continue;
-          }
-          Rv[r] = 0;
-          for (q = 0; q < ny; ++q) Rv[r] += s->R[O[r] + O[q] * LEARNEST_NY] * s->rv[q];
-          for (c = 0; c < n; ++c) {
-            learnest_real v = 0;
-            for (q = 0; q < ny; ++q) v += s->R[O[r] + O[q] * LEARNEST_NY] * C[q + c * ny];
-            RC[r + c * ny] = v;
-          }
-        }
+        learnest_gn_weigh(Rk, ny, s->dr, s->rv, C, hess ? n : 0, Rv, RC);
         for (c = 0; c < n; ++c) {
           for (r = c; hess && r < n; ++r) {
             learnest_real v = 0;
@@ -119,31 +120,14 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
           s->rw[r] = X[(i + 1) * LEARNEST_NX + S[r]] - L->F[i * LEARNEST_NX + S[r]];
           for (c = 0; c < n; ++c) A[r + c * n] = Ai[S[r] + S[c] * LEARNEST_NX];
         }
-        for (r = 0; r < n; ++r) {
-          if (s->dq) {
-            const learnest_real Q = s->Q[S[r] + S[r] * LEARNEST_NX];
-            Qw[r] = Q * s->rw[r];
-            for (c = 0; c < n; ++c) {
-              QA[r + c * n] = Q * A[r + c * n];
-              if (hess) E[r + c * n] = -m * QA[r + c * n];  /* H_{i+1,i} = -m Q A */
-            }
-            continue;
-          }
-          Qw[r] = 0;
-          for (q = 0; q < n; ++q) Qw[r] += s->Q[S[r] + S[q] * LEARNEST_NX] * s->rw[q];
-          for (c = 0; c < n; ++c) {
-            learnest_real v = 0;
-            for (q = 0; q < n; ++q) v += s->Q[S[r] + S[q] * LEARNEST_NX] * A[q + c * n];
-            QA[r + c * n] = v;
-            if (hess) E[r + c * n] = -m * v;  /* H_{i+1,i} = -m Q A */
-          }
-        }
+        learnest_gn_weigh(Qk, n, s->dq, s->rw, A, hess ? n : 0, Qw, QA);
+        for (q = 0; hess && q < n * n; ++q) E[q] = -m * QA[q];  /* H_{i+1,i} = -m Q A */
         for (c = 0; c < n; ++c) {
           for (r = c; hess && r < n; ++r) {
             learnest_real v = 0;
             for (q = 0; q < n; ++q) v += A[q + r * n] * QA[q + c * n];
             D[r + c * n] += m * v;
-            if (!s->dq || r == c) Dn[r + c * n] += m * s->Q[S[r] + S[c] * LEARNEST_NX];
+            if (!s->dq || r == c) Dn[r + c * n] += m * Qk[r + c * n];
           }
           for (q = 0; q < n; ++q) g[S[c]] -= m * A[q + c * n] * Qw[q];
           gn[S[c]] += m * Qw[c];

@@ -16,25 +16,10 @@ from .base import System as System
 from .cartpole import CARTPOLE
 from .check import check_system
 from .ground_robot import GROUND_ROBOT
-from .quadrotor import (
-    QUADROTOR,
-    QUADROTOR_BIAS,
-    QUADROTOR_BIAS_LAG,
-    QUADROTOR_LINEAR,
-    QUADROTOR_LINEAR_BIAS,
-    QUADROTOR_LINEAR_BIAS_LAG,
-    QUADROTOR_STATE,
-    QUADROTOR_THRUST_LINEAR,
-    QUADROTOR_THRUST_LINEAR_BIAS,
-)
+from .quadrotor import QUADROTORS
 from .rc_car import RC_CAR
 
-SYSTEMS: dict[str, System] = {CARTPOLE.name: CARTPOLE, GROUND_ROBOT.name: GROUND_ROBOT,
-                             QUADROTOR.name: QUADROTOR, QUADROTOR_STATE.name: QUADROTOR_STATE,
-                             QUADROTOR_LINEAR.name: QUADROTOR_LINEAR,
-                             QUADROTOR_THRUST_LINEAR.name: QUADROTOR_THRUST_LINEAR, RC_CAR.name: RC_CAR,
-                             **{s.name: s for s in (QUADROTOR_BIAS, QUADROTOR_BIAS_LAG, QUADROTOR_LINEAR_BIAS,
-                                                    QUADROTOR_LINEAR_BIAS_LAG, QUADROTOR_THRUST_LINEAR_BIAS)}}
+SYSTEMS: dict[str, System] = {s.name: s for s in (CARTPOLE, GROUND_ROBOT, *QUADROTORS, RC_CAR)}
 
 
 def register(system: System) -> System:

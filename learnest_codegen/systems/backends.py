@@ -18,16 +18,32 @@ import numpy as np
 
 from ..errors import ShapeError
 
+#: The functions every backend offers, by numpy's names.
+FUNCTIONS = ("sin", "cos", "tan", "arctan", "arctan2", "sqrt", "exp", "tanh", "abs")
 
-class NumpyOps:
+
+def _functions(lib, **other_names: str) -> dict[str, Callable]:
+    """:data:`FUNCTIONS` taken from the module ``lib``, by ``other_names`` where it spells one
+    differently (``arctan="atan"``)."""
+    return {name: getattr(lib, other_names.get(name, name)) for name in FUNCTIONS}
+
+
+class _Backend:
+    """A backend class: its :data:`FUNCTIONS` come from the module ``lib`` of its definition
+    (``class NumpyOps(_Backend, lib=np)``)."""
+
+    pi = math.pi
+
+    def __init_subclass__(cls, lib=None, **other_names: str) -> None:
+        super().__init_subclass__()
+        for name, fn in _functions(lib, **other_names).items():
+            setattr(cls, name, staticmethod(fn))
+
+
+class NumpyOps(_Backend, lib=np):
     """Backend over numpy arrays of shape ``(..., n)``."""
 
     name = "numpy"
-    pi = math.pi
-    sin, cos, tan = staticmethod(np.sin), staticmethod(np.cos), staticmethod(np.tan)
-    arctan, arctan2 = staticmethod(np.arctan), staticmethod(np.arctan2)
-    sqrt, exp, tanh = staticmethod(np.sqrt), staticmethod(np.exp), staticmethod(np.tanh)
-    abs = staticmethod(np.abs)
 
     @staticmethod
     def unpack(v, n: int) -> list:
@@ -50,10 +66,7 @@ class TorchOps:
         import torch  # imported lazily: the runtime layer must work without torch
 
         self._torch = torch
-        self.sin, self.cos, self.tan = torch.sin, torch.cos, torch.tan
-        self.arctan, self.arctan2 = torch.atan, torch.atan2
-        self.sqrt, self.exp, self.tanh = torch.sqrt, torch.exp, torch.tanh
-        self.abs = torch.abs
+        vars(self).update(_functions(torch, arctan="atan", arctan2="atan2"))
 
     def unpack(self, v, n: int) -> list:
         if v.shape[-1] != n:
@@ -67,15 +80,10 @@ class TorchOps:
         return torch.stack(torch.broadcast_tensors(*parts), dim=-1)
 
 
-class CasadiOps:
+class CasadiOps(_Backend, lib=cs, arctan="atan", arctan2="atan2", abs="fabs"):
     """Backend over CasADi SX/MX column vectors ``(n, 1)``."""
 
     name = "casadi"
-    pi = math.pi
-    sin, cos, tan = staticmethod(cs.sin), staticmethod(cs.cos), staticmethod(cs.tan)
-    arctan, arctan2 = staticmethod(cs.atan), staticmethod(cs.atan2)
-    sqrt, exp, tanh = staticmethod(cs.sqrt), staticmethod(cs.exp), staticmethod(cs.tanh)
-    abs = staticmethod(cs.fabs)
 
     @staticmethod
     def unpack(v, n: int) -> list:

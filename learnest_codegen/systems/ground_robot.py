@@ -60,6 +60,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import NoiseModel, ResidualStructure, Signal, System
+from .bicycle import bicycle_states, kinematic_bicycle
 
 L_F, L_R = 0.18, 0.15  # distances front / rear axle to the centre of gravity [m]
 MASS, AREA, RHO = 1.5, 0.06, 1.225  # [kg], frontal area [m^2], air density [kg/m^3]
@@ -76,16 +77,9 @@ def drag_deceleration(ops, v, p):
 
 def dynamics(ops, x, u, p):
     """Kinematic bicycle with aerodynamic drag, eq. (14) plus ``-a_drag`` on ``vdot``."""
-    _, _, v, psi = x
     a, delta = u
-    wheelbase = p["l_f"] + p["l_r"]
-    beta = ops.arctan(p["l_r"] * ops.tan(delta) / wheelbase)
-    return [
-        v * ops.cos(psi + beta),
-        v * ops.sin(psi + beta),
-        a - drag_deceleration(ops, v, p),
-        v * ops.cos(beta) * ops.tan(delta) / wheelbase,
-    ]
+    return kinematic_bicycle(ops, x, a - drag_deceleration(ops, x[2], p), delta, p["l_r"],
+                             p["l_f"] + p["l_r"])
 
 
 def measurement(ops, x, u, p):
@@ -127,12 +121,7 @@ GROUND_ROBOT = System(
     name="ground_robot",
     description="Ground robot, paper eq. (14): kinematic bicycle, 4 range beacons + heading; "
                 "true robot has aerodynamic drag (C_D 1.05), the prior none.",
-    states=(
-        Signal("x", "m", "position, world x"),
-        Signal("y", "m", "position, world y"),
-        Signal("v", "m/s", "speed"),
-        Signal("psi", "rad", "heading"),
-    ),
+    states=bicycle_states(),
     inputs=(
         Signal("a", "m/s^2", "acceleration command"),
         Signal("delta", "rad", "front steering angle"),

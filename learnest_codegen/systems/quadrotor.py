@@ -392,3 +392,8 @@ QUADROTOR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_STATE, "quadrotor_bias_la
 #: ``quadrotor_linear_bias`` whose accelerometer reads the acceleration through a first-order lag.
 QUADROTOR_LINEAR_BIAS_LAG = with_accelerometer_bias(QUADROTOR_LINEAR, "quadrotor_linear_bias_lag",
                                                     lag_s=ACCEL_LAG_S)
+
+#: Every quadrotor system, in the order the registry (``systems.SYSTEMS``) lists them.
+QUADROTORS = (QUADROTOR, QUADROTOR_STATE, QUADROTOR_LINEAR, QUADROTOR_THRUST_LINEAR, QUADROTOR_BIAS,
+              QUADROTOR_BIAS_LAG, QUADROTOR_LINEAR_BIAS, QUADROTOR_LINEAR_BIAS_LAG,
+              QUADROTOR_THRUST_LINEAR_BIAS)

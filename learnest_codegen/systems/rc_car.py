@@ -77,6 +77,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import KinematicChain, NoiseModel, ResidualStructure, Signal, System
+from .bicycle import bicycle_states, kinematic_bicycle
 
 WHEELBASE = 0.1735  # [m] DART, measured
 L_REF = 0.115  # [m] rear axle to the Vicon reference point, DART, measured
@@ -100,10 +101,7 @@ TRUE_PARAMS = {
 
 def bicycle(ops, x, accel, delta, p):
     """Kinematic bicycle of the reference point ``l_r`` ahead of the rear axle, given ``vdot``."""
-    _, _, v, psi = x
-    beta = ops.arctan(p["l_r"] * ops.tan(delta) / p["l"])
-    return [v * ops.cos(psi + beta), v * ops.sin(psi + beta), accel,
-            v * ops.cos(beta) * ops.tan(delta) / p["l"]]
+    return kinematic_bicycle(ops, x, accel, delta, p["l_r"], p["l"])
 
 
 def dynamics(ops, x, u, p):
@@ -167,12 +165,8 @@ RC_CAR = System(
                 "a = a_max throttle (no dead band, friction or drag), delta = delta_max steering; "
                 "true = DART's fitted motor, friction and steering curve; y = Vicon x, y, psi + "
                 "encoder speed.",
-    states=(
-        Signal("x", "m", "Vicon reference point, world x"),
-        Signal("y", "m", "Vicon reference point, world y"),
-        Signal("v", "m/s", "speed of the reference point"),
-        Signal("psi", "rad", "heading (Vicon yaw, unwrapped)"),
-    ),
+    states=bicycle_states("Vicon reference point", "speed of the reference point",
+                          "heading (Vicon yaw, unwrapped)"),
     inputs=(
         Signal("throttle", "1", "throttle command in [0, 1]"),
         Signal("steering", "1", "steering command in [-1, 1], positive turns left"),

@@ -1,7 +1,8 @@
 /* kit_linear.h -- a linear model x+ = A x + B u, y = C x behind the kit's model hooks, and the
  * glue an estimator's generated file would hold, for tests/test_ckit.py. The matrices are set
  * at run time (kt_set_model, defined by KIT_LINEAR_SET_MODEL after the estimator); the sizes are
- * the test system's (2 states, 1 input, 2 outputs).
+ * the test system's (2 states, 1 input, 2 outputs) unless the includer defines LEARNEST_NX,
+ * LEARNEST_NY and the defaults of its own size first.
  */
 #ifndef KIT_LINEAR_H
 #define KIT_LINEAR_H
@@ -10,17 +11,19 @@
 #define KIT_REAL double
 #endif
 #define LEARNEST_REAL KIT_REAL
+#ifndef LEARNEST_NX
 #define LEARNEST_NX 2
-#define LEARNEST_NU 1
 #define LEARNEST_NY 2
-#define LEARNEST_DT 0.05
-#define LEARNEST_WORKSPACE_BYTES 65536
-#define LEARNEST_MAGIC 0x4B495431u
-#define LEARNEST_FINGERPRINT "learnest kit test"
 #define LEARNEST_DEFAULT_X0 {1.0, 0.0}
 #define LEARNEST_DEFAULT_P0 {0.25, 0.0, 0.0, 0.25}
 #define LEARNEST_DEFAULT_Q {1e-6, 0.0, 0.0, 1e-4}
 #define LEARNEST_DEFAULT_R {0.0025, 0.0, 0.0, 0.01}
+#endif
+#define LEARNEST_NU 1
+#define LEARNEST_DT 0.05
+#define LEARNEST_WORKSPACE_BYTES 65536
+#define LEARNEST_MAGIC 0x4B495431u
+#define LEARNEST_FINGERPRINT "learnest kit test"
 #define LEARNEST_DEFAULT_THRESHOLD 50.8
 #define LEARNEST_DEFAULT_RECOVER_AFTER 10
 #define LEARNEST_DEFAULT_INFLATION 2.0
