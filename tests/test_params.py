@@ -55,7 +55,7 @@ def test_the_declaration_augments_the_system(tmp_path):
 @pytest.mark.parametrize("name", ["ukf", "ekf", "mhe_gn", "mhe_rti"])
 def test_a_drifting_parameter_is_tracked_within_5_percent(drifting, tmp_path, name):
     settings = MHESettings.from_system(SYSTEM, arrival_update=True) if name.startswith("mhe") else None
-    est = ln.compile_estimator("nominal", name, system=SYSTEM, out=tmp_path, settings=settings)
+    est = ln.make_estimator("nominal", name, system=SYSTEM, out=tmp_path, settings=settings)
     X = est.run(drifting.u, drifting.y, SYSTEM.x0, initial_covariance(SYSTEM))
     error = np.abs(X[:, 4] - drifting.x[:, 4]) / drifting.x[:, 4]
     assert error[int(1.0 / SYSTEM.dt):].max() <= 0.05
@@ -67,7 +67,7 @@ def test_compiled_arrival_update_equals_python(drifting, tmp_path):
     T = 300
     U, Y = drifting.u[:T], drifting.y[:T]
     settings = MHESettings.from_system(SYSTEM, horizon=10, arrival_update=True)
-    c = ln.compile_estimator("nominal", "mhe_gn", system=SYSTEM, out=tmp_path, settings=settings)
+    c = ln.make_estimator("nominal", "mhe_gn", system=SYSTEM, out=tmp_path, settings=settings)
     model = ln.resolve("nominal", SYSTEM).model
     X_c, X_py = c.run(U, Y, SYSTEM.x0), MHE(model, settings).run(U, Y, SYSTEM.x0)
     assert np.abs(X_c - X_py).max() <= 1e-6
