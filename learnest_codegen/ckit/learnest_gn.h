@@ -190,6 +190,25 @@ LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int di
   }
 }
 
+/* A term m |W^(1/2) r|^2 of a node's residual r (n of them) with Jacobian J (n x NX) in the
+ * normal equations: D += m J' W J (its lower triangle; hess = 0: D is left) and g -= m J' W r,
+ * given WJ = W J and Wr = W r (learnest_gn_weigh). */
+LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const learnest_real* WJ,
+                                          const learnest_real* Wr, learnest_real m, int hess,
+                                          learnest_real* D, learnest_real* g) {
+  int r, c, k;
+  LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+    if (hess) {
+      LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+        learnest_real v = 0;
+        LEARNEST_UNROLL for (k = 0; k < n; ++k) v += J[k + r * n] * WJ[k + c * n];
+        D[r + c * LEARNEST_NX] += m * v;
+      }
+    }
+    LEARNEST_UNROLL for (k = 0; k < n; ++k) g[c] -= m * J[k + c * n] * Wr[k];
+  }
+}
+
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
  * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
@@ -236,16 +255,7 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
       learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, hess ? LEARNEST_NX : 0, Rv, RC);
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        if (hess) {
-          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-            learnest_real v = 0;
-            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
-            D[r + c * LEARNEST_NX] += m * v;
-          }
-        }
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
-      }
+      learnest_gn_term(LEARNEST_NY, C, RC, Rv, m, hess, D, g);
     }
     if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
       const learnest_real* A = L->A + i * LEARNEST_NXX;
@@ -258,16 +268,13 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       if (hess) {
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
       }
+      learnest_gn_term(LEARNEST_NX, A, QA, Qw, m, hess, D, g);
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
         if (hess) {
           LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-            learnest_real v = 0;
-            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-            D[r + c * LEARNEST_NX] += m * v;
             if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
           }
         }
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
         gn[c] += m * Qw[c];
       }
     }
