@@ -137,8 +137,10 @@ def workspace_bytes(header: Path, prefix: str) -> int:
 def _horizon_bytes(estimator: GeneratedEstimator, horizon: int) -> int:
     """The workspace of ``estimator`` (an embedded MHE) at another ``horizon``: only the counts
     of :func:`~.mhe_gn.gn_workspace` change with it, CasADi's work arrays do not."""
+    bounded = estimator.settings.get("state_bounds") is not None
+
     def counts(n: int) -> int:
-        return emit.workspace_bytes(gn_workspace(estimator.nx, estimator.nu, estimator.ny, n),
+        return emit.workspace_bytes(gn_workspace(estimator.nx, estimator.nu, estimator.ny, n, bounded),
                                     estimator.precision)
 
     header = Path(estimator.directory) / f"{estimator.prefix}.h"
