@@ -113,7 +113,7 @@ def test_inactive_bounds_change_nothing(cartpole, model, stream, tmp_path):
     X = {}
     for key, bounds in (("free", None), ("wide", wide)):
         est = ln.make_estimator("nominal", "mhe_gn", system=cartpole, out=tmp_path / key,
-                                   settings=settings(cartpole, bounds))
+                                settings=settings(cartpole, bounds))
         X[key] = est.run(run.u, Y, cartpole.x0)
     np.testing.assert_array_equal(X["wide"], X["free"])
     T = 200

@@ -60,7 +60,7 @@ def test_an_added_entry_reaches_every_face(dummy, tmp_path, cartpole):
     assert read_manifest(folder)["estimator"] == "dummy"
     assert isinstance(ln.load_estimator(folder), CompiledDummy)
     est = ln.make_estimator("nominal", "dummy", system=cartpole, out=tmp_path / "py",
-                               precision="float32")
+                            precision="float32")
     assert isinstance(est, CompiledDummy) and est.manifest["prefix"] == "cartpole_nominal_dummy_float32"
     run = ln.simulate(cartpole, seed=2, duration=0.2)
     ref = ln.make_estimator("nominal", "dummy", backend="python", system=cartpole)
