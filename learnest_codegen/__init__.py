@@ -30,13 +30,10 @@ from .estimators.mhe_gn import GaussNewtonSettings as GaussNewtonSettings
 from .estimators.mhe_problem import MHESettings as MHESettings
 from .estimators.ukf import UKFSettings as UKFSettings
 from .evaluation import mse as mse
-from .pipeline import compile_estimator as compile_estimator
-from .pipeline import compile_model as compile_model
 from .pipeline import estimator_system as estimator_system
 from .pipeline import evaluate as evaluate
 from .pipeline import load_estimator as load_estimator
 from .pipeline import make_estimator as make_estimator
-from .pipeline import reference_estimator as reference_estimator
 from .pipeline import resolve as resolve
 from .pipeline import simulate as simulate
 from .pipeline import train as train

@@ -62,6 +62,9 @@ class EstimatorKind:
         reference to ``rtol`` relative (tests/test_estimator_contract.py).
     default : compiled by ``learnest-compile`` when no ``--estimator`` is given.
     float32_defaults : what the default settings become in float32 (None: the same).
+    label : its name in tables and plots (``KNODE-`` is put before it for a trained model).
+    crazyflie : whether it runs in the Crazyflie app (no Ipopt, no heap); ``--target crazyflie``
+        builds the first default estimator that does.
     """
 
     name: str
@@ -77,6 +80,18 @@ class EstimatorKind:
     reference: tuple[str, float] | None = None
     default: bool = False
     float32_defaults: Callable[[Any], Any] | None = None
+    label: str = ""
+    crazyflie: bool = False
+
+    @property
+    def own_python(self) -> bool:
+        """Whether it has a Python reference of its own (mhe_gn's is the Ipopt MHE's, so no)."""
+        return self.python is not None and self.reference is not None and self.reference[0] == self.name
+
+    @property
+    def backends(self) -> tuple[str, ...]:
+        """``("python", "c")`` with a Python reference of its own, else ``("c",)``."""
+        return ("python", "c") if self.own_python else ("c",)
 
     def generate(self, model: DiscreteModel, settings: Any, directory: Path, **options) -> Any:
         """Write, build and describe the estimator of ``model`` in ``directory`` (the manifest's
@@ -102,26 +117,29 @@ PRECISION_NAMES = tuple(PRECISIONS)
 ESTIMATORS: dict[str, EstimatorKind] = {kind.name: kind for kind in (
     EstimatorKind("mhe", "the MHE solved by Ipopt (the reference)", MHESettings, _mhe_defaults,
                   "mhe:generate_mhe", MHE, CompiledMHE, "learnest_mhe_ipopt.h", horizon=True,
-                  reference=("mhe", 1e-6), default=True),
+                  reference=("mhe", 1e-6), default=True, label="MHE"),
     EstimatorKind("ukf", "the unscented Kalman filter", UKFSettings, _kalman_defaults(UKFSettings),
                   "ukf:generate_ukf", UKF, CompiledUKF, "learnest_ukf.h", PRECISION_NAMES,
                   reference=("ukf", 1e-9), default=True,
-                  float32_defaults=lambda settings: float32_ukf_settings(settings)),
+                  float32_defaults=lambda settings: float32_ukf_settings(settings), label="UKF",
+                  crazyflie=True),
     # the converged Gauss-Newton MHE solves the Ipopt MHE's problem to the same minimiser, so
     # that MHE is its Python reference
     EstimatorKind("mhe_gn", "the embedded MHE (Gauss-Newton, no Ipopt, no malloc) iterated to "
                   "convergence, the same estimates as mhe", MHESettings, _mhe_defaults,
                   "mhe_gn:generate_mhe_gn", MHE, CompiledEmbeddedMHE, "learnest_mhe_gn.h",
-                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-6)),
+                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-6), label="MHE-GN",
+                  crazyflie=True),
     # the real-time iteration takes one warm-started Gauss-Newton step per sample (9e-8 from
     # the converged MHE on the contract tests' run)
     EstimatorKind("mhe_rti", "the embedded MHE with one Gauss-Newton iteration per sample "
                   "(real-time iteration, fastest)", MHESettings, _mhe_defaults,
                   "mhe_gn:generate_mhe_rti", None, CompiledEmbeddedMHE, "learnest_mhe_gn.h",
-                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-5)),
+                  PRECISION_NAMES, horizon=True, reference=("mhe", 1e-5), label="MHE-RTI",
+                  crazyflie=True),
     EstimatorKind("ekf", "the extended Kalman filter (the model's Jacobians by CasADi's AD)",
                   EKFSettings, _kalman_defaults(EKFSettings), "ekf:generate_ekf", EKF, CompiledEKF,
-                  "learnest_ekf.h", PRECISION_NAMES, reference=("ekf", 1e-9)),
+                  "learnest_ekf.h", PRECISION_NAMES, reference=("ekf", 1e-9), label="EKF"),
 )}
 
 
@@ -147,6 +165,24 @@ ESTIMATOR_NAMES: Sequence[str] = _Names()
 MHE_NAMES: Sequence[str] = _Names(lambda kind: kind.horizon)
 #: What ``learnest-compile`` builds when no ``--estimator`` is given.
 DEFAULT_ESTIMATORS: Sequence[str] = _Names(lambda kind: kind.default)
+#: The estimators generated in float32: those a microcontroller runs (not the Ipopt MHE).
+FLOAT32_NAMES: Sequence[str] = _Names(lambda kind: "float32" in kind.precisions)
+#: The estimators the Crazyflie app runs (``--target crazyflie``).
+CRAZYFLIE_NAMES: Sequence[str] = _Names(lambda kind: kind.crazyflie)
+
+
+def crazyflie_default() -> str:
+    """What ``--target crazyflie`` builds when no ``--estimator`` is given: the first default
+    estimator the app runs."""
+    return next(name for name in DEFAULT_ESTIMATORS if name in CRAZYFLIE_NAMES)
+
+
+def check_crazyflie(name: str) -> None:
+    """Raise :class:`SettingsError` unless the Crazyflie app runs estimator ``name``."""
+    if name not in CRAZYFLIE_NAMES:
+        able = list(CRAZYFLIE_NAMES)
+        raise SettingsError(f"the crazyflie target runs {able} (no Ipopt, no heap), not {name!r}; "
+                            f"give --estimator {', '.join(able[:-1])} or {able[-1]}")
 
 
 def estimator_kind(name: str) -> EstimatorKind:
@@ -163,12 +199,14 @@ def estimator_help() -> str:
 
 def estimator_table() -> str:
     """The estimators as a Markdown table (docs/guide/python_api.md shows it)."""
-    rows = ["| Estimator | What it is | Settings | Python reference | Binding | C kit | Precisions |",
-            "|---|---|---|---|---|---|---|"]
+    rows = ["| Estimator | What it is | Settings | Python reference | Binding | C kit | Precisions | "
+            "Crazyflie app |",
+            "|---|---|---|---|---|---|---|---|"]
     for kind in ESTIMATORS.values():
         python = f"`{kind.python.__name__}`" if kind.python else "none (its C defines it)"
         rows.append(f"| `{kind.name}` | {kind.summary} | `{kind.settings.__name__}` | {python} | "
-                    f"`{kind.compiled.__name__}` | `{kind.kit}` | {', '.join(kind.precisions)} |")
+                    f"`{kind.compiled.__name__}` | `{kind.kit}` | {', '.join(kind.precisions)} | "
+                    f"{'yes' if kind.crazyflie else 'no'} |")
     return "\n".join(rows)
 
 
@@ -296,12 +334,17 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
     not generated in it raises :class:`ValueError`. ``gate`` (a
     :class:`~learnest_codegen.estimators.gate.GateSettings`) replaces the innovation gate of
     every estimator's settings, ``horizon`` the horizon of every MHE's (see
-    :func:`estimator_settings`).
+    :func:`estimator_settings`). Each folder records where the model's system comes from, so
+    that :func:`~learnest_codegen.pipeline.load_estimator` finds it.
     """
     problem = precision_problem(estimators, precision)
     if problem:
         raise SettingsError(problem)
     check_horizon(estimators, horizon)
+    # loading a compiled folder must not import the learning package (tests/test_layout.py)
+    from .learning.source import system_source, write_sidecar
+
+    record = system_source(model.system)
     results = {}
     for name in estimators:
         kind = estimator_kind(name)
@@ -312,6 +355,7 @@ def compile_estimators(model: DiscreteModel, out: str | Path, *, model_hash: str
         with atomic_dir(directory) as tmp:
             _reusable(directory, tmp)
             result = kind.generate(model, chosen, tmp, model_hash=model_hash, **extra)
+            write_sidecar(tmp, record)
         results[name] = _moved(result, tmp, directory)
     return results
 

@@ -8,7 +8,7 @@ and the studies use the same calls, so a model reaches a running estimator by on
     system = ln.get_system("cartpole")
     train_run, test_run = ln.simulate(system, seed=0), ln.simulate(system, seed=1)
     model = ln.train(train_run, system)                          # ln.DEFAULT_TRAINING
-    ukf = ln.compile_estimator(model, "ukf", out="generated")   # C library, loaded
+    ukf = ln.make_estimator(model, "ukf", out="generated")      # C library, loaded
     result = ln.evaluate(ukf, test_run)                          # estimates, MSE, timing
 
 A *model* is ``"nominal"`` (the prior), ``"true"`` (simulation's truth), a trained model or its
@@ -114,7 +114,8 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
                    out: str | Path = "generated", system: System | str | None = None,
                    settings: Any = None, precision: str = "float64", gate: Any = None,
                    horizon: int | None = None, clamp_inputs: bool | None = None):
-    """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference.
+    """One estimator of ``model``, compiled and loaded (``backend="c"``) or the Python reference:
+    the one door to an estimator from a model (:func:`load_estimator` loads a compiled folder).
 
     Both backends take their settings from
     :func:`~learnest_codegen.compilation.estimator_settings`, so the same arguments give the
@@ -143,29 +144,11 @@ def make_estimator(model: ModelLike, estimator: str = "ukf", *, backend: str = "
         return _with_system(kind.python(resolved.model, chosen), resolved.model.system)
     if backend != "c":
         raise SettingsError(f"make_estimator: backend must be 'c' or 'python', got {backend!r}")
-    built = compile_model(resolved, out, (estimator,), precision=precision, gate=gate, horizon=horizon,
-                          settings={estimator: settings} if settings is not None else None)
+    built = compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=(estimator,),
+                               settings={estimator: settings} if settings is not None else None,
+                               precision=precision, gate=gate, horizon=horizon)
     return _with_system(load_estimator(built[estimator].directory, expect=expected_manifest(resolved)),
                         resolved.model.system)
-
-
-def compile_model(model: ModelLike, out: str | Path, estimators: tuple[str, ...] = ("mhe", "ukf"), *,
-                  system: System | str | None = None, settings: Mapping[str, Any] | None = None,
-                  precision: str = "float64", gate: Any = None,
-                  horizon: int | None = None) -> dict[str, Any]:
-    """Generate and build ``estimators`` of ``model`` under ``out`` (one folder each, see
-    :func:`~learnest_codegen.compilation.compile_estimators`, which also says what ``gate`` and
-    ``horizon`` replace), each with a record of where the model's system comes from, so that
-    :func:`load_estimator` finds it; returns name -> result."""
-    resolved = resolve(model, system)
-    results = compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=estimators,
-                                 settings=settings, precision=precision, gate=gate, horizon=horizon)
-    from .learning.source import system_source, write_sidecar
-
-    record = system_source(resolved.model.system)
-    for result in results.values():
-        write_sidecar(result.directory, record)
-    return results
 
 
 def _with_system(estimator, system: System):
@@ -185,15 +168,6 @@ def expected_manifest(model: ModelLike, system: System | str | None = None) -> d
     sys_ = resolved.model.system
     return {"system": sys_.name, "system_fingerprint": sys_.fingerprint(), "dt": sys_.dt,
             "model_hash": resolved.hash}
-
-
-def compile_estimator(model: ModelLike, estimator: str = "ukf", *, out: str | Path = "generated",
-                      system: System | str | None = None, settings: Any = None,
-                      precision: str = "float64", gate: Any = None, horizon: int | None = None,
-                      clamp_inputs: bool | None = None):
-    """Generate, build and load one estimator of ``model`` (see :func:`make_estimator`)."""
-    return make_estimator(model, estimator, backend="c", out=out, system=system, settings=settings,
-                          precision=precision, gate=gate, horizon=horizon, clamp_inputs=clamp_inputs)
 
 
 def load_estimator(directory: str | Path, *, expect: Mapping[str, Any] | None = None,
@@ -236,12 +210,6 @@ def estimator_system(estimator) -> System:
     return system
 
 
-def reference_estimator(model: ModelLike, estimator: str = "ukf", *, system: System | str | None = None,
-                        settings: Any = None):
-    """The Python reference (FilterPy UKF, CasADi ``nlpsol`` MHE) of ``model``."""
-    return make_estimator(model, estimator, backend="python", system=system, settings=settings)
-
-
 def evaluate(estimator, run: Run, x0: np.ndarray | None = None, *, P0: np.ndarray | None = None,
              system: System | str | None = None, label: str = "") -> EstimateResult:
     """Run ``estimator`` over ``run`` from ``x0`` (default: the system's ``x0``) and time it.
@@ -265,6 +233,5 @@ def initial_covariance(system: System | str) -> np.ndarray:
     return np.diag(np.square(get_system(system).noise.initial_std))
 
 
-__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "compile_estimator", "compile_model", "estimator_system",
-           "evaluate", "expected_manifest", "initial_covariance", "load_estimator", "make_estimator",
-           "reference_estimator", "resolve", "simulate", "train"]
+__all__ = ["ESTIMATOR_NAMES", "ResolvedModel", "estimator_system", "evaluate", "expected_manifest",
+           "initial_covariance", "load_estimator", "make_estimator", "resolve", "simulate", "train"]

@@ -36,8 +36,21 @@ import numpy as np
 MINUTES = 40
 ORDER = 20
 #: (estimator, horizon) of every row, in the order of the tables
-ESTIMATORS = (("ukf", None), ("mhe_rti", 20), ("mhe_gn", 20), ("mhe_rti", 50), ("mhe_gn", 50),
-              ("ekf", None))
+HORIZONS = (20, 50)
+
+
+def plan() -> list[tuple[str, int | None]]:
+    """``(estimator, horizon)`` of every build: each estimator of the table generated in
+    float32 (the embedded ones; the Ipopt MHE is timed apart), an MHE at each of
+    :data:`HORIZONS`."""
+    from learnest_codegen.compilation import FLOAT32_NAMES, MHE_NAMES
+
+    return [(name, n) for name in FLOAT32_NAMES for n in (HORIZONS if name in MHE_NAMES else (None,))]
+
+
+def _measured(data: dict) -> list[tuple[str, int | None]]:
+    """``(estimator, horizon)`` of the rows the figures hold, in their order."""
+    return list(dict.fromkeys((r["estimator"], r["horizon"]) for r in data["figures"]["rows"]))
 PRECISIONS = ("float64", "float32")
 BUILD = figures.ROOT / "build" / "bench" / "callgrind"
 
@@ -191,7 +204,7 @@ def measure(args) -> tuple[dict, dict]:
     root.mkdir(parents=True)
     write_run(root / "run_data.h", run.u[:T], run.y[:T])
     gens = {}
-    for name, horizon in ESTIMATORS:
+    for name, horizon in plan():
         for precision in PRECISIONS:
             gens[name, horizon, precision] = compile_estimators(
                 model, root / f"{name}_N{horizon or 0}_{precision}", model_hash=model_hash,
@@ -253,7 +266,7 @@ def render_instructions(data: dict) -> str:
     """Instructions per sample and time per step, float64 and float32."""
     lines = ["| estimator | instructions per sample, float64 | float32 | µs per step (median / mean), "
              "float64 | float32 |", "|---|---:|---:|---:|---:|"]
-    for name, horizon in ESTIMATORS:
+    for name, horizon in _measured(data):
         a, b = (_row(data, name, horizon, p) for p in PRECISIONS)
         lines.append(f"| {_label(a)} | {a['instructions_per_sample']:,.0f} | "
                      f"{b['instructions_per_sample']:,.0f} | "
@@ -299,7 +312,7 @@ def render_accuracy(data: dict) -> str:
     for r in data["figures"]["ipopt"]:
         lines.append(f"| `mhe` (Ipopt) N = {r['horizon']} | float64 | {r['mse']:.4e} | "
                      + " | ".join(f"{v:.3e}" for v in r["mse_per_state"]) + " | – | – | – | – |")
-    for name, horizon in ESTIMATORS:
+    for name, horizon in _measured(data):
         for precision in PRECISIONS:
             r = _row(data, name, horizon, precision)
             lines.append(f"| {_label(r)} | {precision} | {r['mse']:.4e} | "
@@ -315,7 +328,7 @@ def render_summary(data: dict) -> str:
     """The short table of results.md: N = 20, float64."""
     lines = ["| estimator | instructions per sample | µs per step (median) | agreement with the Ipopt MHE |",
              "|---|---:|---:|---|"]
-    for name, horizon in (e for e in ESTIMATORS if e[1] in (None, 20)):
+    for name, horizon in (e for e in _measured(data) if e[1] in (None, 20)):
         r = _row(data, name, horizon)
         agree = ("–" if horizon is None else
                  f"every estimate within {r['max_abs_difference_to_ipopt']:.1e}, MSE "

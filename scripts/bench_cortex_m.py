@@ -33,7 +33,6 @@ MINUTES = 20
 ORDER = 30
 EXAMPLE = figures.ROOT / "examples" / "cortex_m"
 BUILD = figures.ROOT / "build" / "bench" / "cortex_m"
-ESTIMATORS = ("ukf", "ekf", "mhe_rti", "mhe_gn")
 PRECISION = "float32"
 MACHINE = "mps2-an386"
 QUADROTOR_FLIGHT = "B2_circle_medium_rep1"
@@ -152,7 +151,7 @@ def measure(args) -> tuple[dict, dict]:
         tools=tools)
     rows = []
     for system, model, run in (("cartpole", cart_model, cart_run), ("quadrotor", quad_model, quad_run)):
-        for estimator in ESTIMATORS:
+        for estimator in bc.ESTIMATORS:  # the table's float32 estimators
             print(f"    {system} {estimator} {PRECISION} on {MACHINE}", flush=True)
             rows.append(measure_one(bc, model, run, BUILD / system / estimator, estimator, steps))
     return {"rows": rows, "clock_hz_assumed": CLOCK_HZ,

@@ -40,7 +40,6 @@ MINUTES = 30
 ORDER = 35
 BUILD = figures.ROOT / "build" / "bench" / "cost_curves"
 PLOT = figures.FIGURES / "cost_curves.png"
-ESTIMATORS = ("ukf", "mhe_rti", "mhe_gn")
 #: (sweep, system, hidden layers, width, horizon) of every point, sweep by sweep
 BASE = ("cartpole", 1, 8, 20)
 SWEEPS = {
@@ -157,12 +156,12 @@ def measure(args) -> tuple[dict, dict]:
     for k, (system_name, layers, width, horizon) in enumerate(todo):
         model = model_of(system_name, layers, width)
         run = simulate(model.system, seed=1, duration=(SKIP + T + 1) * model.system.dt)
-        for estimator in ESTIMATORS:
-            if estimator == "ukf" and horizon != BASE[3]:
-                continue  # the UKF has no horizon: measured once per net
+        for estimator in estimators():
+            if not _horizon(estimator) and horizon != BASE[3]:
+                continue  # a Kalman filter has no horizon: measured once per net
             print(f"    [{k + 1}/{len(todo)}] {system_name} {layers} x {width} N = {horizon}: {estimator}",
                   flush=True)
-            N = None if estimator == "ukf" else horizon
+            N = horizon if _horizon(estimator) else None
             root = BUILD / f"{system_name}_{layers}x{width}_N{horizon}" / estimator
             root.mkdir(parents=True)
             row = {"system": system_name, "nx": model.nx, "hidden_layers": layers, "width": width,
@@ -231,18 +230,37 @@ def _largest(f: dict, sweep: str, estimator: str):
     return fit
 
 
+def estimators() -> tuple[str, ...]:
+    """What the curves measure: the estimator table's float32 estimators (those a Cortex-M runs;
+    ``examples/cortex_m``)."""
+    from learnest_codegen.compilation import FLOAT32_NAMES
+
+    return tuple(FLOAT32_NAMES)
+
+
+def _horizon(estimator: str) -> bool:
+    from learnest_codegen.compilation import estimator_kind
+
+    return estimator_kind(estimator).horizon
+
+
+def _measured(f: dict) -> list[str]:
+    """The estimators the figures hold, in their order."""
+    return list(dict.fromkeys(r["estimator"] for r in f["rows"]))
+
+
 def render_rule(data: dict) -> str:
     """The one-line rule: what fits a 1 kHz loop on the M4F."""
     f = data["figures"]
     parts = []
-    for estimator in ESTIMATORS:
+    for estimator in _measured(f):
         fits = []
         if "width" in f["sweeps"]:
             width = _largest(f, "width", estimator)
-            fits.append(f"up to {width} units at N = {BASE[3]}" if width and estimator != "ukf" else
+            fits.append(f"up to {width} units at N = {BASE[3]}" if width and _horizon(estimator) else
                         f"up to {width} units" if width else
-                        f"no width at N = {BASE[3]}" if estimator != "ukf" else "no width")
-        if "horizon" in f["sweeps"] and estimator != "ukf":
+                        f"no width at N = {BASE[3]}" if _horizon(estimator) else "no width")
+        if "horizon" in f["sweeps"] and _horizon(estimator):
             horizon = _largest(f, "horizon", estimator)
             fits.append(f"up to N = {horizon} at {BASE[2]} units" if horizon else
                         f"no horizon at {BASE[2]} units")
@@ -276,7 +294,7 @@ def plot(data: dict, path: Path) -> None:
         pts = _rows(f, sweep)
         ticks = [_label(sweep, p) if sweep != "states" else f"{p[0]}\n({rows[0]['nx'] if rows else '?'})"
                  for p, rows in pts]
-        for k, estimator in enumerate(ESTIMATORS):
+        for k, estimator in enumerate(_measured(f)):
             xs, m4f, host = [], [], []
             for i, (_, rows) in enumerate(pts):
                 r = next((r for r in rows if r["estimator"] == estimator), None)

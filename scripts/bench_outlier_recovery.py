@@ -42,6 +42,7 @@ import numpy as np
 
 from learnest_codegen import get_system
 from learnest_codegen.compilation import (
+    ESTIMATORS,
     compile_estimators,
     estimator_dir,
     estimator_kind,
@@ -59,12 +60,10 @@ LENGTHS = (1, 3, 10)
 SIZES = (1e1, 1e3, 1e6)
 TOLERANCE = 1.0      # deviation from the clean estimate, in clean-run RMS errors per state
 RECOVERY_BUDGET = 60  # samples after the burst by which every estimator must be back
-# estimator -> backends; mhe_gn's Python reference is the Ipopt MHE (the same problem), and
-# mhe_rti has none (its C defines it)
-BACKENDS = {"ukf": ("python", "c"), "mhe": ("python", "c"), "mhe_gn": ("c",), "mhe_rti": ("c",)}
-#: precisions each compiled estimator is generated in
-C_PRECISIONS = {"ukf": ("float64", "float32"), "mhe": ("float64",),
-                "mhe_gn": ("float64", "float32"), "mhe_rti": ("float64", "float32")}
+def estimator_backends() -> dict[str, tuple[str, ...]]:
+    """Estimator -> backends, from the estimator table: the Python reference where it has its
+    own (mhe_gn's is the Ipopt MHE's, the same problem; mhe_rti has none) and the C."""
+    return {name: kind.backends for name, kind in ESTIMATORS.items()}
 
 
 def clean_run(system_name: str, samples: int, seed: int = 1):
@@ -180,16 +179,17 @@ def input_rows(system_name: str, run, makers: "Estimators", estimator: str, back
 
 
 def table(system_name: str, build_dir: Path, *, samples: int = 400, lengths=LENGTHS, sizes=SIZES,
-          backends=BACKENDS, inputs: bool = True, precisions=("float64",),
+          backends=None, inputs: bool = True, precisions=("float64",),
           c_without_limits: bool = True) -> dict:
     """The recovery table of one system (see the module docstring)."""
     system, run = clean_run(system_name, samples)
     makers = Estimators(system, build_dir)
     rows, clean, u_rows = [], [], []
-    for estimator, kinds in backends.items():
+    for estimator, kinds in (backends or estimator_backends()).items():
         for backend, precision in ((b, p) for b in kinds
                                    for p in (("float64",) if b == "python" else
-                                             [p for p in precisions if p in C_PRECISIONS[estimator]])):
+                                             [p for p in precisions
+                                              if p in estimator_kind(estimator).precisions])):
             start = time.process_time()
             est = makers.make(estimator, backend, precision=precision)
             X_clean, rej_clean, err_clean = estimate(est, run.u, run.y, system.x0)

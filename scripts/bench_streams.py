@@ -33,7 +33,7 @@ import figures
 import numpy as np
 
 import learnest_codegen as ln
-from learnest_codegen.compilation import estimator_kind
+from learnest_codegen.compilation import ESTIMATORS, estimator_kind
 from learnest_codegen.errors import SolverError
 from learnest_codegen.estimators.contract import takes_missing_outputs
 
@@ -43,10 +43,10 @@ BUILD = figures.ROOT / "build" / "bench" / "streams"
 DROPOUT_START_S, DROPOUT_S, SLOW_EVERY = 4.0, 0.25, 4
 #: estimator -> backends that have it (mhe_gn's Python reference is the Ipopt MHE: the same
 #: problem; mhe_rti has none).
-BACKENDS = {"ukf": ("python", "c"), "mhe": ("python", "c"), "mhe_gn": ("c",), "mhe_rti": ("c",)}
-#: precisions each compiled estimator is generated in
-C_PRECISIONS = {"ukf": ("float64", "float32"), "mhe": ("float64",),
-                "mhe_gn": ("float64", "float32"), "mhe_rti": ("float64", "float32")}
+def estimator_backends() -> dict[str, tuple[str, ...]]:
+    """Estimator -> backends, from the estimator table: the Python reference where it has its
+    own (mhe_gn's is the Ipopt MHE's, the same problem; mhe_rti has none) and the C."""
+    return {name: kind.backends for name, kind in ESTIMATORS.items()}
 TARGETS = {"dropout_mse_ratio": 1.3, "quarter_mse_ratio": 2.0, "converged_s": 1.0}
 
 
@@ -115,12 +115,13 @@ def bench(model_arg: str, backends: tuple[str, ...], build_dir: Path, estimators
     P0 = ln.pipeline.initial_covariance(system)
     cases = scenarios(run, system)
     rows, skipped = [], []
-    for name, kinds in BACKENDS.items():
+    for name, kinds in estimator_backends().items():
         if estimators and name not in estimators:
             continue
         for backend, precision in ((b, p) for b in kinds if b in backends
                                    for p in (("float64",) if b == "python" else
-                                             [p for p in precisions if p in C_PRECISIONS[name]])):
+                                             [p for p in precisions
+                                              if p in estimator_kind(name).precisions])):
             kind = estimator_kind(name)
             if not takes_missing_outputs(kind.python if backend == "python" else kind.compiled):
                 skipped.append({"estimator": name, "backend": backend, "precision": precision,
@@ -184,7 +185,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", default=None,
                         help="model directory, 'nominal' or 'true' (default: the demo's trained model)")
     parser.add_argument("--backends", nargs="+", default=["python", "c"], choices=["python", "c"])
-    parser.add_argument("--estimators", nargs="+", default=None, choices=list(BACKENDS))
+    parser.add_argument("--estimators", nargs="+", default=None, choices=list(ESTIMATORS))
     parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
                         choices=["float64", "float32"], help="of the compiled estimators")
 
@@ -242,7 +243,7 @@ def render_compiled(data: dict) -> str:
     lines = [head, "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     rows = _rows(data, ("c",))
     verdict = data["figures"]["verdict"]
-    for name in BACKENDS:
+    for name in dict.fromkeys(r["estimator"] for r in rows):  # the order measured
         for backend in dict.fromkeys(r["backend"] for r in rows if r["estimator"] == name):
             mine = [r for r in rows if (r["estimator"], r["backend"]) == (name, backend)]
             c, w, d = get(mine, "clean"), get(mine, "wrong_start"), get(mine, "wrong_start_default_P0")

@@ -16,12 +16,13 @@ Counted per target: calls, crashes, hangs, ``nonfinite_ok`` (a call returned a s
 the state, covariance, window or run output it made holds NaN/Inf), ``changed_on_error`` (an
 init/step/reset/predict that returned an error code changed the estimate, against the
 header's "a failed call changes nothing": a failed init on the live workspace included),
-``covariance_not_psd_ok`` (UKF: a success code with a covariance that is not symmetric positive
+``covariance_not_psd_ok`` (the Kalman filters: a success code with a covariance that is not symmetric positive
 semi-definite; informational) and every status code seen per call.
 
-The estimator-specific part is the table :data:`APIS` (matrix order of init, getters, whether
-calls take a handle and how success is coded); a header that no longer declares a symbol of its
-table entry is an error, not a silent skip.
+The estimators are the package's estimator table (``compilation.ESTIMATORS``); what the fuzzer
+must know of each one's C API (matrix order of init, getters, whether calls take a handle and how
+success is coded) is :func:`api`, read from its entry; a header that no longer declares a symbol
+of it is an error, not a silent skip.
 
 Usage::
 
@@ -45,7 +46,6 @@ from typing import Any, Iterator
 import numpy as np
 
 SYSTEMS = ("cartpole", "ground_robot")
-ESTIMATORS = ("ukf", "mhe_gn", "mhe_rti", "mhe")
 SPECIALS = {  # adversarial reals per C precision
     "float64": (np.nan, np.inf, -np.inf, 1e300, -1e300, 1e-310, -1e-310, 0.0, -0.0, 1.7e308, -1e150),
     "float32": (np.nan, np.inf, -np.inf, 3e38, -3e38, 1e-40, -1e-40, 0.0, -0.0, 1e30, -1e20),
@@ -74,13 +74,26 @@ class Api:
 
 # every estimator takes covariances x0, P0, Q, R (the C kit's one convention)
 _MHE_GETTERS = ("get_state", "get_window", "get_arrival")
-APIS = {
-    "ukf": Api(True, ("P0", "Q", "R"), ("get_state", "get_covariance")),
-    "mhe_gn": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, options=True, arrival=True),
-    "mhe_rti": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, options=True, arrival=True),
-    # the Ipopt MHE: the same contract, Ipopt's own memory behind the handle, no options
-    "mhe": Api(True, ("P0", "Q", "R"), _MHE_GETTERS, arrival=True),
-}
+
+
+def api(estimator: str) -> Api:
+    """The C API of ``estimator``, from its entry in the estimator table: a Kalman filter's
+    state and covariance getters, or an MHE's state, window and arrival (the embedded MHE's
+    Gauss-Newton kit adds ``set_options``; the Ipopt MHE keeps Ipopt's own memory behind the
+    handle). :func:`check_table` refuses a target whose headers disagree."""
+    from learnest_codegen.compilation import estimator_kind
+
+    kind = estimator_kind(estimator)
+    if not kind.horizon:
+        return Api(True, ("P0", "Q", "R"), ("get_state", "get_covariance"))
+    return Api(True, ("P0", "Q", "R"), _MHE_GETTERS, options=kind.kit == "learnest_mhe_gn.h", arrival=True)
+
+
+def table_estimators() -> tuple[str, ...]:
+    """Every estimator of the table, the Ipopt MHE last (the slowest to fuzz)."""
+    from learnest_codegen.compilation import ESTIMATORS
+
+    return tuple(sorted(ESTIMATORS, key=lambda name: name == "mhe"))
 
 
 @dataclass
@@ -104,7 +117,7 @@ class Target:
 
     @property
     def api(self) -> Api:
-        return APIS[self.estimator]
+        return api(self.estimator)
 
     def size(self, what: str) -> int:
         """Number of reals of a matrix argument or a getter's output."""
@@ -115,13 +128,12 @@ class Target:
                 "get_window": (self.horizon + 1) * self.nx}[what]
 
 
-def build_targets(root: Path, systems=SYSTEMS, estimators=ESTIMATORS,
+def build_targets(root: Path, systems=SYSTEMS, estimators=None,
                   precisions=("float64",), samples: int = 400) -> list[Target]:
     """Compile the nominal estimators of ``systems`` under ``root`` with the package."""
     from learnest_codegen import get_system
     from learnest_codegen.compilation import compile_estimators, estimator_dir, estimator_kind
     from learnest_codegen.estimators.mhe_problem import MHESettings
-    from learnest_codegen.estimators.ukf import UKFSettings
     from learnest_codegen.export import prior_model
     from learnest_codegen.runtime.manifest import read_manifest
     from learnest_codegen.simulation import simulate
@@ -132,13 +144,15 @@ def build_targets(root: Path, systems=SYSTEMS, estimators=ESTIMATORS,
         model = prior_model(system)
         run = simulate(system, seed=1, duration=samples * system.dt)
         for precision in precisions:
-            chosen = tuple(e for e in estimators if precision in estimator_kind(e).precisions)
+            chosen = tuple(e for e in estimators or table_estimators()
+                           if precision in estimator_kind(e).precisions)
             compile_estimators(model, root, model_hash="nominal", estimators=chosen, precision=precision)
             for estimator in chosen:
                 directory = estimator_dir(root, model, estimator, precision)
                 m = read_manifest(directory)
-                if estimator == "ukf":
-                    s = UKFSettings(**m["settings"])
+                kind = estimator_kind(estimator)
+                if not kind.horizon:
+                    s = kind.settings(**m["settings"])
                     mats = {"P0": s.P0(), "Q": s.Q(), "R": s.R()}
                 else:
                     Q, R, P0 = MHESettings.from_json(m["settings"]).covariances()
@@ -447,8 +461,9 @@ class Executor:
             parts.append(extra)
         if any(p is not None and not np.all(np.isfinite(p)) for p in parts):
             self._event("nonfinite_ok", call, index)
-        if self.t.estimator == "ukf" and parts[1] is not None and np.all(np.isfinite(parts[1])):
-            if not _symmetric_psd(parts[1].astype(float).reshape(self.t.nx, self.t.nx)):
+        covariance = parts[1] if self.t.api.getters[1:2] == ("get_covariance",) else None
+        if covariance is not None and np.all(np.isfinite(covariance)):
+            if not _symmetric_psd(covariance.astype(float).reshape(self.t.nx, self.t.nx)):
                 self._event("covariance_not_psd_ok", call, index)
 
     # -- one call
@@ -542,11 +557,11 @@ def _symmetric_psd(P: np.ndarray) -> bool:
 
 
 def check_table(target: Target) -> None:
-    """Raise if the target's headers no longer declare a symbol its :data:`APIS` entry uses."""
+    """Raise if the target's headers no longer declare a symbol its :func:`api` names."""
     header = "\n".join(p.read_text() for p in sorted(target.directory.glob("*.h")))
     missing = [s for s in target.api.symbols() if f"{target.prefix}_{s}(" not in header]
     if missing:
-        raise RuntimeError(f"fuzz table APIS[{target.estimator!r}] is out of date: the headers of "
+        raise RuntimeError(f"fuzz api({target.estimator!r}) is out of date: the headers of "
                            f"{target.directory} declare no {missing}")
 
 
@@ -647,7 +662,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", type=Path, default=Path("fuzz_c_api.json"))
     parser.add_argument("--build-dir", type=Path, default=Path("build_fuzz"))
     parser.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=SYSTEMS)
-    parser.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=ESTIMATORS)
+    parser.add_argument("--estimators", nargs="+", default=list(table_estimators()),
+                        choices=table_estimators())
     parser.add_argument("--precisions", nargs="+", default=["float64", "float32"],
                         choices=["float64", "float32"])
     parser.add_argument("--calls", type=int, default=20000, help="planned calls per target")
@@ -658,7 +674,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--call-timeout", type=float, default=20.0, help="[s] a longer call is a hang")
     args = parser.parse_args(argv)
     targets = build_targets(args.build_dir, args.systems, args.estimators, args.precisions)
-    calls = {e: args.calls for e in ESTIMATORS}
+    calls = {e: args.calls for e in table_estimators()}
     calls["mhe"] = args.ipopt_calls if args.ipopt_calls is not None else max(1, args.calls // 10)
     result = fuzz(targets, calls, args.seed, report=_print, chunk_calls=args.chunk,
                   call_timeout_s=args.call_timeout)

@@ -224,7 +224,6 @@ def cartpole_estimate(folder, data, out, *extra):
 
 LONG = W / "long.csv"
 ROBOT = W / "robot.csv"
-BUILDS = [f"cartpole_nominal_{e}{p}" for e in ("ukf", "mhe_gn_n20", "mhe_rti_n20") for p in ("", "_float32")]
 
 def load(name):
     from learnest_codegen.pipeline import load_estimator
@@ -283,17 +282,17 @@ SETUP = r'''
 # --force: a workdir whose fixtures are incomplete or of an older layout is set up again
 must(["simulate", "--system", "cartpole", "--seed", 4, "--duration", 1.0, "--out", RUN, "--force"])
 from learnest_codegen import get_system
-from learnest_codegen.compilation import compile_estimators
+from learnest_codegen.compilation import ESTIMATORS, FLOAT32_NAMES, compile_estimators
 from learnest_codegen.export import prior_model, true_model
+# every estimator of the table; those generated in float32 also in float32
+FLOAT32 = tuple(FLOAT32_NAMES)
 model = prior_model(get_system("cartpole"))
-compile_estimators(model, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti", "mhe"))
-compile_estimators(model, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti"),
-                   precision="float32")
+compile_estimators(model, LIB, model_hash="nominal", estimators=tuple(ESTIMATORS))
+compile_estimators(model, LIB, model_hash="nominal", estimators=FLOAT32, precision="float32")
 compile_estimators(true_model(get_system("cartpole")), LIB, model_hash="true", estimators=("mhe",))
 robot = prior_model(get_system("ground_robot"))
 for precision in ("float64", "float32"):
-    compile_estimators(robot, LIB, model_hash="nominal", estimators=("ukf", "mhe_gn", "mhe_rti"),
-                       precision=precision)
+    compile_estimators(robot, LIB, model_hash="nominal", estimators=FLOAT32, precision=precision)
 must(["simulate", "--system", "cartpole", "--seed", 1, "--duration", 24.0, "--out", W / "long.csv",
       "--force"])
 must(["simulate", "--system", "ground_robot", "--seed", 1, "--out", W / "robot.csv", "--force"])
@@ -900,8 +899,8 @@ def input_cases() -> list[Case]:
             f"{{failed}} failed steps")
     '''
     c = 'from learnest_codegen.pipeline import load_estimator\nest = load_estimator(LIB / "{}")'
-    py = ('from learnest_codegen.pipeline import reference_estimator\n'
-          'est = reference_estimator("nominal", "{}", system="cartpole")')
+    py = ('from learnest_codegen.pipeline import make_estimator\n'
+          'est = make_estimator("nominal", "{}", backend="python", system="cartpole")')
     rows = [("mhe", "python", 3, 1e3, "data"), ("ukf", "python", 1, 1e6, "data"),
             ("cartpole_nominal_mhe_n20", "c", 3, 1e3, "c-api"),
             ("cartpole_nominal_mhe_gn_n20", "c", 3, 1e3, "c-api"),
@@ -1055,8 +1054,8 @@ def noise_cases() -> list[Case]:
                              needles=("P_arrival", "range")))
     out += [
         _case("noise/R-zero-ukf-python", "data", ERROR, "the Python UKF: set_noise(R=0)", '''
-              from learnest_codegen.pipeline import reference_estimator
-              est = reference_estimator("nominal", "ukf", system="cartpole")
+              from learnest_codegen.pipeline import make_estimator
+              est = make_estimator("nominal", "ukf", backend="python", system="cartpole")
               est.reset(np.array([0, 0, 0.3, 0.0]))
               est.set_noise(R=np.zeros((2, 2)))
               ''', needles=("R",)),

@@ -268,12 +268,12 @@ def test_another_system_of_the_same_name_is_refused(tmp_path, short_run):
     import dataclasses
 
     from learnest_codegen.errors import ModelMismatchError
-    from learnest_codegen.pipeline import compile_estimator, expected_manifest, load_estimator
+    from learnest_codegen.pipeline import expected_manifest, load_estimator, make_estimator
 
     cartpole = get_system("cartpole")
     longer = dataclasses.replace(cartpole, params={**cartpole.params, "l": 0.6})
     assert longer.name == cartpole.name and longer.fingerprint() != cartpole.fingerprint()
-    compile_estimator("nominal", "ukf", system=longer, out=tmp_path)
+    make_estimator("nominal", "ukf", system=longer, out=tmp_path)
     folder = tmp_path / "cartpole_nominal_ukf"
     with pytest.raises(ModelMismatchError, match="system_fingerprint: library has"):
         load_estimator(folder, expect=expected_manifest("nominal", cartpole))
@@ -322,16 +322,16 @@ def _nominal_ukf(out):
 def test_learnest_compile_needs_force_to_replace_a_folder(tmp_path):
     """The README's promise now holds for learnest-compile too: a hand edit is not written over
     unasked; with --force the folder is replaced whole (an unchanged library is reused)."""
-    from learnest_codegen.cli import compile_standalone
+    from learnest_codegen.cli import compile_cmd
 
     args = ["--nominal", "--estimator", "ukf", "--out", str(tmp_path)]
-    assert CliRunner().invoke(compile_standalone, args).exit_code == 0
+    assert CliRunner().invoke(compile_cmd, args).exit_code == 0
     folder = tmp_path / "cartpole_nominal_ukf"
     (folder / "notes.txt").write_text("my notes")
-    result = CliRunner().invoke(compile_standalone, args)
+    result = CliRunner().invoke(compile_cmd, args)
     assert result.exit_code == 1 and "exists and is not empty; pass --force" in result.output
     assert (folder / "notes.txt").read_text() == "my notes"
-    result = CliRunner().invoke(compile_standalone, [*args, "--force"])
+    result = CliRunner().invoke(compile_cmd, [*args, "--force"])
     assert result.exit_code == 0 and "reused" in result.output, result.output
     assert not (folder / "notes.txt").exists() and (folder / "manifest.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cartpole_nominal_ukf"]

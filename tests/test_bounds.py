@@ -9,9 +9,14 @@ those of the unbounded build.
 
 Tolerances: the converged Gauss-Newton MHE and the compiled Ipopt MHE against the Python
 Ipopt MHE 1e-6 absolute on every state (both solve the bounded problem to convergence;
-measured 1.4e-8 and 1.3e-9); inactive bounds: the Gauss-Newton MHE bit for bit (the same
-arithmetic: no variable is held or clamped), the Ipopt MHE 1e-8 (its bounded options change
-the barrier's path, not the minimiser).
+measured 1.4e-8 and 1.3e-9). The real-time iteration takes one Gauss-Newton step a sample, so
+it is off the converged MHE by its linearisation (1.09e-6 on this run without bounds); its
+bounded step solves the step's bounded quadratic program exactly, so with bounds it is as far
+from Ipopt's bounded solution as it is without them from Ipopt's unbounded one (measured: the
+two differ by 4e-11; asserted 1e-8). float32: the same comparison to 1e-6 (float32's
+resolution at these states' size; measured 2e-11). Inactive bounds: the Gauss-Newton MHE bit
+for bit (the same arithmetic: no variable is held or clamped), the Ipopt MHE 1e-8 (its
+bounded options change the barrier's path, not the minimiser).
 """
 
 from __future__ import annotations
@@ -83,14 +88,23 @@ def test_outliers_push_the_unbounded_estimate_off_the_rail_and_ipopt_keeps_it_on
 def test_compiled_mhes_stay_on_the_rail_and_equal_ipopt(ipopt, cartpole, stream, tmp_path, name,
                                                          precision, tolerance):
     """Every window state of every step inside the box (float32: the nearest floats inside);
-    the converged MHEs equal Ipopt's bounded solution."""
+    the converged MHEs equal Ipopt's bounded solution; the others are as close to it as their
+    unbounded builds are to Ipopt's unbounded solution (the bounds add no error of their own)."""
     run, Y = stream
-    est = ln.compile_estimator("nominal", name, system=cartpole, out=tmp_path, precision=precision,
-                               settings=settings(cartpole, ((-RAIL, RAIL), OPEN, OPEN, OPEN)))
+    est = ln.make_estimator("nominal", name, system=cartpole, out=tmp_path / "rail", precision=precision,
+                            settings=settings(cartpole, ((-RAIL, RAIL), OPEN, OPEN, OPEN)))
     X, lowest = windows(est, run, Y, cartpole)
     assert lowest >= -RAIL
+    off = np.abs(X - ipopt["rail"][0]).max()
     if tolerance is not None:
-        assert np.abs(X - ipopt["rail"][0]).max() <= tolerance, np.abs(X - ipopt["rail"][0]).max(0)
+        assert off <= tolerance, np.abs(X - ipopt["rail"][0]).max(0)
+        return
+    free = ln.make_estimator("nominal", name, system=cartpole, out=tmp_path / "free", precision=precision,
+                             settings=settings(cartpole))
+    X_free, lowest_free = windows(free, run, Y, cartpole)
+    assert lowest_free < -RAIL  # the bound is active on this run
+    own = np.abs(X_free - ipopt["free"][0]).max()
+    assert off <= own + (1e-8 if precision == "float64" else 1e-6), (off, own)
 
 
 def test_inactive_bounds_change_nothing(cartpole, model, stream, tmp_path):
@@ -98,8 +112,8 @@ def test_inactive_bounds_change_nothing(cartpole, model, stream, tmp_path):
     wide = ((-100.0, 100.0), (-1e3, 1e3), OPEN, OPEN)
     X = {}
     for key, bounds in (("free", None), ("wide", wide)):
-        est = ln.compile_estimator("nominal", "mhe_gn", system=cartpole, out=tmp_path / key,
-                                   settings=settings(cartpole, bounds))
+        est = ln.make_estimator("nominal", "mhe_gn", system=cartpole, out=tmp_path / key,
+                                settings=settings(cartpole, bounds))
         X[key] = est.run(run.u, Y, cartpole.x0)
     np.testing.assert_array_equal(X["wide"], X["free"])
     T = 200

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from learnest_codegen.cli import cli, compile_standalone
+from learnest_codegen.cli import cli, compile_cmd
 from learnest_codegen.data import read_run
 from learnest_codegen.systems import get_system
 
@@ -51,7 +51,7 @@ def test_simulate_train_compile_estimate(workdir):
                      "--epochs", 1, "--refine", 0, "--quiet"])
     assert r.exit_code == 0 and r.stderr == "" and r.stdout.startswith(f"wrote {workdir / 'quiet'}: ")
 
-    r = invoke(compile_standalone, [model_dir, "--out", compiled])
+    r = invoke(compile_cmd, [model_dir, "--out", compiled])
     assert r.exit_code == 0, r.output
     folders = {"mhe": "cartpole_knode_mhe_n20", "ukf": "cartpole_knode_ukf"}  # an MHE's: its horizon
     for est in ("mhe", "ukf"):
@@ -96,7 +96,7 @@ def test_errors_are_one_clear_line(workdir, tmp_path):
     assert r.exit_code != 0 and "missing columns" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(cli, ["simulate", "--system", "nope", "--out", str(tmp_path / "x.csv")])
     assert r.exit_code != 0 and "unknown system" in r.output
-    r = CliRunner().invoke(compile_standalone, [])
+    r = CliRunner().invoke(compile_cmd, [])
     assert r.exit_code != 0 and "--nominal" in r.output
 
 
@@ -133,7 +133,7 @@ def test_demo_defaults_are_the_one_default_training():
 def test_gate_options_default_to_the_gate_settings():
     from learnest_codegen.estimators.gate import GateSettings
 
-    for command in (cli.commands["estimate"], cli.commands["compile"], compile_standalone):
+    for command in (cli.commands["estimate"], cli.commands["compile"]):
         defaults = {p.name: p.default for p in command.params}
         assert (defaults["gate_threshold"], defaults["gate_recover_after"], defaults["gate_inflation"]) == (
             GateSettings().threshold, GateSettings().recover_after, GateSettings().inflation)

@@ -35,7 +35,7 @@ import pytest
 from click.testing import CliRunner
 from conftest import load_file
 
-from learnest_codegen.cli import compile_standalone
+from learnest_codegen.cli import compile_cmd
 from learnest_codegen.codegen import crazyflie
 from learnest_codegen.recordings import data_root
 from learnest_codegen.toolchain import CFLAGS
@@ -54,7 +54,7 @@ rp = load_file(EXAMPLE / "replay.py", "crazyflie_replay")
 
 
 def invoke(args):
-    return CliRunner().invoke(compile_standalone, [str(a) for a in args], catch_exceptions=False)
+    return CliRunner().invoke(compile_cmd, [str(a) for a in args], catch_exceptions=False)
 
 
 # -- the app folder --------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from click.testing import CliRunner
 from filterpy.kalman import ExtendedKalmanFilter
 
 import learnest_codegen as ln
-from learnest_codegen.cli import compile_standalone
+from learnest_codegen.cli import compile_cmd
 from learnest_codegen.estimators.ekf import EKF, EKFSettings, jacobians
 from learnest_codegen.runtime.ekf import CompiledEKF
 
@@ -65,9 +65,9 @@ def test_reference_is_filterpys_extended_kalman_filter(knode, run, cartpole):
 @pytest.mark.parametrize("precision, tolerance", [("float64", 1e-10), ("float32", 2e-3)])
 def test_compiled_ekf_equals_filterpy(knode, run, cartpole, tmp_path, precision, tolerance):
     """The compiled KNODE-EKF against the reference over the run, every sample's x and P."""
-    c = ln.compile_estimator(knode, "ekf", out=tmp_path, precision=precision)
+    c = ln.make_estimator(knode, "ekf", out=tmp_path, precision=precision)
     assert isinstance(c, CompiledEKF) and c.precision == precision
-    ref = ln.reference_estimator(knode, "ekf")
+    ref = ln.make_estimator(knode, "ekf", backend="python")
     for est in (c, ref):
         est.reset(cartpole.x0)
     worst_x = worst_P = 0.0
@@ -84,7 +84,7 @@ def test_compiled_ekf_equals_filterpy(knode, run, cartpole, tmp_path, precision,
 def test_learnest_compile_builds_the_ekf(tmp_path, cartpole, run):
     """``learnest-compile --nominal --estimator ekf`` writes the folder; loading it gives the EKF,
     equal to the Python reference of the nominal model."""
-    r = CliRunner().invoke(compile_standalone, ["--nominal", "--estimator", "ekf", "--out",
+    r = CliRunner().invoke(compile_cmd, ["--nominal", "--estimator", "ekf", "--out",
                                                 str(tmp_path)], catch_exceptions=False)
     assert r.exit_code == 0, r.output
     folder = tmp_path / "cartpole_nominal_ekf"
@@ -92,7 +92,8 @@ def test_learnest_compile_builds_the_ekf(tmp_path, cartpole, run):
     est = ln.load_estimator(folder)
     assert isinstance(est, CompiledEKF) and est.manifest["estimator"] == "ekf"
     X_c = est.run(run.u, run.y, cartpole.x0)
-    X_r = ln.reference_estimator("nominal", "ekf", system=cartpole).run(run.u, run.y, cartpole.x0)
+    ref = ln.make_estimator("nominal", "ekf", backend="python", system=cartpole)
+    X_r = ref.run(run.u, run.y, cartpole.x0)
     assert np.abs(X_c - X_r).max() <= 1e-10 * np.abs(X_r).max()
 
 
@@ -102,7 +103,7 @@ def test_plain_c_main_two_instances_and_no_allocation(knode, run, cartpole, tmp_
     estimates those of the binding to 1e-12."""
     from test_embedded_mhe import C_MAIN, c_array, gn_sources
 
-    est = ln.compile_estimator(knode, "ekf", out=tmp_path / "gen")
+    est = ln.make_estimator(knode, "ekf", out=tmp_path / "gen")
     prefix, directory = est.manifest["prefix"], est.directory
     T = 60
     U, Y = run.u[:T], run.y[:T]

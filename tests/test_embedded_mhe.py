@@ -285,13 +285,13 @@ def test_settings_validation():
 def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
     from click.testing import CliRunner
 
-    from learnest_codegen.cli import cli, compile_standalone
+    from learnest_codegen.cli import cli, compile_cmd
 
     run = simulation.simulate(cartpole, seed=5, duration=100 * cartpole.dt)
     data = tmp_path / "run.csv"
     write_run(run, cartpole, data)
     runner = CliRunner()
-    result = runner.invoke(compile_standalone, ["--nominal", "--system", "cartpole", "--estimator",
+    result = runner.invoke(compile_cmd, ["--nominal", "--system", "cartpole", "--estimator",
                                                 "mhe_rti", "--out", str(tmp_path / "gen")])
     assert result.exit_code == 0, result.output
     directory = tmp_path / "gen" / "cartpole_nominal_mhe_rti_n20"
@@ -302,7 +302,7 @@ def test_cli_compiles_and_runs_the_embedded_mhe(tmp_path, cartpole):
     written = np.loadtxt(tmp_path / "est.csv", delimiter=",", skiprows=1)[:, 1:]
     expected = CompiledEmbeddedMHE(directory).run(run.u, run.y, cartpole.x0)
     np.testing.assert_allclose(written, expected, rtol=0, atol=1e-12)
-    result = runner.invoke(compile_standalone, ["--nominal", "--estimator", "mhe", "--precision",
+    result = runner.invoke(compile_cmd, ["--nominal", "--estimator", "mhe", "--precision",
                                                 "float32", "--out", str(tmp_path / "gen")])
     assert result.exit_code == 2 and "cannot be generated in float32" in result.output
     result = runner.invoke(cli, ["estimate", "--data", str(data), "--estimator", "mhe_rti",

@@ -19,7 +19,7 @@ import pytest
 from click.testing import CliRunner
 
 import learnest_codegen as ln
-from learnest_codegen.cli import compile_standalone
+from learnest_codegen.cli import compile_cmd
 from learnest_codegen.pipeline import load_estimator
 from learnest_codegen.runtime.manifest import GeneratedEstimator
 from learnest_codegen.toolchain import CFLAGS, casadi_dirs
@@ -59,7 +59,7 @@ def doc_files() -> dict[str, str]:
 def handoff(tmp_path_factory):
     """Step 1 (generate) and 2 (copy without the Python parts) of the page."""
     root = tmp_path_factory.mktemp("handoff")
-    result = CliRunner().invoke(compile_standalone, ["--nominal", "--system", "cartpole", "--estimator",
+    result = CliRunner().invoke(compile_cmd, ["--nominal", "--system", "cartpole", "--estimator",
                                                      "mhe_rti", "--precision", "float32", "--out",
                                                      str(root / "generated")])
     assert result.exit_code == 0, result.output
@@ -169,7 +169,7 @@ def grouped_folder(tmp_path_factory):
     """The nominal quadrotor's mhe_rti: its three axes are solved one by one
     (learnest_gn_groups.h), C the cartpole's folders never compile."""
     root = tmp_path_factory.mktemp("grouped")
-    result = CliRunner().invoke(compile_standalone, ["--nominal", "--system", "quadrotor", "--estimator",
+    result = CliRunner().invoke(compile_cmd, ["--nominal", "--system", "quadrotor", "--estimator",
                                                      "mhe_rti", "--precision", "float32", "--out",
                                                      str(root)])
     assert result.exit_code == 0, result.output

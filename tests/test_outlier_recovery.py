@@ -27,7 +27,7 @@ spec.loader.exec_module(bench)
 from learnest_codegen.estimators.gate import GateSettings  # noqa: E402
 
 SAMPLES = 400
-COMBOS = [(e, b) for e, backends in bench.BACKENDS.items() for b in backends]
+COMBOS = [(e, b) for e, backends in bench.estimator_backends().items() for b in backends]
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from conftest import USER_SYSTEM
 
 import learnest_codegen as ln
-from learnest_codegen.cli import cli, compile_standalone
+from learnest_codegen.cli import cli, compile_cmd
 from learnest_codegen.errors import ModelMismatchError, SystemFileError
 from learnest_codegen.learning.model import load_model
 
@@ -51,7 +51,7 @@ def test_the_model_records_its_system_file(work):
 
 def test_the_command_line_job_needs_no_system_after_training(work):
     r = run([work / "model", "--out", work / "generated", *sum((["--estimator", e] for e in ESTIMATORS), [])],
-            command=compile_standalone)
+            command=compile_cmd)
     assert r.exit_code == 0, r.output
     assert all(f"{e}:" in r.output for e in ESTIMATORS)
     for estimator in ESTIMATORS:
@@ -88,12 +88,12 @@ def test_the_api_job_needs_no_system_after_training(tmp_path):
     assert model.system.name == "my_pendulum" and model.system.fingerprint() == system.fingerprint()
     errors = {}
     for estimator in ESTIMATORS:
-        compiled = ln.compile_estimator(tmp_path / "model", estimator, out=tmp_path / "generated")
+        compiled = ln.make_estimator(tmp_path / "model", estimator, out=tmp_path / "generated")
         errors[estimator] = ln.evaluate(compiled, test_run).mse(test_run.x)
         folder = f"my_pendulum_knode_{estimator}" + ("" if estimator == "ukf" else "_n20")  # N = 20
         again = ln.load_estimator(tmp_path / "generated" / folder)
         assert ln.evaluate(again, test_run).mse(test_run.x) == pytest.approx(errors[estimator], rel=1e-12)
-    nominal = ln.evaluate(ln.compile_estimator("nominal", "ukf", system=system, out=tmp_path / "generated"),
+    nominal = ln.evaluate(ln.make_estimator("nominal", "ukf", system=system, out=tmp_path / "generated"),
                           test_run).mse(test_run.x)
     assert errors["ukf"] < nominal, (errors, nominal)  # the learned damping helps
     assert errors["mhe_gn"] == pytest.approx(errors["mhe"], rel=1e-6)  # the same NLP
@@ -117,7 +117,7 @@ def test_an_edited_system_file_is_refused_in_one_line(work, tmp_path):
     (model / "model.json").write_text(json.dumps(meta))
     with pytest.raises(ModelMismatchError, match="changed since"):
         load_model(model)
-    r = run([model, "--out", tmp_path / "generated", "--estimator", "ukf"], command=compile_standalone)
+    r = run([model, "--out", tmp_path / "generated", "--estimator", "ukf"], command=compile_cmd)
     assert r.exit_code == 1 and "changed since" in r.output and len(r.output.strip().splitlines()) == 1
     r = run(["estimate", "--data", work / "test.csv", "--estimator", "ukf", "--model", model,
              "--out", tmp_path / "est.csv"])

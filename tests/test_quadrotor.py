@@ -633,7 +633,7 @@ def test_a_study_model_with_a_fitted_prior_and_a_net_compiles_without_its_system
 
     from click.testing import CliRunner
 
-    from learnest_codegen.cli.estimation import compile_standalone
+    from learnest_codegen.cli.estimation import compile_cmd
     from learnest_codegen.experiments.quadrotor_models import trained_model
     from learnest_codegen.learning.model import load_model
     from learnest_codegen.pipeline import estimator_system, expected_manifest, load_estimator
@@ -648,7 +648,7 @@ def test_a_study_model_with_a_fitted_prior_and_a_net_compiles_without_its_system
     assert set(fitted) == set(SYSTEMS["quadrotor_linear"].params) and any(v != 0.0 for v in fitted.values())
     assert load_model(directory).system.fingerprint() == model.system.fingerprint()
 
-    result = CliRunner().invoke(compile_standalone, [str(directory), "--target", "crazyflie",
+    result = CliRunner().invoke(compile_cmd, [str(directory), "--target", "crazyflie",
                                                      "--out", str(tmp_path / "generated")])
     assert result.exit_code == 0, result.output
     (folder,) = [p for p in (tmp_path / "generated").iterdir()

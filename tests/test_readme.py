@@ -153,7 +153,7 @@ def compiled(tmp_path_factory):
 
             system, kind, estimator, horizon = _split_prefix(prefix)
             model = (ROOT / "tests" / "data" / "model_b12bfa1") if kind == "knode" else kind
-            built = ln.compile_estimator(model, estimator, system=system, out=folder, horizon=horizon)
+            built = ln.make_estimator(model, estimator, system=system, out=folder, horizon=horizon)
             made[prefix] = folder / prefix
             assert built.directory == made[prefix], (built.directory, prefix)
         return made[prefix]
@@ -236,9 +236,9 @@ def _run_bash(block: Block, folder: Path, capsys) -> None:
         return
     from click.testing import CliRunner
 
-    from learnest_codegen.cli import cli, compile_standalone
+    from learnest_codegen.cli import cli, compile_cmd
 
-    entry = {"learnest": cli, "learnest-compile": compile_standalone}
+    entry = {"learnest": cli, "learnest-compile": compile_cmd}
     for args in commands(block.code):
         assert args[0] in entry, (f"{block.id}: `{' '.join(args)}` is not a learnest command; mark the "
                                   "block <!-- test: shell --> or <!-- test: skip REASON -->")
@@ -375,6 +375,6 @@ def test_api_reference_builds_from_the_docstrings(tmp_path):
     except ImportError:
         pytest.skip("the API reference needs mkdocstrings-python (pip install -e .[test])")
     page = (_mkdocs_build(tmp_path, with_api=True) / "guide" / "python_api" / "index.html").read_text()
-    for name in ("pipeline.train", "pipeline.compile_estimator", "pipeline.evaluate",
+    for name in ("pipeline.train", "pipeline.make_estimator", "pipeline.evaluate",
                  "config.TrainingSettings", "systems.base.System", "data.read_run", "errors.SettingsError"):
         assert f'id="learnest_codegen.{name}"' in page, name

@@ -34,8 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from learnest_codegen import get_system
-from learnest_codegen.compilation import ESTIMATORS as TABLE
-from learnest_codegen.compilation import compile_estimators
+from learnest_codegen.compilation import FLOAT32_NAMES, MHE_NAMES, compile_estimators
 from learnest_codegen.errors import BuildError, LearnestError, SolverError
 from learnest_codegen.export import DiscreteModel
 from learnest_codegen.pipeline import load_estimator, resolve
@@ -94,7 +93,7 @@ def write_run_header(path: Path, U: np.ndarray, Y: np.ndarray, dt: float) -> Pat
 
 
 #: The estimators a microcontroller runs: those generated in float32 (the Ipopt MHE is not).
-ESTIMATORS = tuple(name for name, kind in TABLE.items() if "float32" in kind.precisions)
+ESTIMATORS = FLOAT32_NAMES
 PRECISIONS = ("float64", "float32")
 
 
@@ -138,8 +137,8 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
     """Generate ``estimator``'s C in ``precision`` for ``model`` (any system) under ``out``, and
     both headers into its folder, for ``steps`` samples of run ``seed``.
 
-    ``estimator`` is one of :data:`ESTIMATORS` (``"ukf"``, ``"ekf"``, ``"mhe_rti"``,
-    ``"mhe_gn"``), generated as ``learnest-compile``
+    ``estimator`` is one of :data:`ESTIMATORS` (the estimator table's float32 estimators),
+    generated as ``learnest-compile``
     does (the same door: the system's default tuning, a float32 UKF with alpha raised); the
     firmware starts it from the tuned defaults of its own header. ``horizon`` replaces the
     MHEs' N (as ``learnest-compile --horizon``).
@@ -153,7 +152,7 @@ def generate(model: DiscreteModel, out: Path, *, steps: int, seed: int = 1,
     system = model.system
     gen = compile_estimators(model, Path(out), model_hash=f"cortex_m-{model.kind}",
                              estimators=(estimator,), precision=precision,
-                             horizon=horizon if TABLE[estimator].horizon else None)[estimator]
+                             horizon=horizon if estimator in MHE_NAMES else None)[estimator]
     run = simulate(system, seed=seed, duration=steps * system.dt)
     U, Y = run.u[:steps], run.y[:steps]
     write_run_header(gen.directory / "run_data.h", U, Y, system.dt)

@@ -3,13 +3,13 @@
  * The generated glue gives LEARNEST_STATE_LO and LEARNEST_STATE_HI, NX initialisers each
  * (-HUGE_VAL / HUGE_VAL: that side open). Every state of the window then stays in the box:
  * the warm start is clamped into it (learnest_box_clamp; estimators/mhe.py clamps its guess
- * alike), Ipopt gets the box as variable bounds (learnest_box_tile), and the Gauss-Newton MHE
- * takes projected steps: each iteration holds the variables that sit on a bound with the
- * gradient pushing out of the box (learnest_box_hold: their rows and columns of the normal
- * equations become the identity's, their gradient 0, so their step is 0), solves for the others
- * and clamps the line search's points into the box. Its fixed point is a KKT point of the
- * bounded problem (a held variable's gradient points out of the box, a free one's is 0), the
- * problem Ipopt solves. Without the macros every function here does nothing.
+ * alike), Ipopt gets the box as variable bounds (learnest_box_tile), and each Gauss-Newton step
+ * of the embedded MHE is the exact solution of its box-constrained quadratic model
+ * (learnest_gn_box_step, learnest_gn.h: an active set started from the variables that sit on
+ * a bound with the gradient pushing out of the box, learnest_box_active, whose rows and
+ * columns of the normal equations become the identity's, learnest_box_fix). Its fixed point
+ * is a KKT point of the bounded problem, the problem Ipopt solves. Without the macros every
+ * function here does nothing.
  *
  * Include after learnest_kit.h with LEARNEST_NX and LEARNEST_N.
  */
@@ -57,21 +57,33 @@ LEARNEST_KIT int learnest_box_tile(learnest_real* lo, learnest_real* hi, int nod
 #endif
 }
 
-/* Hold the variables of X (N+1 nodes, inside the box) that sit on a bound with the gradient g
- * pointing out of the box: in the normal equations H dx = -g (diagonal blocks D_i, lower
- * triangles, and E_i = H_{i+1,i}, NX x NX column-major) their row and column become the
- * identity's and their gradient 0, so the step leaves them where they are. */
-LEARNEST_KIT void learnest_box_hold(const learnest_real* X, learnest_real* D, learnest_real* E,
-                                    learnest_real* g) {
+/* act[v] of each variable of X (N+1 nodes, inside the box) with gradient g: -1 (+1) when it
+ * sits on its lower (upper) bound with g pushing it out of the box, else 0. */
+LEARNEST_KIT void learnest_box_active(const learnest_real* X, const learnest_real* g, signed char* act) {
+#if LEARNEST_BOUNDED
+  int v;
+  for (v = 0; v < (LEARNEST_N + 1) * LEARNEST_NX; ++v) {
+    const int j = v % LEARNEST_NX;
+    act[v] = (signed char)(X[v] <= learnest_state_lo[j] && g[v] > 0 ? -1
+                           : X[v] >= learnest_state_hi[j] && g[v] < 0 ? 1 : 0);
+  }
+#else
+  (void)X;
+  (void)g;
+  (void)act;
+#endif
+}
+
+/* In the normal equations H dx = b (diagonal blocks D_i, lower triangles, and E_i = H_{i+1,i},
+ * NX x NX column-major) the row and column of each variable with act[v] != 0 become the
+ * identity's, so the solve returns b_v for it and the others do not see it. */
+LEARNEST_KIT void learnest_box_fix(learnest_real* D, learnest_real* E, const signed char* act) {
 #if LEARNEST_BOUNDED
   int i, j, k;
   for (i = 0; i <= LEARNEST_N; ++i) {
+    learnest_real* Di = D + i * LEARNEST_NX * LEARNEST_NX;
     for (j = 0; j < LEARNEST_NX; ++j) {
-      const int v = i * LEARNEST_NX + j;
-      learnest_real* Di = D + i * LEARNEST_NX * LEARNEST_NX;
-      if (!((X[v] <= learnest_state_lo[j] && g[v] > 0) || (X[v] >= learnest_state_hi[j] && g[v] < 0))) {
-        continue;
-      }
+      if (!act[i * LEARNEST_NX + j]) continue;
       for (k = 0; k < LEARNEST_NX; ++k) {
         Di[j + k * LEARNEST_NX] = 0;
         Di[k + j * LEARNEST_NX] = 0;
@@ -79,14 +91,12 @@ LEARNEST_KIT void learnest_box_hold(const learnest_real* X, learnest_real* D, le
         if (i > 0) E[(i - 1) * LEARNEST_NX * LEARNEST_NX + j + k * LEARNEST_NX] = 0;   /* H_{i,i-1}[j, :] */
       }
       Di[j + j * LEARNEST_NX] = 1;
-      g[v] = 0;
     }
   }
 #else
-  (void)X;
   (void)D;
   (void)E;
-  (void)g;
+  (void)act;
 #endif
 }
 

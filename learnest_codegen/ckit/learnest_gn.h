@@ -62,6 +62,13 @@ struct learnest_gn {
   learnest_real D[(LEARNEST_N + 1) * LEARNEST_NXX];  /* diagonal blocks, then their factors */
   learnest_real E[LEARNEST_N * LEARNEST_NXX];  /* blocks (i+1, i), then the factor's */
   learnest_real g[LEARNEST_NW], dx[LEARNEST_NW], rw[LEARNEST_NX], rv[LEARNEST_NY];
+#if LEARNEST_BOUNDED
+  /* the bounded step's quadratic program (learnest_gn_box_step): the normal equations kept,
+   * its feasible point, H times a vector, its working set */
+  learnest_real Dh[(LEARNEST_N + 1) * LEARNEST_NXX], Eh[LEARNEST_N * LEARNEST_NXX];
+  learnest_real p[LEARNEST_NW], q[LEARNEST_NW];
+  signed char act[LEARNEST_NW];
+#endif
 };
 
 /* The linearisation at the iterate. */
@@ -84,7 +91,7 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
   s->dr = learnest_is_diagonal(s->R, LEARNEST_NY);
   s->dp = learnest_is_diagonal(s->P, LEARNEST_NX);
 #if LEARNEST_NCOMP > 1
-  s->split = LEARNEST_BOUNDED ? 0 : learnest_gn_split(s);  /* bounds: learnest_box_hold's system */
+  s->split = LEARNEST_BOUNDED ? 0 : learnest_gn_split(s);  /* bounds: learnest_gn_box_step */
 #else
   s->split = 0;
 #endif
@@ -183,6 +190,25 @@ LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int di
   }
 }
 
+/* A term m |W^(1/2) r|^2 of a node's residual r (n of them) with Jacobian J (n x NX) in the
+ * normal equations: D += m J' W J (its lower triangle; hess = 0: D is left) and g -= m J' W r,
+ * given WJ = W J and Wr = W r (learnest_gn_weigh). */
+LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const learnest_real* WJ,
+                                          const learnest_real* Wr, learnest_real m, int hess,
+                                          learnest_real* D, learnest_real* g) {
+  int r, c, k;
+  LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+    if (hess) {
+      LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+        learnest_real v = 0;
+        LEARNEST_UNROLL for (k = 0; k < n; ++k) v += J[k + r * n] * WJ[k + c * n];
+        D[r + c * LEARNEST_NX] += m * v;
+      }
+    }
+    LEARNEST_UNROLL for (k = 0; k < n; ++k) g[c] -= m * J[k + c * n] * Wr[k];
+  }
+}
+
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
  * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
@@ -229,16 +255,7 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
       learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, hess ? LEARNEST_NX : 0, Rv, RC);
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        if (hess) {
-          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-            learnest_real v = 0;
-            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) v += C[k + r * LEARNEST_NY] * RC[k + c * LEARNEST_NY];
-            D[r + c * LEARNEST_NX] += m * v;
-          }
-        }
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) g[c] -= m * C[k + c * LEARNEST_NY] * Rv[k];
-      }
+      learnest_gn_term(LEARNEST_NY, C, RC, Rv, m, hess, D, g);
     }
     if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
       const learnest_real* A = L->A + i * LEARNEST_NXX;
@@ -251,16 +268,13 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       if (hess) {
         LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
       }
+      learnest_gn_term(LEARNEST_NX, A, QA, Qw, m, hess, D, g);
       LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
         if (hess) {
           LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-            learnest_real v = 0;
-            LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) v += A[k + r * LEARNEST_NX] * QA[k + c * LEARNEST_NX];
-            D[r + c * LEARNEST_NX] += m * v;
             if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
           }
         }
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) g[c] -= m * A[k + c * LEARNEST_NX] * Qw[k];
         gn[c] += m * Qw[c];
       }
     }
@@ -334,6 +348,102 @@ LEARNEST_KIT int learnest_btd_solve(learnest_real* D, learnest_real* E, const le
   return learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, D, E, dx, 1);
 }
 
+#if LEARNEST_BOUNDED
+/* y = H v for the window's symmetric block-tridiagonal H (D: the lower triangles of the
+ * diagonal blocks; E_i = H_{i+1,i}). */
+LEARNEST_KIT void learnest_btd_multiply(const learnest_real* D, const learnest_real* E, const learnest_real* v,
+                                        learnest_real* y) {
+  int i, r, c;
+  for (i = 0; i <= LEARNEST_N; ++i) {
+    const learnest_real* Di = D + i * LEARNEST_NXX;
+    for (r = 0; r < LEARNEST_NX; ++r) {
+      learnest_real acc = 0;
+      for (c = 0; c < LEARNEST_NX; ++c) {
+        acc += (r >= c ? Di[r + c * LEARNEST_NX] : Di[c + r * LEARNEST_NX]) * v[i * LEARNEST_NX + c];
+        if (i > 0) acc += E[(i - 1) * LEARNEST_NXX + r + c * LEARNEST_NX] * v[(i - 1) * LEARNEST_NX + c];
+        if (i < LEARNEST_N) acc += E[i * LEARNEST_NXX + c + r * LEARNEST_NX] * v[(i + 1) * LEARNEST_NX + c];
+      }
+      y[i * LEARNEST_NX + r] = acc;
+    }
+  }
+}
+
+/* At most this many working sets per step (each adds or drops one bound). */
+#define LEARNEST_GN_QP_MAX (2 * LEARNEST_NW + 2)
+
+/* The step dx that solves the Gauss-Newton model's box-constrained quadratic program
+ *   min g'dx + dx'H dx / 2   subject to   lo <= X + dx <= hi
+ * exactly, on the one linearisation in D, E, g (built at X, which is inside the box), by a
+ * primal active set: from dx = 0 and the bounds whose gradient points out of the box, each
+ * iteration solves H dx = -g with the working set's variables fixed on their bound (the block
+ * Cholesky recursion on the normal equations with those rows and columns the identity's); a
+ * solution outside the box is followed only up to the first bound it crosses, which joins the
+ * set; one inside it is the answer when every fixed variable's multiplier (the model's
+ * gradient H dx + g there) pushes out of the box, and otherwise the variable pushed furthest
+ * in leaves the set. g is left as it is (the line search's slope); D and E hold the last
+ * factor. */
+LEARNEST_KIT int learnest_gn_box_step(struct learnest_gn* s, const learnest_real* X) {
+  int it, j, block;
+  learnest_real t, r, worst, lo, hi, m;
+  memcpy(s->Dh, s->D, sizeof s->Dh);
+  memcpy(s->Eh, s->E, sizeof s->Eh);
+  learnest_box_active(X, s->g, s->act);
+  memset(s->p, 0, sizeof s->p);
+  for (it = 0; it < LEARNEST_GN_QP_MAX; ++it) {
+    /* the right side: -g - H p_fixed on the free rows, the fixed values on the fixed rows */
+    for (j = 0; j < LEARNEST_NW; ++j) s->q[j] = s->act[j] ? s->p[j] : 0;
+    learnest_btd_multiply(s->Dh, s->Eh, s->q, s->dx);
+    for (j = 0; j < LEARNEST_NW; ++j) s->dx[j] = s->act[j] ? s->p[j] : -s->g[j] - s->dx[j];
+    memcpy(s->D, s->Dh, sizeof s->Dh);
+    memcpy(s->E, s->Eh, sizeof s->Eh);
+    learnest_box_fix(s->D, s->E, s->act);
+    if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, 1)) {
+      return LEARNEST_NOT_POSITIVE_DEFINITE;
+    }
+    if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
+    t = 1;
+    block = -1;
+    for (j = 0; j < LEARNEST_NW; ++j) {  /* the first bound on the way from p to dx */
+      if (s->act[j]) continue;
+      lo = learnest_state_lo[j % LEARNEST_NX] - X[j];
+      hi = learnest_state_hi[j % LEARNEST_NX] - X[j];
+      if (s->dx[j] < lo || s->dx[j] > hi) {
+        r = ((s->dx[j] < lo ? lo : hi) - s->p[j]) / (s->dx[j] - s->p[j]);
+        if (r < t || block < 0) {
+          t = r;
+          block = j;
+        }
+      }
+    }
+    if (block >= 0) {
+      t = t < 0 ? 0 : t;
+      for (j = 0; j < LEARNEST_NW; ++j) {
+        if (!s->act[j]) s->p[j] += t * (s->dx[j] - s->p[j]);
+      }
+      lo = learnest_state_lo[block % LEARNEST_NX] - X[block];
+      s->act[block] = (signed char)(s->dx[block] < lo ? -1 : 1);
+      s->p[block] = s->act[block] < 0 ? lo : learnest_state_hi[block % LEARNEST_NX] - X[block];
+      continue;
+    }
+    memcpy(s->p, s->dx, sizeof s->p);
+    learnest_btd_multiply(s->Dh, s->Eh, s->p, s->q);  /* the multipliers: (H p + g) on the set */
+    block = -1;
+    worst = 0;
+    for (j = 0; j < LEARNEST_NW; ++j) {
+      m = s->act[j] * (s->q[j] + s->g[j]);  /* > 0: the cost falls into the box */
+      if (m > worst) {
+        worst = m;
+        block = j;
+      }
+    }
+    if (block < 0) break;
+    s->act[block] = 0;
+  }
+  memcpy(s->dx, s->p, sizeof s->p);
+  return LEARNEST_OK;
+}
+#endif
+
 /* The Gauss-Newton step dx at X (linearised in lin); *big = max |dx_j|. hess = 0: the step
  * from the gradient at X and the factor of the Hessian the last call built (at the previous
  * iterate; the Gauss-Newton Hessian moves with the Jacobians, so this step differs from X's own
@@ -348,15 +458,21 @@ LEARNEST_KIT_INLINE int learnest_gn_direction(struct learnest_gn* s, const struc
   } else
 #endif
   {
-    /* under state bounds the active set can change between iterates: every step factorises
-     * the Hessian with the active bounds held (a factor from another active set is not reused) */
+#if LEARNEST_BOUNDED
+    /* under state bounds every step solves its bounded quadratic program, from a Hessian of
+     * its own (a factor of another working set is not reused) */
+    (void)hess;
+    learnest_gn_build(s, w, X, 1);
+    j = learnest_gn_box_step(s, X);
+    if (j != LEARNEST_OK) return j;
+#else
     const int full = hess || LEARNEST_BOUNDED;
     learnest_gn_build(s, w, X, full);
-    learnest_box_hold(X, s->D, s->E, s->g);  /* state bounds: the active ones held */
     for (j = 0; j < LEARNEST_NW; ++j) s->dx[j] = -s->g[j];
     if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, full)) {
       return LEARNEST_NOT_POSITIVE_DEFINITE;
     }
+#endif
   }
   if (!learnest_all_finite(s->dx, LEARNEST_NW)) return LEARNEST_NONFINITE_RESULT;
   *big = 0;

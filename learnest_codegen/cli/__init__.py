@@ -15,7 +15,7 @@ import click
 
 from .common import USER_ERRORS as USER_ERRORS
 from .diagnose import diagnose
-from .estimation import compile_cmd, compile_standalone, estimate
+from .estimation import compile_cmd, estimate
 from .evaluation import evaluate
 from .experiments import demo, reproduce
 from .modelling import simulate, train
@@ -37,6 +37,6 @@ def main() -> None:
 
 
 def compile_main() -> None:
-    """Entry point of ``learnest-compile``."""
-    compile_standalone(prog_name="learnest-compile")
+    """Entry point of ``learnest-compile``: ``learnest compile`` under its own program name."""
+    compile_cmd(prog_name="learnest-compile")
 

@@ -12,7 +12,10 @@ import numpy as np
 from ..compilation import (
     DEFAULT_ESTIMATORS,
     PRECISION_NAMES,
+    check_crazyflie,
     check_horizon,
+    compile_estimators,
+    crazyflie_default,
     estimator_dir,
     estimator_kind,
     precision_problem,
@@ -20,7 +23,7 @@ from ..compilation import (
 from ..errors import LearnestError, SolverError
 from ..evaluation import mse, run_estimator
 from ..outputs import atomic_file, claim_output
-from ..pipeline import compile_model, expected_manifest, load_estimator, make_estimator, resolve
+from ..pipeline import expected_manifest, load_estimator, make_estimator, resolve
 from .common import (
     CLAMP_INPUTS,
     ESTIMATOR_HELP,
@@ -49,11 +52,12 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
     from ..codegen import crazyflie
 
     if target == "crazyflie":
-        estimators, precision = estimators or (crazyflie.DEFAULT_ESTIMATOR,), precision or crazyflie.PRECISION
+        estimators, precision = estimators or (crazyflie_default(),), precision or crazyflie.PRECISION
         if len(estimators) != 1:
             raise click.UsageError(f"--target crazyflie builds one estimator into the app, got "
                                    f"{list(estimators)}")
-        crazyflie.check_target(estimators[0], precision, None)
+        check_crazyflie(estimators[0])
+        crazyflie.check_target(precision, None)
     estimators, precision = estimators or tuple(DEFAULT_ESTIMATORS), precision or "float64"
     if precision_problem(estimators, precision):
         raise click.UsageError(precision_problem(estimators, precision))
@@ -68,7 +72,7 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
             raise click.UsageError("give MODEL_DIR, or --nominal for the prior-only estimators")
         model, system = model_dir, resolve_system(system_name, model_dir)
     if target == "crazyflie":
-        crazyflie.check_target(estimators[0], precision, system)
+        crazyflie.check_target(precision, system)
     resolved = resolve(model, system, clamp_inputs=None if nominal else clamp_inputs)
     inputs = (model_dir,) if model_dir else ()
     # a refused app leaves nothing new: the --out folders this command creates, or new estimator folders
@@ -80,8 +84,8 @@ def _compile(model_dir: str | None, out: str, system_name: str | None, nominal: 
         if target == "crazyflie":
             claim_output(Path(out) / crazyflie.app_name(folder.name), inputs=inputs, force=force, kind="dir")
             fresh += [] if folder.exists() or created else [folder]
-    results = compile_model(resolved, out, estimators, system=system, precision=precision, gate=gate,
-                            horizon=horizon)
+    results = compile_estimators(resolved.model, out, model_hash=resolved.hash, estimators=estimators,
+                                 precision=precision, gate=gate, horizon=horizon)
     if target == "crazyflie":  # refused before anything is reported, and nothing new left
         crazyflie.check_fits(next(iter(results.values())), undo=fresh)
     for name, res in results.items():
@@ -105,8 +109,8 @@ COMPILE_OPTIONS = [
                  help=SYSTEM_HELP + " (default: the one the model records; cartpole with --nominal)"),
     click.option("--nominal", is_flag=True, help="compile the prior-only (nominal) estimators"),
     click.option("--estimator", "estimators", multiple=True, type=EstimatorChoice(),
-                 help=ESTIMATOR_HELP + f" (default: {' and '.join(DEFAULT_ESTIMATORS)}; ukf with "
-                      "--target crazyflie)"),
+                 help=ESTIMATOR_HELP + f" (default: {' and '.join(DEFAULT_ESTIMATORS)}; "
+                      f"{crazyflie_default()} with --target crazyflie)"),
     click.option("--precision", type=click.Choice(PRECISION_NAMES), default=None,
                  help=PRECISION_HELP + " (default: float64; float32 with --target crazyflie)"),
     click.option("--target", type=click.Choice(["host", "crazyflie"]), default="host", show_default=True,
@@ -119,28 +123,25 @@ COMPILE_OPTIONS = [
 ]
 
 
-def _compile_command(name: str, **settings) -> click.Command:
-    """``learnest compile`` and the standalone ``learnest-compile``: one command, two names."""
-
-    def command(model_dir, out, system_name, nominal, estimators, precision, target, force, horizon,
-                clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
-        """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
-
-        Each estimator gets its own folder under --out, written whole or not at all; an existing
-        folder is replaced only with --force."""
-        _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
-                 gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
-                 clamp_inputs, target)
-
-    command = friendly(command)
+def _with_compile_options(command):
     for option in reversed(COMPILE_OPTIONS):
         command = option(command)
-    return click.command(name, **settings)(with_gate_options(command))
+    return command
 
 
-compile_cmd = _compile_command("compile")
-compile_standalone = _compile_command("learnest-compile",
-                                      context_settings={"help_option_names": ["-h", "--help"]})
+@click.command("compile", context_settings={"help_option_names": ["-h", "--help"]})
+@_with_compile_options
+@with_gate_options
+@friendly
+def compile_cmd(model_dir, out, system_name, nominal, estimators, precision, target, force, horizon,
+                clamp_inputs, gate_threshold, gate_recover_after, gate_inflation) -> None:
+    """Generate C for the estimators of a model (default: MHE with Ipopt, UKF) and build them.
+
+    Each estimator gets its own folder under --out, written whole or not at all; an existing
+    folder is replaced only with --force."""
+    _compile(model_dir, out, system_name, nominal, tuple(estimators), precision,
+             gate_settings(gate_threshold, gate_recover_after, gate_inflation), force, horizon,
+             clamp_inputs, target)
 
 
 #: Where ``estimate`` compiles an estimator it is not given (``--compiled``): beside the output.

@@ -38,11 +38,8 @@ from . import emit, templates
 from .mhe_gn import gn_workspace
 
 TEMPLATES = templates.TEMPLATES / "crazyflie"
-#: The estimators an app can run (no Ipopt, no heap), the one ``--target crazyflie`` builds when
-#: none is given (its workspace fits the firmware's free RAM; the MHE's at N = 20 does not:
-#: docs/guide/crazyflie.md), and the precision (the STM32F405's FPU is single precision).
-ESTIMATORS = ("ukf", "mhe_rti", "mhe_gn")
-DEFAULT_ESTIMATOR = "ukf"
+#: The precision of an app (the STM32F405's FPU is single precision). Which estimators an app
+#: runs is the estimator table's ``crazyflie`` field (``compilation.CRAZYFLIE_NAMES``).
 PRECISION = "float32"
 #: The stabilizer loop's rates a sample can be due at (the firmware's RATE_* of
 #: stabilizer_types.h, divisors of its 1 kHz loop).
@@ -110,13 +107,10 @@ def sample_rate_hz(dt: float) -> int:
                              f"(the stabilizer loop's rates); the model's dt {dt} s is {rate:g} Hz")
 
 
-def check_target(estimator: str, precision: str, system: System | None) -> dict[str, int]:
-    """The app's index macros for ``estimator`` in ``precision`` of ``system``, or why it cannot
+def check_target(precision: str, system: System | None) -> dict[str, int]:
+    """The app's index macros for an estimator in ``precision`` of ``system``, or why it cannot
     run on a Crazyflie (:class:`SettingsError`, :class:`ModelMismatchError`); with ``system``
-    None, only the estimator and the precision are checked."""
-    if estimator not in ESTIMATORS:
-        raise SettingsError(f"the crazyflie target runs {list(ESTIMATORS)} (no Ipopt, no heap), not "
-                            f"{estimator!r}; give --estimator ukf, mhe_rti or mhe_gn")
+    None, only the precision is checked (the estimator: ``compilation.check_crazyflie``)."""
     if precision != PRECISION:
         raise SettingsError(f"the crazyflie target needs {PRECISION} (the STM32F405's FPU is single "
                             f"precision), got {precision}; give --precision {PRECISION}")
@@ -143,8 +137,10 @@ def workspace_bytes(header: Path, prefix: str) -> int:
 def _horizon_bytes(estimator: GeneratedEstimator, horizon: int) -> int:
     """The workspace of ``estimator`` (an embedded MHE) at another ``horizon``: only the counts
     of :func:`~.mhe_gn.gn_workspace` change with it, CasADi's work arrays do not."""
+    bounded = estimator.settings.get("state_bounds") is not None
+
     def counts(n: int) -> int:
-        return emit.workspace_bytes(gn_workspace(estimator.nx, estimator.nu, estimator.ny, n),
+        return emit.workspace_bytes(gn_workspace(estimator.nx, estimator.nu, estimator.ny, n, bounded),
                                     estimator.precision)
 
     header = Path(estimator.directory) / f"{estimator.prefix}.h"
@@ -180,7 +176,7 @@ def write_app(estimator: GeneratedEstimator, system: System, out: str | Path) ->
     """Write the app folder of ``estimator`` (of ``system``) as ``out/<prefix>_crazyflie``,
     whole or not at all; returns it. Refused when it does not fit the firmware's RAM
     (:func:`check_fits`)."""
-    indices = check_target(estimator.estimator, estimator.precision, system)
+    indices = check_target(estimator.precision, system)
     workspace = check_fits(estimator)
     prefix, source = estimator.prefix, Path(estimator.directory)
     rate = sample_rate_hz(estimator.dt)

@@ -42,7 +42,7 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
     functions = model_functions(model, f"{prefix}_model")
     nx, ny, n = model.nx, model.ny, settings.horizon
     groups = state_groups(functions[0], functions[1], nx, ny)
-    counts = gn_workspace(nx, model.nu, ny, n)
+    counts = gn_workspace(nx, model.nu, ny, n, bounded=settings.state_bounds is not None)
     P = prefix.upper()
     design = Design(
         estimator=name,
@@ -103,15 +103,21 @@ def model_functions(model: DiscreteModel, name: str) -> tuple[cs.Function, ...]:
     )
 
 
-def gn_workspace(nx: int, nu: int, ny: int, n: int) -> dict[str, int]:
+def gn_workspace(nx: int, nu: int, ny: int, n: int, bounded: bool = False) -> dict[str, int]:
     """What the embedded MHE's handle holds at horizon ``n`` besides CasADi's work arrays (which
     do not depend on ``n``): :func:`~.mhe.mhe_workspace` and the Gauss-Newton's normal equations,
-    factors and steps."""
+    factors and steps; ``bounded``: also its bounded quadratic program's (a copy of the normal
+    equations, two window vectors and the working set, a byte a variable)."""
     gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
           + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
     counts = mhe_workspace(nx, nu, ny, n, solution=False)
-    return {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
-            "members": counts["members"] + 16}
+    out = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
+           "members": counts["members"] + 16}
+    if bounded:
+        out["reals"] += (2 * n + 1) * nx * nx + 2 * (n + 1) * nx
+        out["ints"] += -(-(n + 1) * nx // 4)
+        out["members"] += 5
+    return out
 
 
 def _with_jacobian(name: str, value: cs.SX, x: cs.SX, u: cs.SX, names: tuple[str, str]) -> cs.Function:

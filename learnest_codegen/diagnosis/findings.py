@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from ..compilation import ESTIMATORS
 from ..systems import System
 from .effects import DERIVED, Effect
 from .selection import EffectFit
@@ -99,7 +100,7 @@ def summary(report: dict) -> str:
     one = report["shrink"]["one_step"]
     lines.append(f"  held-out one-step gap {one['before']:.4g} -> {one['after']:.4g} noise units^2"
                  + (f" (closed {one['closed']:.1%})" if one.get("closed") is not None else ""))
-    for name in ("mhe", "ukf", "mhe_gn", "mhe_rti"):
+    for name in ESTIMATORS:
         if name in report["shrink"]:
             s = report["shrink"][name]
             lines.append(f"  {name.upper()} held-out MSE {s['before']:.4g} -> {s['after']:.4g}"

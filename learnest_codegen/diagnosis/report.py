@@ -23,6 +23,7 @@ matplotlib.use("Agg")  # files only
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..compilation import ESTIMATORS  # noqa: E402
 from .core import Diagnosis  # noqa: E402
 
 MODEL_COLOURS = {"prior": "0.55", "corrected": "tab:orange", "knode": "tab:blue", "true": "black"}
@@ -97,7 +98,7 @@ def plot_effects(d: Diagnosis, path: Path) -> Path:
 
 def plot_shrink(d: Diagnosis, path: Path) -> Path:
     shrink = d.report["shrink"]
-    panels = ["one_step"] + [k for k in ("mhe", "ukf") if k in shrink]
+    panels = ["one_step"] + [k for k in ESTIMATORS if k in shrink]
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.5), squeeze=False)
     for ax, key in zip(axes[0], panels):
         entry = shrink[key] if key != "one_step" else shrink[key]["rms_over_floor"]

@@ -57,6 +57,7 @@ import numpy as np
 
 from ..errors import SettingsError, ShapeError
 from ..runtime.limits import check_option
+from ..systems.base import check_bounds
 from .gate import GateSettings
 from .inputs import check_limits, plausible_inputs
 
@@ -145,7 +146,8 @@ class MHESettings:
         object.__setattr__(self, "gate", GateSettings.coerce(self.gate))
         object.__setattr__(self, "horizon", check_option("horizon", self.horizon, "MHESettings.horizon"))
         if self.state_bounds is not None:
-            object.__setattr__(self, "state_bounds", box(self.state_bounds, "MHESettings.state_bounds"))
+            object.__setattr__(self, "state_bounds",
+                               check_bounds(self.state_bounds, "MHESettings.state_bounds"))
         if self.arrival not in ARRIVALS:
             raise SettingsError(f"MHESettings.arrival must be one of {ARRIVALS}, got {self.arrival!r}")
         if self.input_limits is not None:
@@ -169,13 +171,15 @@ class MHESettings:
 
     @classmethod
     def from_system(cls, system: "System", **overrides) -> "MHESettings":
-        """Settings from ``system.noise`` (arrival std = ``initial_std``) and the system's
-        plausible inputs (:func:`~.inputs.plausible_inputs`), with ``overrides``. The
+        """Settings from ``system.noise`` (arrival std = ``initial_std``), the system's
+        plausible inputs (:func:`~.inputs.plausible_inputs`) and its state bounds (a parameter
+        estimated online included), with ``overrides``. The
         steady-state arrival covariance needs the model: it is filled in when an estimator is
         built (:func:`mhe_settings`)."""
         noise = system.noise
         defaults = {"process_std": noise.process_std, "measurement_std": noise.measurement_std,
-                    "arrival_std": noise.initial_std, "input_limits": plausible_inputs(system)}
+                    "arrival_std": noise.initial_std, "input_limits": plausible_inputs(system),
+                    "state_bounds": system.state_bounds}
         return cls(**{**defaults, **overrides})
 
     def check(self, nx: int, ny: int, where: str, nu: int | None = None) -> None:
@@ -246,22 +250,6 @@ class MHESettings:
         if "arrival" not in data:  # written before the field: a covariance was given, or not
             data["arrival"] = "arrival_std" if data.get("arrival_covariance") is None else "steady_state"
         return cls(**data)
-
-
-def box(pairs, where: str) -> tuple[tuple[float, float], ...]:
-    """``((lo, hi), ...)`` as floats (``None``: that side open, ``-inf``/``inf``), each with
-    ``lo < hi`` and no NaN; else :class:`SettingsError`."""
-    out = []
-    for pair in pairs:
-        if len(tuple(pair)) != 2:
-            raise SettingsError(f"{where}: each bound is a (lo, hi) pair, got {pair!r}")
-        lo, hi = pair
-        lo = -math.inf if lo is None else float(lo)
-        hi = math.inf if hi is None else float(hi)
-        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
-            raise SettingsError(f"{where}: need lo < hi in every (lo, hi) pair, got {pair!r}")
-        out.append((lo, hi))
-    return tuple(out)
 
 
 def mhe_settings(model: "DiscreteModel", settings: MHESettings | None = None,

@@ -45,7 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..compilation import ESTIMATOR_NAMES
+from ..compilation import ESTIMATOR_NAMES, ESTIMATORS
 from ..errors import LearnestError, SettingsError, UnknownNameError
 from ..export import DiscreteModel
 from ..learning.network import NetworkSettings
@@ -72,7 +72,6 @@ from .store import code_hash
 from .store import content_hash as _hash
 from .store import write_json as _write_json
 
-LABELS = {"mhe": "MHE", "ukf": "UKF", "mhe_gn": "MHE-GN", "mhe_rti": "MHE-RTI"}
 PAPER_IMPROVEMENT = {"KNODE-UKF": 26.6, "KNODE-MHE": 11.9}  # [%] of the median MSE
 DEFAULT_TRAIN = "B2_circle_medium_rep1"
 DEFAULT_MATRIX = ("B2_circle_slow_rep1", "B2_circle_fast_rep2", "B3_figure8_slow_rep1",
@@ -81,20 +80,20 @@ DEFAULT_MATRIX = ("B2_circle_slow_rep1", "B2_circle_fast_rep2", "B3_figure8_slow
 
 def methods(estimators: Sequence[str]) -> list[tuple[str, str, str]]:
     """``(label, estimator, kind)`` of the nominal and KNODE variant of each estimator."""
-    return [(f"{prefix}{LABELS[e]}", e, kind) for e in estimators
+    return [(f"{prefix}{ESTIMATORS[e].label}", e, kind) for e in estimators
             for prefix, kind in (("", "nominal"), ("KNODE-", "knode"))]
 
 
 def pairs(estimators: Sequence[str], tuned: bool = False) -> list[tuple[str, str]]:
     """``(KNODE label, nominal label)`` of each estimator; with ``tuned``, also each KNODE
     estimator against its nominal estimator tuned on the same training flights."""
-    out = [(f"KNODE-{LABELS[e]}", LABELS[e]) for e in estimators]
-    return out + [(f"KNODE-{LABELS[e]}", tuned_label(e)) for e in estimators if tuned]
+    out = [(f"KNODE-{ESTIMATORS[e].label}", ESTIMATORS[e].label) for e in estimators]
+    return out + [(f"KNODE-{ESTIMATORS[e].label}", tuned_label(e)) for e in estimators if tuned]
 
 
 def tuned_label(estimator: str) -> str:
     """The label of the nominal ``estimator`` with its noise tuned on the training flights."""
-    return f"{LABELS[estimator]} (tuned)"
+    return f"{ESTIMATORS[estimator].label} (tuned)"
 
 
 @dataclass(frozen=True)

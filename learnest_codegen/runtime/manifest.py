@@ -146,7 +146,7 @@ class GeneratedEstimator:
     Attributes
     ----------
     directory : the folder.
-    estimator : ``"ukf"``, ``"mhe"``, ``"mhe_gn"`` or ``"mhe_rti"``.
+    estimator : its name in the estimator table (``compilation.ESTIMATORS``).
     prefix : the prefix of every exported C symbol and file (``<prefix>.h``, ``<prefix>.c``).
     system, model_kind, system_fingerprint, model_hash : what the model is.
     nx, nu, ny, dt, horizon : sizes (horizon None for the UKF) and sampling period [s].

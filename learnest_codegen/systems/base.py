@@ -58,6 +58,22 @@ def check_input_limits(limits, nu: int, where: str) -> tuple[tuple[float, float]
     return pairs
 
 
+def check_bounds(pairs, where: str) -> tuple[tuple[float, float], ...]:
+    """``((lo, hi), ...)`` as floats (``None``: that side open, ``-inf``/``inf``), each with
+    ``lo < hi`` and no NaN; else :class:`SettingsError`."""
+    out = []
+    for pair in pairs:
+        if len(tuple(pair)) != 2:
+            raise SettingsError(f"{where}: each bound is a (lo, hi) pair, got {pair!r}")
+        lo, hi = pair
+        lo = -math.inf if lo is None else float(lo)
+        hi = math.inf if hi is None else float(hi)
+        if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+            raise SettingsError(f"{where}: need lo < hi in every (lo, hi) pair, got {pair!r}")
+        out.append((lo, hi))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class Signal:
     """A named scalar signal with its unit, e.g. ``Signal("p", "m", "cart position")``.
@@ -171,7 +187,10 @@ class System:
     ``diagnosis`` gives ``learnest diagnose`` what it cannot infer from names.
     ``input_limits`` (optional, one ``(lo, hi)`` per input, in the inputs' units) is the
     plausible range of ``u``: the estimators replace an input outside it by the last plausible
-    one (``estimators/inputs.py``).
+    one (``estimators/inputs.py``). ``state_bounds`` (optional, one ``(lo, hi)`` per state,
+    ``None`` an open side) is a box the MHEs keep every state of their window in (the default
+    of ``MHESettings.state_bounds``); a parameter estimated online declares its own
+    (``systems/params.py``).
     """
 
     name: str
@@ -196,6 +215,7 @@ class System:
     diagnosis: DiagnosisHints = field(default_factory=DiagnosisHints)
     description: str = ""
     input_limits: tuple[tuple[float, float], ...] | None = None
+    state_bounds: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not SYSTEM_NAME_PATTERN.fullmatch(self.name):
@@ -221,6 +241,12 @@ class System:
         if self.input_limits is not None:
             object.__setattr__(self, "input_limits",
                                check_input_limits(self.input_limits, self.nu, f"system {self.name!r}"))
+        if self.state_bounds is not None:
+            bounds = check_bounds(self.state_bounds, f"system {self.name!r}: state_bounds")
+            if len(bounds) != self.nx:
+                raise ShapeError(f"system {self.name!r}: state_bounds needs {self.nx} (lo, hi) pairs, "
+                                 f"got {len(bounds)}")
+            object.__setattr__(self, "state_bounds", bounds)
         if not self.dt > 0 or not self.duration > self.dt:
             raise SettingsError(f"system {self.name!r}: need 0 < dt < duration, got {self.dt}, "
                                 f"{self.duration}")

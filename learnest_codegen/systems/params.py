@@ -9,10 +9,14 @@ unmeasured state, in Python and in C. A system file declares it as its ``SYSTEM`
     from learnest_codegen.systems.cartpole import CARTPOLE
     from learnest_codegen.systems.params import Estimated, estimate_params
 
-    SYSTEM = estimate_params(CARTPOLE, {"m_c": Estimated(initial_std=0.3, drift_std=2e-4)})
+    SYSTEM = estimate_params(CARTPOLE, {"m_c": Estimated(initial_std=0.3, drift_std=2e-4,
+                                                         bounds=(0.5, 3.0))})
 
-For simulated data the true parameter may drift (``Estimated.true_rate``, units per second):
-the simulation then integrates it from the system's ``x0`` (the parameter's prior value).
+``bounds`` (optional, ``(lo, hi)``, ``None`` an open side) is the parameter's box: the MHEs keep
+its state inside it (it joins the system's ``state_bounds``, the default of every MHE's
+``MHESettings.state_bounds``), in Python and in C, in both precisions. For simulated data the
+true parameter may drift (``Estimated.true_rate``, units per second): the simulation then
+integrates it from the system's ``x0`` (the parameter's prior value).
 """
 
 from __future__ import annotations
@@ -28,13 +32,14 @@ from .base import Signal, System
 @dataclass(frozen=True)
 class Estimated:
     """How a parameter is estimated: ``initial_std`` of its prior value, ``drift_std`` of its
-    random walk per sample, and (simulation only) ``true_rate``, the true parameter's drift per
-    second."""
+    random walk per sample, (simulation only) ``true_rate``, the true parameter's drift per
+    second, and ``bounds``, the ``(lo, hi)`` the MHEs keep it in (``None``: unbounded)."""
 
     initial_std: float
     drift_std: float
     true_rate: float = 0.0
     unit: str = ""
+    bounds: tuple[float | None, float | None] | None = None
 
     def __post_init__(self) -> None:
         if not (self.initial_std > 0 and self.drift_std > 0):
@@ -80,4 +85,14 @@ def estimate_params(system: System, estimated: Mapping[str, Estimated], *,
         noise=dataclasses.replace(noise, process_std=extend(noise.process_std, "drift_std"),
                                   state_std=extend(noise.state_std, "drift_std"),
                                   initial_std=extend(noise.initial_std, "initial_std")),
-        x0=(*system.x0, *(float(system.params[p]) for p in names)))
+        x0=(*system.x0, *(float(system.params[p]) for p in names)),
+        state_bounds=_bounds(system, specs))
+
+
+def _bounds(system: System, specs) -> tuple | None:
+    """The augmented system's state bounds: the system's own (open where it has none), then
+    each parameter's; ``None`` when nothing is bounded."""
+    if system.state_bounds is None and all(s.bounds is None for s in specs):
+        return None
+    own = system.state_bounds or ((None, None),) * system.nx
+    return (*own, *(s.bounds or (None, None) for s in specs))
