@@ -58,8 +58,9 @@ def test_pendulum_rig_on_one_run(late_ms):
     """The rig's twin on a single swing-up (the default with one recording: its last 30 % held
     out), its torque on time or 2 ms (a third of a sample) late: J, mgl and the Coulomb friction
     within 20 %, the delay within 1 ms when there is one, none when there is none, nothing else.
-    The delay's held-out gain is uneven over the folds (it is seen where the torque switches), so
-    it enters on its whole-run Wald statistic."""
+    The delay's held-out gain is uneven over the folds (it is seen where the torque switches) and
+    below a pure-noise sum of squares' spread, so it enters on its whole-run Wald statistic by
+    generalised least squares."""
     (case,) = [c for c in CASES if c.system == "pendulum_rig" and f"{late_ms:g} ms late, 1 swing-up "
                in c.label]
     row = run_case(case, QUICK_SETTINGS)
