@@ -58,8 +58,9 @@ def test_pendulum_rig_on_one_run(late_ms):
     """The rig's twin on a single swing-up (the default with one recording: its last 30 % held
     out), its torque on time or 2 ms (a third of a sample) late: J, mgl and the Coulomb friction
     within 20 %, the delay within 1 ms when there is one, none when there is none, nothing else.
-    The delay's held-out gain is uneven over the folds (it is seen where the torque switches), so
-    it enters on its whole-run Wald statistic."""
+    The delay's held-out gain is uneven over the folds (it is seen where the torque switches) and
+    below a pure-noise sum of squares' spread, so it enters on its whole-run Wald statistic by
+    generalised least squares."""
     (case,) = [c for c in CASES if c.system == "pendulum_rig" and f"{late_ms:g} ms late, 1 swing-up "
                in c.label]
     row = run_case(case, QUICK_SETTINGS)
@@ -123,6 +124,62 @@ def test_white_floor_of_white_noise():
     rng = np.random.default_rng(1)
     r = rng.normal(0, 0.3, size=(20000, 2)) + np.linspace(0, 5, 20000)[:, None]  # plus a slow drift
     np.testing.assert_allclose(white_floor(r), 0.3, rtol=0.05)
+
+
+def _smoothed_noise(rng, n: int) -> np.ndarray:
+    """AR(2) noise correlated over tens of samples, like the one-step residual of smoothed states."""
+    w, x = rng.normal(size=n + 200), np.zeros(n + 200)
+    for k in range(2, n + 200):
+        x[k] = 1.6 * x[k - 1] - 0.65 * x[k - 2] + w[k]
+    return x[200:] / x[200:].std()
+
+
+def test_ar_fit_recovers_the_coefficients():
+    """Akaike's order and least-squares coefficients of an AR(2): within 4 standard errors
+    (``sqrt((1 - a2^2) / n)``, 0.006 at n = 20000), and nothing of weight on white noise."""
+    from learnest_codegen.diagnosis.search import _ar_fit
+
+    rng = np.random.default_rng(3)
+    n, w = 20000, rng.normal(size=20200)
+    x = np.zeros_like(w)
+    for k in range(2, len(w)):
+        x[k] = 1.2 * x[k - 1] - 0.5 * x[k - 2] + w[k]
+    a = _ar_fit(x[200:], 12)
+    se = np.sqrt((1 - 0.5 ** 2) / n)
+    assert len(a) >= 2 and np.abs(a[:2] - [1.2, -0.5]).max() < 4 * se
+    assert np.abs(a[2:]).max(initial=0) < 4 * se
+    assert np.abs(_ar_fit(rng.normal(size=n), 12)).max(initial=0) < 4 / np.sqrt(n)
+
+
+def test_whitened_wald_is_calibrated_and_sharper():
+    """The Wald statistic of an effect seen only at a few sharp events (a late input step), on a
+    residual correlated over tens of samples: without the effect, over 300 draws, it is a
+    standard normal (mean within 4 of the draws' own scatter, 0.06; standard deviation within
+    4 x 0.04 of 1) and never reaches the entry's ``z_min``; with it, whitening raises the
+    statistic several fold over plain least squares."""
+    from learnest_codegen.diagnosis.cv import FitData
+    from learnest_codegen.diagnosis.fit import FitSettings
+    from learnest_codegen.diagnosis.search import wald
+
+    rng = np.random.default_rng(0)
+    n, s = 1500, FitSettings()
+    t = np.arange(n) * 0.006
+    smooth = np.sin(2 * np.pi * 0.5 * t)
+    events = np.zeros(n)
+    events[rng.choice(n, 40, replace=False)] = rng.choice([-1.0, 1.0], 40)
+    Phi = np.stack([smooth, events], axis=1)[:, None, :]
+
+    def z(coef: float, order: int) -> float:
+        R = (coef * events + _smoothed_noise(rng, n))[:, None]
+        data = FitData(R, Phi, np.ones(1), np.zeros(2))
+        return wald(data, [0, 1], np.zeros(2), np.array([0.0, 1.0]), s.blocks, order)
+
+    null = np.array([z(0.0, s.whiten_order) for _ in range(300)])
+    assert abs(null.mean()) < 4 * 0.06 and 1 - 4 * 0.04 < null.std() < 1 + 4 * 0.04
+    assert null.max() < s.z_min
+    plain = np.mean([z(0.3, 0) for _ in range(50)])
+    whitened = np.mean([z(0.3, s.whiten_order) for _ in range(50)])
+    assert plain < s.z_min < whitened and whitened > 3 * plain
 
 
 def test_cli_diagnose_end_to_end(tmp_path):
@@ -209,6 +266,19 @@ def test_pendulum_rig_every_delay(key):
     through the observer: J, mgl and Coulomb within 20 %, the delay within 1 ms from 2 ms on, nothing else."""
     (case,) = select_cases([key])
     assert run_case(case, QUICK_SETTINGS)["pass"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("late_ms", [0.0, 2.0])
+@pytest.mark.parametrize("seed", range(2, 9))
+def test_pendulum_rig_on_other_swingups(late_ms, seed):
+    """The rig's twin on one swing-up, on time or 2 ms late, on the swing-ups of seeds 2-8 (the
+    self-test's is seed 1): right on each, the delay named within 1 ms when there is one and none
+    when there is none."""
+    (case,) = [c for c in CASES if c.system == "pendulum_rig" and f"{late_ms:g} ms late, 1 swing-up "
+               in c.label]
+    row = run_case(case, QUICK_SETTINGS, seed=seed)
+    assert row["pass"], row
 
 
 @pytest.mark.slow

@@ -29,9 +29,13 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
   filter run backwards in time, an advance): a smoother blurs an input's steps symmetrically in
   time, which a delay bounded to be >= 0 would otherwise half fit;
 * a delay or a lag is seen only where its input changes, so its held-out gain is uneven over the
-  folds by nature: for these, the whole data's Wald statistic (:func:`wald`) above ``z_min`` also
-  counts as consistent over folds, and the Wald statistic of the filter minus its mirror fitted
-  with it as significantly better than the mirror;
+  folds and small against a pure-noise sum of squares by nature: for these, once what is left is
+  within the floor's size, the whole data's Wald statistic (:func:`wald`, by generalised least
+  squares) above ``z_min`` stands for the fold consistency and the gain thresholds (held out it
+  must still fit no worse than the spread of a pure-noise sum of squares), and the Wald statistic
+  of the filter minus its mirror fitted with it for significantly better than the mirror; a
+  chosen filter keeps its place on the same statistic; every filter of the library is tested at
+  each step, whatever its held-out rank;
 * **jointly** (small subsets): when no candidate passes alone, or a pair fits significantly
   better than the best single one, two candidates enter together, each passing the tests
   against the other alone;
@@ -125,22 +129,106 @@ def sandwich(P: np.ndarray, e: np.ndarray, G: np.ndarray, label: np.ndarray) -> 
     return inv @ (scores.T @ scores) @ inv * n_b / max(n_b - 1, 1)
 
 
-def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blocks: int) -> float:
+def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blocks: int,
+         order: int = 0) -> float:
     """The Wald statistic of ``weights' theta`` over the columns ``idx``: ``theta`` the parameters
-    (``at`` at the data's linearisation plus the step fitted with all of them, bounded), its
-    standard error from :func:`sandwich` on ``blocks`` contiguous stretches of the whole data.
+    (``at`` at the data's linearisation plus the step fitted with all of them, bounded).
 
     It weighs the evidence for a parameter where it lies: a sub-sample input delay is seen only
     where the input changes (a swing-up's torque switches a few times a swing), so its held-out
     gain is large in a few folds and nil in the others, and a t statistic over the folds' gains
-    counts that unevenness of excitation as inconsistency; the standard error counts only the
-    residual's own (correlated) scatter."""
+    counts that unevenness of excitation as inconsistency.
+
+    With ``order`` > 0 (the selection's default) the fit is generalised least squares: features
+    and residual whitened by the residual's own autoregression (:func:`whiten`), the standard
+    error from :func:`newey_west` on the whitened rows. The one-step residual of a smoothing
+    observer's states is correlated over many samples; plain least squares weighs every sample
+    alike, so an effect seen in a few sharp events (a late torque step) is judged against a slow
+    scatter it does not share, and whitened the same data fix it several times more precisely.
+    With ``order`` 0: plain least squares, the standard error from :func:`sandwich` on ``blocks``
+    contiguous stretches."""
     P, R = data.Phi[:, :, idx], data.R
     G = np.einsum("ksi,ksj->ij", P, P)
     step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[idx], data.hi[idx])
-    e = R - np.einsum("ksi,i->ks", P, step)
-    cov = sandwich(P, e, G, _fold_labels(len(R), min(blocks, len(R))))
+    if order > 0:
+        P, R, runs = whiten(P, R, R - np.einsum("ksi,i->ks", P, step), data.runs, order)
+        G = np.einsum("ksi,ksj->ij", P, P)
+        step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[idx], data.hi[idx])
+        cov = newey_west(P, R - np.einsum("ksi,i->ks", P, step), G, runs)
+    else:
+        e = R - np.einsum("ksi,i->ks", P, step)
+        cov = sandwich(P, e, G, _fold_labels(len(R), min(blocks, len(R))))
     return float(weights @ (at + step) / max(np.sqrt(max(weights @ cov @ weights, 0.0)), 1e-300))
+
+
+def newey_west(P: np.ndarray, e: np.ndarray, G: np.ndarray, runs: np.ndarray) -> np.ndarray:
+    """The covariance of a least-squares step on features ``P (N, S, m)`` with a residual ``e (N,
+    S)`` that is nearly white (after :func:`whiten`): ``G^-1 Omega G^-1``, ``Omega`` the
+    Newey-West sum of the per-row scores' autocovariances within each run, Bartlett weights up to
+    ``floor(4 (n / 100)^(2/9))`` lags (their rule of thumb). It keeps what whitening leaves
+    (a residual whose size changes along the run, a short correlation) while its tails stay
+    close to the normal's: a sandwich over a few blocks is dominated, where the feature is
+    nonzero only at a few instants, by the blocks that hold one."""
+    scores = np.einsum("ksi,ks->ki", P, e)
+    omega = np.zeros((P.shape[2], P.shape[2]))
+    for run in np.unique(runs):
+        sc = scores[runs == run]
+        omega += sc.T @ sc
+        width = int(4 * (len(sc) / 100) ** (2 / 9))
+        for lag in range(1, width + 1):
+            c = sc[lag:].T @ sc[:-lag]
+            omega += (1 - lag / (width + 1)) * (c + c.T)
+    inv = np.linalg.pinv(G)
+    return inv @ omega @ inv
+
+
+def whiten(P: np.ndarray, R: np.ndarray, e: np.ndarray, runs: np.ndarray | None,
+           order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features ``P (N, S, m)`` and residual ``R (N, S)`` filtered by the autoregressive
+    polynomial of the residual ``e (N, S)``, and the run of each row kept: per run and residual
+    state, an AR(p) fitted to ``e`` by least squares, ``p <= order`` chosen by Akaike's
+    criterion, and ``x_k - sum_i a_i x_{k-1-i}`` applied to every column (the first ``order``
+    rows of each run dropped; a run too short to fit is left out). A white residual gives
+    ``a ~ 0``: the data unchanged."""
+    runs = np.zeros(len(R), int) if runs is None else np.asarray(runs)
+    keep_P, keep_R, keep_run = [], [], []
+    for run in np.unique(runs):
+        rows = np.flatnonzero(runs == run)
+        n = len(rows)
+        if n <= 4 * order + 2:
+            continue
+        Pr, Rr = np.empty((n - order,) + P.shape[1:]), np.empty((n - order, R.shape[1]))
+        for s in range(R.shape[1]):
+            a = _ar_fit(e[rows, s], order)
+            lag = [rows[order - i - 1:n - i - 1] for i in range(len(a))]
+            Pr[:, s] = P[rows[order:], s] - sum(a[i] * P[lag[i], s] for i in range(len(a)))
+            Rr[:, s] = R[rows[order:], s] - sum(a[i] * R[lag[i], s] for i in range(len(a)))
+        keep_P.append(Pr)
+        keep_R.append(Rr)
+        keep_run.append(np.full(n - order, run))
+    if not keep_R:
+        return P, R, runs
+    return np.concatenate(keep_P), np.concatenate(keep_R), np.concatenate(keep_run)
+
+
+def _ar_fit(x: np.ndarray, order: int) -> np.ndarray:
+    """The coefficients ``a (p,)`` of the AR(p) least-squares fit ``x_k ~ sum_i a_i x_{k-1-i}``,
+    ``0 <= p <= order`` by Akaike's criterion (every order fitted on the same samples, from one
+    normal matrix)."""
+    n = len(x)
+    lags = np.stack([x[order - i - 1:n - i - 1] for i in range(order)], axis=1)
+    y = x[order:]
+    G, g, yy = lags.T @ lags, lags.T @ y, float(y @ y)
+    best, coef = len(y) * np.log(max(yy / len(y), 1e-300)), np.zeros(0)
+    for p in range(1, order + 1):
+        try:
+            a = np.linalg.solve(G[:p, :p], g[:p])
+        except np.linalg.LinAlgError:
+            break
+        aic = len(y) * np.log(max((yy - float(a @ g[:p])) / len(y), 1e-300)) + 2 * p
+        if aic < best:
+            best, coef = aic, a
+    return coef
 
 
 def consistent(values: np.ndarray, pooled: float, se: np.ndarray | None = None, z: float = 3.0,
@@ -250,24 +338,30 @@ class Search:
                 "share_of_prior_gap": gain / self.first.gap,
                 "size": size, "size_needed": need, "start": start}
         # a filter (a delay, a lag) is seen where the input changes: its evidence is the whole
-        # data's Wald statistic when the folds' gains are too uneven for their t statistic
-        z = (self._filter_wald(base_cols, j, start) if single and self.effects[j].is_filter
-             and t_stat <= s.t_min and gain > need_gain and size > need else None)
+        # data's Wald statistic (generalised least squares) when the folds' gains are too uneven
+        # for their t statistic or too small against a pure-noise sum of squares
+        # (only once the rest is within the floor's size: the statistic's null is a model right
+        # but for this effect; against a large gap left by others it measures their misfit too);
+        # held out it must then fit no worse than the spread of a pure-noise sum of squares
+        filt = single and self.effects[j].is_filter
+        z = (self._filter_wald(base_cols, j, start) if filt and (t_stat <= s.t_min or gain <= need_gain)
+             and gain > -self._noise(data) and size > need and remaining <= data.floor else None)
         step["z"] = None if z is None else z[0]
-        reasons = [why for ok, why in ((t_stat > s.t_min or (z is not None and z[0] > s.z_min),
-                                        "not consistent across folds"),
-                                       (gain > need_gain, "explains too little of the gap"),
+        significant = z is not None and z[0] > s.z_min
+        enough = gain > need_gain or significant
+        reasons = [why for ok, why in ((t_stat > s.t_min or significant, "not consistent across folds"),
+                                       (enough, "explains too little of the gap"),
                                        (size > need, "below the noise / observer-artefact level"))
                    if not ok]
-        if not reasons and single and self.effects[j].is_filter:
+        if not reasons and filt:
             G, b, c = grams(data, settings=s)
             mirrored = self._trial(G, b, c, base_cols, j, data, mirror=True)[0]
             edge = mirrored - trial
             step["gain_over_mirror"] = float(edge.sum())
             if z is not None:
                 step["z_over_mirror"] = z[1]
-            if edge.sum() <= need_gain or (_t(_rel(edge, mirrored)) <= s.t_min
-                                            and (z is None or not z[1] > s.z_min)):
+            if not ((edge.sum() > need_gain and _t(_rel(edge, mirrored)) > s.t_min)
+                    or (z is not None and z[1] > s.z_min and edge.sum() > -self._noise(data))):
                 reasons.append("no better than its time mirror (a smoother's blur, not a lag)")
         if not reasons and src.runs is not None and len(np.unique(src.runs)) >= 2:
             theta_idx = np.concatenate([self.theta[base_cols], [start] if local is not None
@@ -296,9 +390,9 @@ class Search:
                        np.append(fwd.lo, back.lo[-1]), np.append(fwd.hi, back.hi[-1]), fwd.runs)
         alone, against = np.zeros(k + 1), np.zeros(k + 2)
         alone[k], against[k], against[k + 1] = 1.0, 1.0, -1.0
-        blocks = self.settings.blocks
-        return (wald(fwd, list(range(k + 1)), at, alone, blocks),
-                wald(both, list(range(k + 2)), np.append(at, 0.0), against, blocks))
+        blocks, order = self.settings.blocks, self.settings.whiten_order
+        return (wald(fwd, list(range(k + 1)), at, alone, blocks, order),
+                wald(both, list(range(k + 2)), np.append(at, 0.0), against, blocks, order))
 
     def candidates(self, exclude=()) -> dict:
         """The next candidate: of the ``scan`` best by held-out SSE, the first that passes the tests;
@@ -314,7 +408,10 @@ class Search:
         if not trials:
             return {"accept": False, "index": None, "reason": "library exhausted"}
         ranked = sorted(trials, key=lambda k: trials[k][0].sum())
-        steps = [self.test(data, list(self.chosen), j, base, *trials[j]) for j in ranked[:self.settings.scan]]
+        # a filter's evidence is its Wald statistic, not its held-out rank: every filter is tested
+        scan = self.settings.scan
+        scanned = ranked[:scan] + [j for j in ranked[scan:] if self.effects[j].is_filter]
+        steps = [self.test(data, list(self.chosen), j, base, *trials[j]) for j in scanned]
         for st in steps:
             if st["reason"] == "not the same on every run":
                 self.blocked[st["index"]] = st
@@ -423,19 +520,31 @@ class Search:
                 remaining = max(float((full + loss).sum()) - data.floor, 0.0)
                 need = max(self.settings.min_gain * remaining, self._noise(data),
                            self._share(remaining, data))
-                costs[j] = (float(loss.sum()), need, _t(_rel(loss, full + loss)))
+                costs[j] = (float(loss.sum()), need, _t(_rel(loss, full + loss)), remaining)
             if not costs:
                 break
             j = min(costs, key=lambda k: costs[k][0] / max(costs[k][1], 1e-300))
-            loss, need, t_stat = costs[j]
+            loss, need, t_stat, remaining = costs[j]
             if t_stat > self.settings.t_drop and loss > need:
                 break
+            if self.effects[j].is_filter and loss > -self._noise(data) and remaining <= data.floor \
+                    and self._chosen_wald(j) > self.settings.z_min:
+                break  # a filter keeps its place on its whole-data Wald statistic, as it entered
             theta = self.theta.copy()
             theta[j] = 0.0
             self._apply([i for i in self.chosen if i != j], theta, new=False)
             self.dropped.append({"index": j, "loss": loss, "needed": need, "t": t_stat})
             moved = True
         return moved
+
+    def _chosen_wald(self, j: int) -> float:
+        """The Wald statistic (:func:`wald`, whitened) of the chosen filter ``j`` with the other
+        chosen effects, at the current parameters."""
+        cols = list(self.chosen)
+        weights = np.zeros(len(cols))
+        weights[cols.index(j)] = 1.0
+        s = self.settings
+        return wald(self.data, cols, self.theta[cols], weights, s.blocks, s.whiten_order)
 
     def at_edge(self, j: int, share: float = 0.05) -> bool:
         """Whether ``j``'s parameter sits within ``share`` of a finite, non-zero edge of its range

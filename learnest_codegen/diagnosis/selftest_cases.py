@@ -129,20 +129,41 @@ def _pendulum_expect(friction: float) -> tuple[tuple[str, float], ...]:
             ("coulomb_friction(qdot via tau)", friction))
 
 
+# Cases that each inject one library effect: system, label, effect name, value.
+_ALONE = """
+cartpole | cart viscous 0.5 N s/m | viscous_friction(pdot via F) | 0.5
+cartpole | cart viscous 2 N s/m | viscous_friction(pdot via F) | 2.0
+cartpole | cart Coulomb 0.3 N | coulomb_friction(pdot via F) | 0.3
+cartpole | cart Coulomb 1 N | coulomb_friction(pdot via F) | 1.0
+cartpole | cart drag 1 N s^2/m^2 | quadratic_drag(pdot via F) | 1.0
+cartpole | pole damping 0.2 1/s | viscous_friction(alphadot) | 0.2
+cartpole | force gain -20 % | actuator_gain(pdot via F) | -0.2
+cartpole | force gain +10 % | actuator_gain(pdot via F) | 0.1
+cartpole | force offset 0.3 N | actuator_offset(pdot via F) | 0.3
+ground_robot | drag k 0.01 1/m | quadratic_drag(v) | 0.01
+ground_robot | rolling resistance 0.05 1/s | viscous_friction(v) | 0.05
+ground_robot | rolling resistance 0.2 1/s | viscous_friction(v) | 0.2
+ground_robot | Coulomb 0.1 m/s^2 | coulomb_friction(v) | 0.1
+ground_robot | Coulomb 0.3 m/s^2 | coulomb_friction(v) | 0.3
+ground_robot | throttle gain -10 % | actuator_gain(v via a) | -0.1
+ground_robot | steering gain -10 % | actuator_gain(psi via delta) | -0.1
+ground_robot | steering offset 0.02 rad | actuator_offset(psi via delta) | 0.02
+ground_robot | yaw-rate bias 0.05 rad/s | bias(psi) | 0.05
+"""
+
+
+def _alone(system: str) -> tuple[Case, ...]:
+    """The cases of ``system`` in :data:`_ALONE`."""
+    rows = [line.split(" | ") for line in _ALONE.strip().splitlines()]
+    return tuple(Case(s, label, ((name, float(value)),)) for s, label, name, value in rows if s == system)
+
+
 CASES: tuple[Case, ...] = (
     Case("cartpole", "exact prior", expect="no gap"),
     Case("cartpole", "cart mass +0.25 kg", (("mass(pdot via m_c)", 0.25),)),
     Case("cartpole", "cart mass +0.5 kg (built-in)", true_params=(("m_c", 1.5),),
          expect_names=(("mass(pdot via m_c)", 0.5),)),
-    Case("cartpole", "cart viscous 0.5 N s/m", (("viscous_friction(pdot via F)", 0.5),)),
-    Case("cartpole", "cart viscous 2 N s/m", (("viscous_friction(pdot via F)", 2.0),)),
-    Case("cartpole", "cart Coulomb 0.3 N", (("coulomb_friction(pdot via F)", 0.3),)),
-    Case("cartpole", "cart Coulomb 1 N", (("coulomb_friction(pdot via F)", 1.0),)),
-    Case("cartpole", "cart drag 1 N s^2/m^2", (("quadratic_drag(pdot via F)", 1.0),)),
-    Case("cartpole", "pole damping 0.2 1/s", (("viscous_friction(alphadot)", 0.2),)),
-    Case("cartpole", "force gain -20 %", (("actuator_gain(pdot via F)", -0.2),)),
-    Case("cartpole", "force gain +10 %", (("actuator_gain(pdot via F)", 0.1),)),
-    Case("cartpole", "force offset 0.3 N", (("actuator_offset(pdot via F)", 0.3),)),
+    *_alone("cartpole"),
     Case("cartpole", "mass +0.5 kg & viscous 1 N s/m",
          (("mass(pdot via m_c)", 0.5), ("viscous_friction(pdot via F)", 1.0))),
     Case("cartpole", "gain -20 % & Coulomb 0.5 N",
@@ -154,15 +175,7 @@ CASES: tuple[Case, ...] = (
     Case("ground_robot", "exact prior", expect="no gap"),
     Case("ground_robot", "drag C_D 1.05 (built-in)", true_params=(("C_D", 1.05),),
          expect_names=(("quadratic_drag(v)", _K_DRAG),)),
-    Case("ground_robot", "drag k 0.01 1/m", (("quadratic_drag(v)", 0.01),)),
-    Case("ground_robot", "rolling resistance 0.05 1/s", (("viscous_friction(v)", 0.05),)),
-    Case("ground_robot", "rolling resistance 0.2 1/s", (("viscous_friction(v)", 0.2),)),
-    Case("ground_robot", "Coulomb 0.1 m/s^2", (("coulomb_friction(v)", 0.1),)),
-    Case("ground_robot", "Coulomb 0.3 m/s^2", (("coulomb_friction(v)", 0.3),)),
-    Case("ground_robot", "throttle gain -10 %", (("actuator_gain(v via a)", -0.1),)),
-    Case("ground_robot", "steering gain -10 %", (("actuator_gain(psi via delta)", -0.1),)),
-    Case("ground_robot", "steering offset 0.02 rad", (("actuator_offset(psi via delta)", 0.02),)),
-    Case("ground_robot", "yaw-rate bias 0.05 rad/s", (("bias(psi)", 0.05),)),
+    *_alone("ground_robot"),
     Case("ground_robot", "drag 0.02 1/m & Coulomb 0.2 m/s^2",
          (("quadratic_drag(v)", 0.02), ("coulomb_friction(v)", 0.2))),
     Case("ground_robot", "steering gain -10 % & throttle offset 0.2 m/s^2",

@@ -32,11 +32,16 @@ def _dynamics(ops, x, u, p):
     return [qdot, (u[0] - p["mgl"] * ops.sin(q)) / p["J"]]
 
 
+def multisine(t: np.ndarray, rng: np.random.Generator, freqs, amps) -> np.ndarray:
+    """``(T, 1)``: a sum of sines of amplitudes ``amps`` at the frequencies ``freqs`` [Hz], each
+    frequency scaled by a draw in [0.9, 1.1] and each phase drawn, per run."""
+    freqs = np.asarray(freqs, float) * rng.uniform(0.9, 1.1, len(freqs))
+    phases = rng.uniform(0, 2 * np.pi, len(freqs))
+    return np.sum(np.asarray(amps, float) * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+
+
 def _excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    freqs = np.array([0.25, 0.6, 1.1, 2.3]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
-    amps = np.array([0.9, 0.7, 0.5, 0.4])  # [N m]
-    phases = rng.uniform(0, 2 * np.pi, 4)
-    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+    return multisine(t, rng, (0.25, 0.6, 1.1, 2.3), (0.9, 0.7, 0.5, 0.4))  # [Hz], [N m]
 
 
 def pendulum(friction: float = PENDULUM_FRICTION) -> System:
@@ -72,37 +77,39 @@ SWINGUP_FRICTION = 0.2  # Coulomb friction of the real joint [N m]
 SWINGUP_TORQUE = 0.8  # the motor's torque limit [N m], half the gravity torque: it must pump
 
 
-def _swingup(system: System):
-    """The energy-pumping swing-up of a torque-limited motor, in closed loop on the true pendulum.
+def _pumping(system: System, truth: dict, limit: float, dither: float, delay: float = 0.0):
+    """The excitation of an energy-pumping swing-up, closed on the true pendulum (parameters
+    ``truth``) with its torque applied ``delay`` [s] late (:func:`late_step`):
 
-    ``tau = clip(k (E_ref - E) qdot + d(t), +-0.8 N m)`` with ``E = J qdot^2 / 2 + mgl (1 - cos q)``:
+    ``tau = clip(k (E_ref - E) qdot + d(t), +-limit)`` with ``E = J qdot^2 / 2 + mgl (1 - cos q)``:
     the torque pushes along the motion while the energy is below its target and brakes above it;
-    the target moves every 3 s between 50 % and 95 % of the energy at the top, and a small
-    multisine ``d`` dithers it. ``k`` is drawn per run (10-20), so the torque saturates in the
-    pumping phases and correlates with ``sign(qdot)`` by about +0.5-0.65: a gain on the torque and
-    a Coulomb friction nearly alias. The loop is simulated with the true pendulum at the
-    simulation's own accuracy, so replaying the torque open loop (what :func:`simulate` does)
-    flies the same swing-up.
-    """
-    from ..simulation import integrate_interval
-
+    the target moves every 3 s between 50 % and 95 % of the energy at the top, ``k`` is drawn per
+    run (10-20) and ``d`` is a three-tone multisine of ``dither`` N m per tone. The loop is
+    simulated at the simulation's own accuracy, so replaying the torque open loop flies the same
+    swing-up."""
     def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         dt = float(t[1] - t[0])
         k = rng.uniform(10.0, 20.0)
-        top = 2.0 * SWINGUP_TRUE["mgl"]
+        top = 2.0 * truth["mgl"]
         targets = rng.uniform(0.5, 0.95, size=int(t[-1] / 3.0) + 2) * top
         freqs, phases = np.array([0.3, 0.8, 1.7]) * rng.uniform(0.9, 1.1, 3), rng.uniform(0, 2 * np.pi, 3)
-        dither = 0.05 * np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)
+        d = dither * np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)
         x, u = np.array(system.x0, dtype=float), np.zeros((len(t), 1))
         for i in range(len(t)):
-            energy = 0.5 * SWINGUP_TRUE["J"] * x[1] ** 2 + SWINGUP_TRUE["mgl"] * (1.0 - np.cos(x[0]))
-            u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + dither[i],
-                              -SWINGUP_TORQUE, SWINGUP_TORQUE)
+            energy = 0.5 * truth["J"] * x[1] ** 2 + truth["mgl"] * (1.0 - np.cos(x[0]))
+            u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + d[i], -limit, limit)
             if i < len(t) - 1:
-                x = integrate_interval(system, "true", x, u[i], dt, t[i])
+                x = late_step(system, x, u[max(i - 1, 0)], u[i], dt, delay, t[i])
         return u
 
     return excitation
+
+
+def _swingup(system: System):
+    """The swing-up of a motor limited to 0.8 N m (:func:`_pumping`, a 0.05 N m dither): the
+    torque saturates in the pumping phases and correlates with ``sign(qdot)`` by about
+    +0.5-0.65, so a gain on the torque and a Coulomb friction nearly alias."""
+    return _pumping(system, SWINGUP_TRUE, SWINGUP_TORQUE, 0.05)
 
 
 def swingup_pendulum() -> System:
@@ -128,10 +135,7 @@ def _cart_dynamics(ops, x, u, p):
 
 
 def _cart_excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    freqs = np.array([0.2, 0.5, 1.1, 2.3]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
-    amps = np.array([3.0, 2.1, 1.5, 0.9])  # [N]
-    phases = rng.uniform(0, 2 * np.pi, 4)
-    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+    return multisine(t, rng, (0.2, 0.5, 1.1, 2.3), (3.0, 2.1, 1.5, 0.9))  # [Hz], [N]
 
 
 def cart() -> System:
@@ -191,27 +195,9 @@ def late_step(system: System, x: np.ndarray, before, now, dt: float, delay: floa
 
 
 def _rig_swingup(system: System, delay: float):
-    """The rig's energy-pumping swing-up, closed on the true pendulum with the torque ``delay`` late:
-    ``tau = clip(k (E_ref - E) qdot + d(t), +-1.5 N m)``, the energy target moving every 3 s
-    between 50 % and 95 % of the energy at the top, ``k`` drawn per run (10-20), a 0.1 N m
-    multisine ``d`` dithering it. The torque sits at its limit through most of the pumping."""
-    def excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        dt = float(t[1] - t[0])
-        k = rng.uniform(10.0, 20.0)
-        top = 2.0 * RIG_TRUE["mgl"]
-        targets = rng.uniform(0.5, 0.95, size=int(t[-1] / 3.0) + 2) * top
-        freqs, phases = np.array([0.3, 0.8, 1.7]) * rng.uniform(0.9, 1.1, 3), rng.uniform(0, 2 * np.pi, 3)
-        dither = 0.1 * np.sum(np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)
-        x, u = np.array(system.x0, dtype=float), np.zeros((len(t), 1))
-        for i in range(len(t)):
-            energy = 0.5 * RIG_TRUE["J"] * x[1] ** 2 + RIG_TRUE["mgl"] * (1.0 - np.cos(x[0]))
-            u[i, 0] = np.clip(k * (targets[int(t[i] / 3.0)] - energy) * x[1] + dither[i],
-                              -RIG_TORQUE, RIG_TORQUE)
-            if i < len(t) - 1:
-                x = late_step(system, x, u[max(i - 1, 0)], u[i], dt, delay, t[i])
-        return u
-
-    return excitation
+    """The rig's swing-up (:func:`_pumping`): torque limited to 1.5 N m and applied ``delay`` late,
+    a 0.1 N m dither; the torque sits at its limit through most of the pumping."""
+    return _pumping(system, RIG_TRUE, RIG_TORQUE, 0.1, delay)
 
 
 def pendulum_rig(delay: float = 0.0, encoder: float = RIG_ENCODER) -> System:
@@ -259,10 +245,7 @@ def _wheel_truth(ops, x, u, p):
 
 
 def _wheel_excitation(t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    freqs = np.array([0.15, 0.55, 0.9, 1.7]) * rng.uniform(0.9, 1.1, 4)  # [Hz]
-    amps = np.array([2.5, 2.0, 1.5, 0.8])  # [V]
-    phases = rng.uniform(0, 2 * np.pi, 4)
-    return np.sum(amps * np.sin(2 * np.pi * freqs * t[:, None] + phases), axis=1)[:, None]
+    return multisine(t, rng, (0.15, 0.55, 0.9, 1.7), (2.5, 2.0, 1.5, 0.8))  # [Hz], [V]
 
 
 def inertia_wheel() -> System:
