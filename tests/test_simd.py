@@ -3,8 +3,9 @@
 The batch copy of a model function runs, lane by lane, the same IEEE operations as the scalar
 function, so the test is bit equality (the same computation on the same inputs): the vector
 routines against the scalar routines of learnest_math.h on special and random arguments, built
-for the x86-64 baseline (SSE2) and for AVX2; a generated KNODE model's batch copy against its
-scalar function; and the UKF built with and without vectors, step for step.
+for the x86-64 baseline (SSE2) and for AVX2; a generated KNODE model's batch copies (the
+UKF's F, the MHE's stage) against its scalar functions; and the UKF built with and without
+vectors, step for step.
 """
 
 from __future__ import annotations
@@ -99,11 +100,12 @@ MODEL_MAIN = r"""
 #include <stdlib.h>
 #include <string.h>
 #include "@M@.h"
-#define L @M@_F_BATCH_LANES
+#define L @M@_@F@_BATCH_LANES
+#define NF @NF@
 int main(void) {
-  REAL xs[4 * L], us[L], Fs[4 * L], x[4], u[1], F[4];
+  REAL xs[4 * L], us[L], Fs[NF * L], x[4], u[1], F[NF];
   const REAL* arg[2];
-  REAL* res[1];
+  REAL* res[2];
   int k, l, i, bad = 0;
   srand(3);
   for (k = 0; k < 5000; ++k) {
@@ -111,13 +113,13 @@ int main(void) {
       for (i = 0; i < 4; ++i) xs[i * L + l] = (REAL)(((double)rand() / RAND_MAX - 0.5) * (k % 4 ? 4 : 60));
       us[l] = (REAL)(((double)rand() / RAND_MAX - 0.5) * 20);
     }
-    arg[0] = xs, arg[1] = us, res[0] = Fs;
-    @M@_F_batch(arg, res);
+    arg[0] = xs, arg[1] = us, res[0] = Fs, res[1] = Fs + 4 * L;
+    @M@_@F@_batch(arg, res);
     for (l = 0; l < L; ++l) {
       for (i = 0; i < 4; ++i) x[i] = xs[i * L + l];
-      u[0] = us[l], arg[0] = x, arg[1] = u, res[0] = F;
-      @M@_F(arg, res, 0, 0, 0);
-      for (i = 0; i < 4; ++i) bad += memcmp(&F[i], &Fs[i * L + l], sizeof F[i]) != 0;
+      u[0] = us[l], arg[0] = x, arg[1] = u, res[0] = F, res[1] = F + 4;
+      @M@_@F@(arg, res, 0, 0, 0);
+      for (i = 0; i < NF; ++i) bad += memcmp(&F[i], &Fs[i * L + l], sizeof F[i]) != 0;
     }
   }
   printf("%d\n", bad);
@@ -133,17 +135,25 @@ def knode():
     return hybrid_model(system, ResidualNet(4, 1))
 
 
+@pytest.mark.parametrize("function", ["F", "stage"])
 @pytest.mark.parametrize("precision", ["float64", "float32"])
-def test_batch_model_equals_scalar_model_bit_for_bit(knode, precision, tmp_path):
-    x, u = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
+def test_batch_model_equals_scalar_model_bit_for_bit(knode, precision, function, tmp_path):
+    """The UKF's F and the MHE's stage (F and its Jacobian A, 4 + 16 outputs)."""
+    from learnest_codegen.codegen.mhe_gn import model_functions
+
     name = "m_model"
-    F = cs.Function(f"{name}_F", [x, u], [cs.cse(knode.F(x, u))], ["x", "u"], ["F"])
-    source, header = write_casadi_c([F], tmp_path, name, precision, batch=(F.name(),))
-    assert f"#define {name}_F_BATCH_LANES {BATCH_LANES[precision]}" in header.read_text()
+    if function == "F":
+        x, u = cs.SX.sym("x", 4), cs.SX.sym("u", 1)
+        f = cs.Function(f"{name}_F", [x, u], [cs.cse(knode.F(x, u))], ["x", "u"], ["F"])
+    else:
+        f = model_functions(knode, name)[0]
+    source, header = write_casadi_c([f], tmp_path, name, precision, batch=(f.name(),))
+    assert f"#define {f.name()}_BATCH_LANES {BATCH_LANES[precision]}" in header.read_text()
     for path in kit_files():
         shutil.copy(path, tmp_path / path.name)
     real = "double" if precision == "float64" else "float"
-    (tmp_path / "main.c").write_text(MODEL_MAIN.replace("@M@", name).replace("REAL", real))
+    main = MODEL_MAIN.replace("@M@", name).replace("@F@", function).replace("REAL", real)
+    (tmp_path / "main.c").write_text(main.replace("@NF@", "4" if function == "F" else "20"))
     exe = tmp_path / "main"
     subprocess.run(["gcc", *CFLAGS, "-Werror", f"-I{tmp_path}", str(tmp_path / "main.c"),
                     str(source), "-lm", "-o", str(exe)], check=True)
