@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from learnest_codegen import get_system, simulation
-from learnest_codegen.codegen.casadi_c import BATCH_LANES, write_casadi_c
+from learnest_codegen.codegen.casadi_c import BATCH_LANES, BATCH_MAX_INSTRUCTIONS, write_casadi_c
 from learnest_codegen.codegen.templates import kit_files
 from learnest_codegen.codegen.ukf import generate_ukf
 from learnest_codegen.estimators.ukf import UKFSettings
@@ -165,6 +165,19 @@ def test_unsupported_operation_gets_no_batch(tmp_path):
     x = cs.SX.sym("x", 2)
     F = cs.Function("e_model_F", [x], [cs.exp(x) * x[0]], ["x"], ["F"])
     _, header = write_casadi_c([F], tmp_path, "e_model", "float64", batch=(F.name(),))
+    assert "_BATCH" not in header.read_text()
+
+
+def test_large_function_gets_no_batch(tmp_path):
+    """Above BATCH_MAX_INSTRUCTIONS operations the vector builds' compile time is not worth it."""
+    x = cs.SX.sym("x", 4)
+    y = x
+    while True:
+        y = cs.tanh(y * 1.1 + 0.1)
+        f = cs.Function("big_model_F", [x], [y], ["x"], ["F"])
+        if f.n_instructions() > BATCH_MAX_INSTRUCTIONS:
+            break
+    _, header = write_casadi_c([f], tmp_path, "big_model", "float64", batch=(f.name(),))
     assert "_BATCH" not in header.read_text()
 
 

@@ -56,6 +56,10 @@ _BATCH_TOKEN = re.compile(r"a\d+|\d+\.?\d*(?:[eE][-+]?\d+)?|learnest_(?:tanh|sin
 _BATCH_ROUTINE = re.compile(r"\b(?:learnest_(tanh|sin|cos|fabs)|casadi_(sq))\(")
 #: Points a batch function evaluates at once: one 32-byte vector of reals (learnest_simd.h).
 BATCH_LANES = {"float64": 4, "float32": 8}
+#: The largest function (CasADi's ``n_instructions``) that gets a batch copy: compiling its two
+#: vector builds takes GCC 12 -O2 about 3 s of CPU at 2,500 operations (the demo's stage) and
+#: 15 s at 8,000 (a 32-unit net), against 0.3 s and 1.2 s for the scalar code.
+BATCH_MAX_INSTRUCTIONS = 5000
 
 
 
@@ -63,7 +67,8 @@ def write_casadi_c(functions: Sequence[cs.Function], directory: Path, name: str,
                    precision: str, batch: Sequence[str] = ()) -> tuple[Path, Path]:
     """``directory/<name>.c`` and ``.h``: CasADi's code of ``functions`` in ``precision``.
 
-    For each function named in ``batch`` whose code :func:`batch_body` can take over, it also
+    For each function named in ``batch`` of at most ``BATCH_MAX_INSTRUCTIONS`` operations whose
+    code :func:`batch_body` can take over, it also
     writes ``<function>_batch(arg, res)``: the function on ``BATCH_LANES[precision]`` points at
     once (input and output entry ``j`` of point ``l`` at ``[j * lanes + l]``), compiled where
     learnest_simd.h has vectors; the header then defines ``<function>_BATCH_LANES``.
@@ -78,7 +83,9 @@ def write_casadi_c(functions: Sequence[cs.Function], directory: Path, name: str,
     if precision == "float32":
         head, tail = text.split(_MATH_ANCHOR, 1)
         text = head + _MATH_ANCHOR + _INTEGRAL_OPERAND.sub(r"(\1\2", tail)
-    batches = [(f, body) for f in batch if (body := batch_body(text, f, precision)) is not None]
+    small = {f.name() for f in functions if f.n_instructions() <= BATCH_MAX_INSTRUCTIONS}
+    batches = [(f, body) for f in batch
+               if f in small and (body := batch_body(text, f, precision)) is not None]
     if batches:
         text = _append_batches(text, batches, precision)
         header = source.with_suffix(".h")
