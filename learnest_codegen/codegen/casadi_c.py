@@ -83,7 +83,8 @@ def write_casadi_c(functions: Sequence[cs.Function], directory: Path, name: str,
     if precision == "float32":
         head, tail = text.split(_MATH_ANCHOR, 1)
         text = head + _MATH_ANCHOR + _INTEGRAL_OPERAND.sub(r"(\1\2", tail)
-    small = {f.name() for f in functions if f.n_instructions() <= BATCH_MAX_INSTRUCTIONS}
+    small = {f.name() for f in functions
+             if f.name() in batch and f.n_instructions() <= BATCH_MAX_INSTRUCTIONS}
     batches = [(f, body) for f in batch
                if f in small and (body := batch_body(text, f, precision)) is not None]
     if batches:
