@@ -9,6 +9,10 @@
  *   LEARNEST_MODEL_NODE   (x, u) -> (h(x, u), dh/dx)           learnest_model_node
  *   LEARNEST_MODEL_F      (x, u) -> F(x, u)                    learnest_model_F
  *   LEARNEST_MODEL_H      (x, u) -> h(x, u)                    learnest_model_h
+ *   LEARNEST_MODEL_F_BATCH, _F_LANES  F on _LANES points at once  learnest_model_F_batch
+ *   LEARNEST_MODEL_STAGE_BATCH, _STAGE_LANES  the same for STAGE  learnest_model_stage_batch
+ *                         (the generated lane-parallel copies, learnest_simd.h; used where
+ *                         LEARNEST_SIMD is 1)
  *   LEARNEST_MODEL_SOLVER (+ _CHECKOUT, _RELEASE)               the Ipopt MHE's nlpsol
  * and LEARNEST_CASADI_SZ_ARG, _RES, _IW, _W (the largest over them). Every hook is static.
  */
@@ -69,6 +73,37 @@ LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_rea
                                    const learnest_real* u, learnest_real* F) {
   learnest_casadi_xu(md, LEARNEST_MODEL_F, x, u, F, 0);
 }
+#endif
+
+#ifdef LEARNEST_MODEL_F_BATCH
+#include "learnest_simd.h"
+#if LEARNEST_SIMD
+/* F at LEARNEST_MODEL_F_LANES points at once: entry j of point l at x[j * lanes + l] (the
+ * same for u and F), each point's F the bits learnest_model_F gives. */
+LEARNEST_KIT void learnest_model_F_batch(const learnest_real* x, const learnest_real* u,
+                                         learnest_real* F) {
+  const learnest_real* in[2];
+  learnest_real* out[1];
+  in[0] = x, in[1] = u, out[0] = F;
+  (void)LEARNEST_MODEL_F_BATCH(in, out);
+}
+#endif
+#endif
+
+#ifdef LEARNEST_MODEL_STAGE_BATCH
+#include "learnest_simd.h"
+#if LEARNEST_SIMD
+/* The stage at LEARNEST_MODEL_STAGE_LANES points at once: entry j of point l at
+ * x[j * lanes + l] (the same for u, F and A), each point's F and A the bits
+ * learnest_model_stage gives. */
+LEARNEST_KIT void learnest_model_stage_batch(const learnest_real* x, const learnest_real* u,
+                                             learnest_real* F, learnest_real* A) {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+  in[0] = x, in[1] = u, out[0] = F, out[1] = A;
+  (void)LEARNEST_MODEL_STAGE_BATCH(in, out);
+}
+#endif
 #endif
 
 #ifdef LEARNEST_MODEL_H

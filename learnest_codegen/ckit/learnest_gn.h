@@ -101,10 +101,31 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
 LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct learnest_window* w,
                                         const learnest_real* X, struct learnest_lin* L) {
   int i;
+#if defined(LEARNEST_MODEL_STAGE_BATCH) && LEARNEST_SIMD
+  /* The stages LEARNEST_MODEL_STAGE_LANES at a time (the same bits; spare lanes repeat the
+   * last stage). */
+  enum { B = LEARNEST_MODEL_STAGE_LANES };
+  learnest_real xb[LEARNEST_NX * B], ub[LEARNEST_NU * B + 1], Fb[LEARNEST_NX * B];
+  learnest_real Ab[LEARNEST_NXX * B];
+  int l, j;
+  for (i = 0; i < LEARNEST_N; i += B) {
+    for (l = 0; l < B; ++l) {
+      const int k = i + l < LEARNEST_N ? i + l : LEARNEST_N - 1;
+      for (j = 0; j < LEARNEST_NX; ++j) xb[j * B + l] = X[k * LEARNEST_NX + j];
+      for (j = 0; j < LEARNEST_NU; ++j) ub[j * B + l] = w->U[(k + 1) * LEARNEST_NU + j];
+    }
+    learnest_model_stage_batch(xb, ub, Fb, Ab);
+    for (l = 0; l < B && i + l < LEARNEST_N; ++l) {
+      for (j = 0; j < LEARNEST_NX; ++j) L->F[(i + l) * LEARNEST_NX + j] = Fb[j * B + l];
+      for (j = 0; j < LEARNEST_NXX; ++j) L->A[(i + l) * LEARNEST_NXX + j] = Ab[j * B + l];
+    }
+  }
+#else
   for (i = 0; i < LEARNEST_N; ++i) {
     learnest_model_stage(md, X + i * LEARNEST_NX, w->U + (i + 1) * LEARNEST_NU, L->F + i * LEARNEST_NX,
                          L->A + i * LEARNEST_NXX);
   }
+#endif
   for (i = 0; i <= LEARNEST_N; ++i) {
     learnest_model_node(md, X + i * LEARNEST_NX, w->U + i * LEARNEST_NU, L->h + i * LEARNEST_NY,
                         L->C + i * LEARNEST_NY * LEARNEST_NX);

@@ -13,7 +13,9 @@
  * or (LEARNEST_UKF_ALPHA, _BETA, _KAPPA defined: what codegen/ukf.py generates) as the model
  * alone, learnest_model_F(md, x, u, F) and learnest_model_h(md, x, u, h), around which this
  * file runs the sigma points through a loop over one compiled model call (one copy of the
- * model in flash instead of 2 NX + 1; learnest_casadi.h gives the hooks for CasADi code).
+ * model in flash instead of 2 NX + 1; learnest_casadi.h gives the hooks for CasADi code), or,
+ * where the model has a batch copy of F (LEARNEST_MODEL_F_BATCH) and the compiler vectors
+ * (learnest_simd.h), through F on LEARNEST_MODEL_F_LANES points a call: the same bits.
  */
 #ifndef LEARNEST_UKF_H
 #define LEARNEST_UKF_H
@@ -89,16 +91,47 @@ LEARNEST_KIT void learnest_ukf_transform(learnest_real* Y, int m, learnest_real*
   }
 }
 
+#if defined(LEARNEST_MODEL_F_BATCH) && LEARNEST_SIMD
+/* Y_s = F(sig_s, u) for the NS sigma points, LEARNEST_MODEL_F_LANES at a time through the
+ * model's batch copy (the last batch's spare lanes repeat the last point). */
+LEARNEST_KIT void learnest_ukf_propagate(struct learnest_model* md, const learnest_real* sig,
+                                         const learnest_real* u, learnest_real* Y) {
+  enum { NX = LEARNEST_NX, L = LEARNEST_MODEL_F_LANES };
+  learnest_real xs[NX * L], us[LEARNEST_NU * L + 1], Fs[NX * L];
+  int s0, l, i;
+  for (i = 0; i < LEARNEST_NU; ++i) {
+    for (l = 0; l < L; ++l) us[i * L + l] = u[i];
+  }
+  for (s0 = 0; s0 < LEARNEST_UKF_NS; s0 += L) {
+    for (l = 0; l < L; ++l) {
+      const learnest_real* p = sig + (s0 + l < LEARNEST_UKF_NS ? s0 + l : LEARNEST_UKF_NS - 1) * NX;
+      for (i = 0; i < NX; ++i) xs[i * L + l] = p[i];
+    }
+    learnest_model_F_batch(xs, us, Fs);
+    for (l = 0; l < L && s0 + l < LEARNEST_UKF_NS; ++l) {
+      for (i = 0; i < NX; ++i) Y[(s0 + l) * NX + i] = Fs[i * L + l];
+    }
+  }
+  (void)md;
+}
+#else
+/* Y_s = F(sig_s, u) for the NS sigma points, one model call each. */
+LEARNEST_KIT void learnest_ukf_propagate(struct learnest_model* md, const learnest_real* sig,
+                                         const learnest_real* u, learnest_real* Y) {
+  int s;
+  for (s = 0; s < LEARNEST_UKF_NS; ++s) {
+    learnest_model_F(md, sig + s * LEARNEST_NX, u, Y + s * LEARNEST_NX);
+  }
+}
+#endif
+
 LEARNEST_KIT int learnest_model_predict(struct learnest_model* md, const learnest_real* x,
                                         const learnest_real* P, const learnest_real* u,
                                         const learnest_real* Q, learnest_real* x_prior,
                                         learnest_real* P_prior) {
   learnest_real sig[LEARNEST_UKF_NS * LEARNEST_NX], Y[LEARNEST_UKF_NS * LEARNEST_NX];
-  int s;
   learnest_ukf_sigmas(x, P, sig);
-  for (s = 0; s < LEARNEST_UKF_NS; ++s) {
-    learnest_model_F(md, sig + s * LEARNEST_NX, u, Y + s * LEARNEST_NX);
-  }
+  learnest_ukf_propagate(md, sig, u, Y);
   memcpy(P_prior, Q, LEARNEST_KF_NXX * sizeof(learnest_real));
   learnest_ukf_transform(Y, LEARNEST_NX, x_prior, P_prior);
   return 0;

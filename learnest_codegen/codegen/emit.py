@@ -55,7 +55,9 @@ class Design:
     templates of the header's estimator-specific functions; ``options`` the header's extra
     defaults (``<PREFIX>_DEFAULT_<name>``) and ``glue_defines`` the glue's extra macros;
     ``workspace`` counts what the handle holds (:func:`workspace_bytes`); ``link`` the
-    include and library folders and libraries of the build; ``extra`` manifest entries.
+    include and library folders and libraries of the build; ``extra`` manifest entries;
+    ``batch`` the functions that also get a lane-parallel copy where their code allows
+    (``casadi_c.write_casadi_c``; the hook ``<hook>_BATCH`` then names it).
     """
 
     estimator: str
@@ -76,6 +78,7 @@ class Design:
     glue_defines: Mapping[str, str] = field(default_factory=dict)
     link: Mapping[str, Sequence] = field(default_factory=dict)
     extra: Mapping[str, object] = field(default_factory=dict)
+    batch: tuple[str, ...] = ()
 
 
 def default_prefix(model: DiscreteModel, estimator: str, precision: str = "float64",
@@ -153,7 +156,8 @@ def emit(model: DiscreteModel, design: Design, out: Path, *, prefix: str, model_
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     kit = templates.write_kit(out)
-    model_c, model_h = write_casadi_c(design.functions, out, f"{prefix}_model", design.precision)
+    model_c, model_h = write_casadi_c(design.functions, out, f"{prefix}_model", design.precision,
+                                      batch=design.batch)
     values = _values(model, design, prefix, model_h)
     header = templates.write(out, "estimator.h.in", f"{prefix}.h", values)
     glue = out / f"{prefix}.c"
@@ -215,7 +219,11 @@ def _values(model: DiscreteModel, design: Design, prefix: str, model_header: Pat
     names = [f.name() for f in design.functions]
     sizes = "\n".join(f"#define LEARNEST_CASADI_SZ_{k.upper()} "
                       + _max_of([f"{n}_SZ_{k.upper()}" for n in names]) for k in FIELDS)
-    model_lines = "\n".join(f"#define {hook} {name}" for hook, name in design.hooks.items())
+    batched = model_header.read_text()
+    model_lines = "\n".join(
+        f"#define {hook} {name}" + (f"\n#define {hook}_BATCH {name}_batch\n#define {hook}_LANES "
+                                    f"{name}_BATCH_LANES" if f"{name}_BATCH_LANES" in batched else "")
+        for hook, name in design.hooks.items())
     glue_defines = "".join(f"#define {k} {v}\n" for k, v in design.glue_defines.items())
     identity = f"{prefix} {design.estimator} {design.precision}".encode()
     magic = int(hashlib.sha256(identity).hexdigest()[:8], 16) | 1

@@ -60,7 +60,8 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
                       **group_defines(groups), **bounds_defines(settings, solver.precision),
                       **arrival_defines(settings)},
         extra={"model_instructions": model_instructions(model),
-               "state_groups": [list(states) for states, _ in groups]})
+               "state_groups": [list(states) for states, _ in groups]},
+        batch=(functions[0].name(),))  # the stages as batches where the code allows (learnest_simd.h)
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
 

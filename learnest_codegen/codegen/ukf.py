@@ -13,6 +13,7 @@ the CasADi functions here are its tested reference.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import casadi as cs
@@ -213,8 +214,11 @@ def generate_ukf(model: DiscreteModel, settings: UKFSettings, out_dir: Path, *,
         description="The filter: FilterPy 2.0.0's predict and update on Merwe scaled sigma points "
                     f"(alpha {settings.alpha}, beta {settings.beta}, kappa {settings.kappa}), "
                     "generated operation for operation by the C kit (learnest_ukf.h) over the "
-                    "model's generated code (<prefix>_model.c, one call per sigma point), so it "
+                    "model's generated code (<prefix>_model.c, one call per sigma point, or one per "
+                    "4 (double) or 8 (float) points where the compiler vectors: the same bits), so it "
                     "equals FilterPy to rounding (tests/test_ukf.py)",
         predicted=("zp", "zp and S = P_zz + R the predicted output and its covariance"))
+    # F also as a batch over the sigma points where its code allows (learnest_simd.h).
+    design = dataclasses.replace(design, batch=(functions[0].name(),))
     return emit(model, design, Path(out_dir), prefix=prefix, model_hash=model_hash, force=force)
 
