@@ -42,15 +42,28 @@ LEARNEST_KIT int learnest_casadi_call(struct learnest_model* md, learnest_casadi
   return f(md->arg, md->res, md->iw, md->w, 0);
 }
 
+/* A model function's arguments (x, u) and results (a, b; b NULL for one result), in the
+ * arrays CasADi's calling convention takes. */
+struct learnest_casadi_io {
+  const learnest_real* in[2];
+  learnest_real* out[2];
+};
+
+LEARNEST_KIT_INLINE struct learnest_casadi_io learnest_casadi_io(const learnest_real* x,
+                                                                const learnest_real* u,
+                                                                learnest_real* a, learnest_real* b) {
+  struct learnest_casadi_io io;
+  io.in[0] = x, io.in[1] = u, io.out[0] = a, io.out[1] = b;
+  return io;
+}
+
 /* f(x, u) -> (a, b), or -> a when b is NULL, on the work arrays of md: the model hooks (inlined
  * into each, so every hook calls its CasADi function directly). */
 LEARNEST_KIT_INLINE void learnest_casadi_xu(struct learnest_model* md, learnest_casadi_function f,
                                      const learnest_real* x, const learnest_real* u,
                                      learnest_real* a, learnest_real* b) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = a, out[1] = b;
-  (void)learnest_casadi_call(md, f, in, 2, out, b ? 2 : 1);
+  struct learnest_casadi_io io = learnest_casadi_io(x, u, a, b);
+  (void)learnest_casadi_call(md, f, io.in, 2, io.out, b ? 2 : 1);
 }
 
 #ifdef LEARNEST_MODEL_STAGE
@@ -75,35 +88,35 @@ LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_rea
 }
 #endif
 
-#ifdef LEARNEST_MODEL_F_BATCH
+#if defined(LEARNEST_MODEL_F_BATCH) || defined(LEARNEST_MODEL_STAGE_BATCH)
 #include "learnest_simd.h"
 #if LEARNEST_SIMD
-/* F at LEARNEST_MODEL_F_LANES points at once: entry j of point l at x[j * lanes + l] (the
- * same for u and F), each point's F the bits learnest_model_F gives. */
-LEARNEST_KIT void learnest_model_F_batch(const learnest_real* x, const learnest_real* u,
-                                         learnest_real* F) {
-  const learnest_real* in[2];
-  learnest_real* out[1];
-  in[0] = x, in[1] = u, out[0] = F;
-  (void)LEARNEST_MODEL_F_BATCH(in, out);
+/* One call of a generated lane-parallel copy (x, u) -> (a, b) (b 0 for a copy of one output):
+ * entry j of point l at x[j * lanes + l], the same for u, a and b; each point's outputs the
+ * bits the scalar function gives. */
+LEARNEST_KIT void learnest_casadi_batch(int (*fn)(const learnest_real**, learnest_real**),
+                                        const learnest_real* x, const learnest_real* u,
+                                        learnest_real* a, learnest_real* b) {
+  struct learnest_casadi_io io = learnest_casadi_io(x, u, a, b);
+  (void)fn(io.in, io.out);
 }
 #endif
 #endif
 
-#ifdef LEARNEST_MODEL_STAGE_BATCH
-#include "learnest_simd.h"
-#if LEARNEST_SIMD
-/* The stage at LEARNEST_MODEL_STAGE_LANES points at once: entry j of point l at
- * x[j * lanes + l] (the same for u, F and A), each point's F and A the bits
- * learnest_model_stage gives. */
-LEARNEST_KIT void learnest_model_stage_batch(const learnest_real* x, const learnest_real* u,
-                                             learnest_real* F, learnest_real* A) {
-  const learnest_real* in[2];
-  learnest_real* out[2];
-  in[0] = x, in[1] = u, out[0] = F, out[1] = A;
-  (void)LEARNEST_MODEL_STAGE_BATCH(in, out);
+#if defined(LEARNEST_MODEL_F_BATCH) && LEARNEST_SIMD
+/* F at LEARNEST_MODEL_F_LANES points at once. */
+LEARNEST_KIT void learnest_model_F_batch(const learnest_real* x, const learnest_real* u,
+                                         learnest_real* F) {
+  learnest_casadi_batch(LEARNEST_MODEL_F_BATCH, x, u, F, 0);
 }
 #endif
+
+#if defined(LEARNEST_MODEL_STAGE_BATCH) && LEARNEST_SIMD
+/* The stage (F and its Jacobian A) at LEARNEST_MODEL_STAGE_LANES points at once. */
+LEARNEST_KIT void learnest_model_stage_batch(const learnest_real* x, const learnest_real* u,
+                                             learnest_real* F, learnest_real* A) {
+  learnest_casadi_batch(LEARNEST_MODEL_STAGE_BATCH, x, u, F, A);
+}
 #endif
 
 #ifdef LEARNEST_MODEL_H
