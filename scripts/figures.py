@@ -74,10 +74,12 @@ def _commit() -> str:
     try:
         head = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=ROOT, capture_output=True,
                               text=True, check=True).stdout.strip()
-        # "+changes": the measured code differs from the commit; docs/ holds the benchmarks' own
-        # outputs (figure JSONs, rendered pages), which do not change what is measured
+        # "+changes": the measured code differs from the commit; docs/ and README.md hold the
+        # benchmarks' own outputs (figure JSONs, rendered pages), which do not change what is
+        # measured
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                                ":(exclude)docs"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+                                ":(exclude)docs", ":(exclude)README.md"], cwd=ROOT, capture_output=True,
+                               text=True).stdout.strip()
         return head + ("+changes" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
