@@ -22,6 +22,7 @@ import re
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -944,9 +945,12 @@ def test_x0_alone_takes_the_initial_covariance(tmp_path, estimator):
         assert r.exit_code == 0, r.output
         outs[name] = np.loadtxt(out, delimiter=",", skiprows=1)
     np.testing.assert_array_equal(outs["alone"], outs["initial"])
-    r = _cli(["estimate", "--data", cli_run, "--estimator", estimator, "--backend", "python",
-              "--x0", "1e300,0,0,0", "--out", tmp_path / "far.csv"])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = _cli(["estimate", "--data", cli_run, "--estimator", estimator, "--backend", "python",
+                  "--x0", "1e300,0,0,0", "--out", tmp_path / "far.csv"])
     assert r.exit_code == 1 and "--x0" in r.output and "Traceback" not in r.output, r.output
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)]  # the one error line alone
 
 
 def test_the_arrival_covariance_is_held_to_the_covariance_rule(cartpole_targets, float32_builds):

@@ -202,11 +202,13 @@ class KalmanFilter(GateReport):
         u, u_rejected = self._inputs.apply(u)
         saved = {k: getattr(self._kf, k).copy() for k in self.SAVED}
         try:
-            if self._first:
-                self._start()
-            else:
-                self._predict(u)
-            rejected = self._gated_update(u, y, observed)
+            # an overflow shows as a non-finite state, turned into the one error below
+            with np.errstate(over="ignore", invalid="ignore"):
+                if self._first:
+                    self._start()
+                else:
+                    self._predict(u)
+                rejected = self._gated_update(u, y, observed)
             failure = None
         except np.linalg.LinAlgError as exc:  # Cholesky or inverse of a non-positive-definite matrix
             failure = f"{exc}"
