@@ -107,18 +107,12 @@ LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct 
   enum { B = LEARNEST_MODEL_STAGE_LANES };
   learnest_real xb[LEARNEST_NX * B], ub[LEARNEST_NU * B + 1], Fb[LEARNEST_NX * B];
   learnest_real Ab[LEARNEST_NXX * B];
-  int l, j;
-  for (i = 0; i < LEARNEST_N; i += B) {
-    for (l = 0; l < B; ++l) {
-      const int k = i + l < LEARNEST_N ? i + l : LEARNEST_N - 1;
-      for (j = 0; j < LEARNEST_NX; ++j) xb[j * B + l] = X[k * LEARNEST_NX + j];
-      for (j = 0; j < LEARNEST_NU; ++j) ub[j * B + l] = w->U[(k + 1) * LEARNEST_NU + j];
-    }
+  for (i = 0; i < LEARNEST_N; i += B) {  /* stage i: x_i and u_{i+1} */
+    learnest_lanes_gather(xb, X, LEARNEST_NX, i, LEARNEST_N - 1, B);
+    learnest_lanes_gather(ub, w->U + LEARNEST_NU, LEARNEST_NU, i, LEARNEST_N - 1, B);
     learnest_model_stage_batch(xb, ub, Fb, Ab);
-    for (l = 0; l < B && i + l < LEARNEST_N; ++l) {
-      for (j = 0; j < LEARNEST_NX; ++j) L->F[(i + l) * LEARNEST_NX + j] = Fb[j * B + l];
-      for (j = 0; j < LEARNEST_NXX; ++j) L->A[(i + l) * LEARNEST_NXX + j] = Ab[j * B + l];
-    }
+    learnest_lanes_scatter(L->F, Fb, LEARNEST_NX, i, LEARNEST_N - 1, B);
+    learnest_lanes_scatter(L->A, Ab, LEARNEST_NXX, i, LEARNEST_N - 1, B);
   }
 #else
   for (i = 0; i < LEARNEST_N; ++i) {
@@ -487,10 +481,9 @@ LEARNEST_KIT_INLINE int learnest_gn_direction(struct learnest_gn* s, const struc
     j = learnest_gn_box_step(s, X);
     if (j != LEARNEST_OK) return j;
 #else
-    const int full = hess || LEARNEST_BOUNDED;
-    learnest_gn_build(s, w, X, full);
+    learnest_gn_build(s, w, X, hess);
     for (j = 0; j < LEARNEST_NW; ++j) s->dx[j] = -s->g[j];
-    if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, full)) {
+    if (!learnest_btd_solve_n(LEARNEST_NX, LEARNEST_NXX, s->D, s->E, s->dx, hess)) {
       return LEARNEST_NOT_POSITIVE_DEFINITE;
     }
 #endif

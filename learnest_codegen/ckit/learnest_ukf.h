@@ -98,19 +98,12 @@ LEARNEST_KIT void learnest_ukf_propagate(struct learnest_model* md, const learne
                                          const learnest_real* u, learnest_real* Y) {
   enum { NX = LEARNEST_NX, L = LEARNEST_MODEL_F_LANES };
   learnest_real xs[NX * L], us[LEARNEST_NU * L + 1], Fs[NX * L];
-  int s0, l, i;
-  for (i = 0; i < LEARNEST_NU; ++i) {
-    for (l = 0; l < L; ++l) us[i * L + l] = u[i];
-  }
+  int s0;
+  learnest_lanes_gather(us, u, LEARNEST_NU, 0, 0, L);  /* every point's input is u */
   for (s0 = 0; s0 < LEARNEST_UKF_NS; s0 += L) {
-    for (l = 0; l < L; ++l) {
-      const learnest_real* p = sig + (s0 + l < LEARNEST_UKF_NS ? s0 + l : LEARNEST_UKF_NS - 1) * NX;
-      for (i = 0; i < NX; ++i) xs[i * L + l] = p[i];
-    }
+    learnest_lanes_gather(xs, sig, NX, s0, LEARNEST_UKF_NS - 1, L);
     learnest_model_F_batch(xs, us, Fs);
-    for (l = 0; l < L && s0 + l < LEARNEST_UKF_NS; ++l) {
-      for (i = 0; i < NX; ++i) Y[(s0 + l) * NX + i] = Fs[i * L + l];
-    }
+    learnest_lanes_scatter(Y, Fs, NX, s0, LEARNEST_UKF_NS - 1, L);
   }
   (void)md;
 }
