@@ -104,8 +104,8 @@ LEARNEST_KIT void learnest_casadi_batch(int (*fn)(const learnest_real**, learnes
 /* The n entries of points first .. first + lanes - 1 of src (point k at src + k * n), lane
  * by lane: dst[j * lanes + l] = point first + l's entry j; a point past last repeats last (a
  * batch's spare lanes). */
-LEARNEST_KIT void learnest_lanes_gather(learnest_real* dst, const learnest_real* src, int n, int first,
-                                        int last, int lanes) {
+LEARNEST_KIT_INLINE void learnest_lanes_gather(learnest_real* dst, const learnest_real* src, int n,
+                                               int first, int last, int lanes) {
   int l, j;
   for (l = 0; l < lanes; ++l) {
     const learnest_real* p = src + (first + l < last ? first + l : last) * n;
@@ -115,8 +115,8 @@ LEARNEST_KIT void learnest_lanes_gather(learnest_real* dst, const learnest_real*
 
 /* The inverse for the points first .. last of the batch: point first + l's n entries of dst
  * from lane l of src. */
-LEARNEST_KIT void learnest_lanes_scatter(learnest_real* dst, const learnest_real* src, int n, int first,
-                                         int last, int lanes) {
+LEARNEST_KIT_INLINE void learnest_lanes_scatter(learnest_real* dst, const learnest_real* src, int n,
+                                                int first, int last, int lanes) {
   int l, j;
   for (l = 0; l < lanes && first + l <= last; ++l) {
     for (j = 0; j < n; ++j) dst[(first + l) * n + j] = src[j * lanes + l];
