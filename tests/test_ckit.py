@@ -36,6 +36,7 @@ from test_ukf import update_gain
 from learnest_codegen import NoiseModel, Signal, System, get_system
 from learnest_codegen.codegen.mhe import arrival_defines, bounds_defines
 from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
+from learnest_codegen.estimators.ekf import EKF, EKFSettings
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
 from learnest_codegen.estimators.mhe_gn import DEFAULT_TOLERANCE
@@ -1059,3 +1060,72 @@ def test_lane_parallel_mhe_equals_the_scalar_mhe_and_the_ipopt_mhe(libraries, pe
     if real == "double":
         X_py = MHE(model, settings).run(U[:T], Ym, x0, valid=valid[:T])
         np.testing.assert_allclose(out[0], X_py, rtol=0, atol=1e-7)
+
+
+def test_gate_accessors_and_the_reseed_equal_the_python_filter(libraries, linear):
+    """The gate's and the input check's accessors (get_rejected, rejections, get_input_rejected,
+    input_rejections) and the Kalman filters' re-seed of a lost estimate (learnest_kalman.h),
+    on the kit's EKF over the linear model with input limits, against the Python EKF
+    (estimators/ekf.py: FilterPy's filter in the step every reference Kalman filter shares):
+    a two-sample outlier on one output (rejected), then a lasting offset of 3 on the other
+    (rejected until the estimate is lost, then re-seeded). Per sample: the status bits,
+    the rejected outputs and inputs and their counts exactly; the estimate to 1e-10 of its size
+    (the two filters' rounding, amplified by the re-seed's wide prior)."""
+    system, model, matrices, run, valid = linear
+    settings = EKFSettings.from_system(system, input_limits=((-0.8, 0.8),))
+    k = libraries("kit_ekf", "gcc", "double", {"LEARNEST_INPUT_LO": "{-0.8}", "LEARNEST_INPUT_HI": "{0.8}"})
+    x0 = np.array(system.x0, dtype=float)
+    memory, h = start(k, "tekf", matrices, x0, settings.P0(), settings.Q(), settings.R())
+    gate = settings.gate
+    assert k("tekf_set_gate", h, float(gate.threshold), gate.recover_after, float(gate.inflation)) == 0
+    ekf = EKF(model, settings)
+    ekf.reset(x0)
+    Y = run.y[:160].copy()
+    Y[20:22, 1] += 5.0
+    Y[50:, 0] += 3.0
+    statuses = []
+    for i in range(len(Y)):
+        u = run.u[max(i - 1, 0)]
+        code = k("tekf_step", h, k.a(u), k.a(Y[i]), None)
+        ekf.step(u, Y[i])
+        assert code == ekf.last_status, i
+        statuses.append(code)
+        x, rejected, input_rejected = k.a(np.zeros(2)), np.zeros(2, np.intc), np.zeros(1, np.intc)
+        k("tekf_get_state", h, x)
+        assert k("tekf_get_rejected", h, rejected) == 0
+        assert k("tekf_get_input_rejected", h, input_rejected) == 0
+        np.testing.assert_array_equal(rejected.astype(bool), ekf.rejected, err_msg=f"{i}")
+        np.testing.assert_array_equal(input_rejected.astype(bool), ekf.input_rejected, err_msg=f"{i}")
+        assert k("tekf_rejections", h) == ekf.rejections
+        assert k("tekf_input_rejections", h) == ekf.input_rejections
+        np.testing.assert_allclose(x, ekf.x, rtol=0, atol=1e-10 * np.abs(ekf.x).max(), err_msg=f"{i}")
+    statuses = np.array(statuses)
+    assert np.all(statuses[20:22] & 1) and np.any(statuses & 2)  # outliers rejected, inputs replaced
+    lost = np.flatnonzero(statuses & 4)  # lost under the offset, re-seeded, then accepted
+    assert len(lost) and lost[0] > 50 and not np.any(statuses[lost[0] + 1:lost[0] + 6] & 1)
+
+
+def test_mhe_set_noise_from_the_kit_alone_equals_the_python_mhe(libraries, linear):
+    """The MHEs' run-time tuning (learnest_mhe_api.h's set_noise: Q and R from the next step on,
+    the window and gate kept) on the kit's Gauss-Newton MHE against the Python MHE's set_noise,
+    to 1e-7 as the embedded MHE above."""
+    system, model, matrices, run, valid = linear
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    k = libraries("kit_gn", "gcc", "double")
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0
+    mhe = MHE(model, settings)
+    mhe.reset(x0)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    x = k.a(np.zeros(2))
+    for i in range(T):
+        if i == 40:
+            assert k("tgn_set_noise", h, k.a(9 * Q), k.a(0.25 * R)) == 0
+            mhe.set_noise(Q=9 * Q, R=0.25 * R)
+        assert k("tgn_step", h, k.a(run.u[max(i - 1, 0)]), k.a(Y[i]), valid[i].astype(np.uint8)) >= 0
+        x_py = mhe.step(run.u[max(i - 1, 0)], Y[i], valid=valid[i])
+        k("tgn_get_state", h, x)
+        np.testing.assert_allclose(x, x_py, rtol=0, atol=1e-7, err_msg=f"{i}")
