@@ -14,8 +14,11 @@
  * indices are constants and the sums stay in registers. On a Cortex-M4F (GCC does not unroll
  * at -O2) this takes a third of the 9-state mhe_rti step's instructions off, against
  * learnest_kit.h's unroll of 4. Clang unrolls short loops of a known count whole by itself and
- * rejects a count it cannot meet on a loop of unknown count: it keeps the unroll of 4. */
-#if defined(__clang__)
+ * rejects a count it cannot meet on a loop of unknown count: it keeps the unroll of 4. So does
+ * a model solved group by group (LEARNEST_NCOMP > 1, learnest_gn_groups.h): its blocks are the
+ * groups' and the whole window's assembly is only its fallback, which unrolled whole would
+ * more than double its code for a tenth fewer instructions. */
+#if defined(__clang__) || (defined(LEARNEST_NCOMP) && LEARNEST_NCOMP > 1)
 #define LEARNEST_UNROLL_BLOCK LEARNEST_UNROLL
 #elif defined(__GNUC__) && __GNUC__ >= 8
 #define LEARNEST_UNROLL_BLOCK _Pragma("GCC unroll 16")

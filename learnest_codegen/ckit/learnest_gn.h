@@ -55,7 +55,7 @@ struct learnest_gn {
   int dq, dr, dp;  /* Q, R, P diagonal (the usual tuning): their zero terms are skipped */
   int split;       /* the weights keep the model's groups apart: solve group by group */
   learnest_real tol;
-  learnest_real cost;  /* the cost at the point learnest_gn_build (or _direction) last assembled */
+  learnest_real cost;  /* the cost at the point learnest_gn_build last assembled */
   learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];  /* weights / the largest */
   struct learnest_lin lin[2];  /* at the iterate (lin[cur]) and at the line search's point */
   int cur;
@@ -532,7 +532,6 @@ LEARNEST_KIT_INLINE int learnest_gn_direction(struct learnest_gn* s, const struc
 #if LEARNEST_NCOMP > 1
   if (s->split) {
     learnest_gn_build_split(s, w, X, hess);
-    s->cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
     if (!learnest_gn_solve_split(s, hess)) return LEARNEST_NOT_POSITIVE_DEFINITE;
   } else
 #endif
@@ -581,7 +580,11 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
   learnest_real cost, slope = 0, alpha = 1, noise = -1, bound, trial_cost;
   int j, halvings;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
-  cost = s->cost;  /* assembled at X with the step */
+#if LEARNEST_NCOMP > 1
+  cost = s->split ? learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s)) : s->cost;
+#else
+  cost = s->cost;  /* summed at X by the step's assembly */
+#endif
   for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];
