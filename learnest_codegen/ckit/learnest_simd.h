@@ -32,7 +32,10 @@
 
 #if LEARNEST_SIMD
 /* The vectors are only passed between always-inlined routines (never through a call), so
- * the ABI of 32-byte vectors without AVX, which GCC warns about, does not arise. */
+ * the ABI of 32-byte vectors without AVX, which GCC warns about, does not arise. The pragma
+ * silences the warning; GCC's accompanying note ("the ABI for passing parameters with 32-byte
+ * alignment has changed in GCC 4.6") ignores it, and the package's flags (toolchain.CFLAGS,
+ * the folder's build fragment) carry -Wno-psabi for it. */
 #pragma GCC diagnostic ignored "-Wpsabi"
 
 #define LEARNEST_SIMD_FN static inline __attribute__((always_inline, unused))
