@@ -462,7 +462,7 @@ def _diverged(zeta: np.ndarray, run: Run, system: System) -> str:
         return "states not finite"
     std = np.asarray(system.noise.measurement_std, float)
     with np.errstate(all="ignore"):
-        y_hat = np.array([np.asarray(system.h(z, u), float).ravel() for z, u in zip(zeta, run.u)])
+        y_hat = np.asarray(system.h(zeta, run.u), float)  # every sample at once, as simulate does
         r = ((y_hat - run.y) / np.where(std > 0, std, 1.0))[:, std > 0]
         rms = float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(run.y[:, std > 0]).any() else 0.0
     if not rms <= SMOOTHED_OUTPUT_RMS_MAX:
