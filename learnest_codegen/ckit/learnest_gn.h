@@ -328,7 +328,11 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
-      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, hess ? LEARNEST_NX : 0, Rv, RC);
+      if (hess) {  /* apart, so that each call's column count is a constant (loops unrolled whole) */
+        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, LEARNEST_NX, Rv, RC);
+      } else {
+        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, 0, Rv, RC);
+      }
       s->cost += m * learnest_gn_quad_weighed(s->R, dr, s->rv, Rv, LEARNEST_NY);
       learnest_gn_term(LEARNEST_NY, C, LEARNEST_GN_C_NZ, dr, RC, Rv, m, hess, D, g);
     }
@@ -339,11 +343,18 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
       LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
-      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, hess ? LEARNEST_NX : 0, Qw, QA);
+      if (hess) {
+        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, LEARNEST_NX, Qw, QA);
+      } else {
+        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, 0, Qw, QA);
+      }
       s->cost += m * learnest_gn_quad_weighed(s->Q, dq, s->rw, Qw, LEARNEST_NX);
       if (hess) {  /* H_{i+1,i} = -m Q A (0 where a diagonal Q leaves A's structural zeros) */
-        LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NXX; ++k) {
-          E[k] = !dq || LEARNEST_GN_NZ(LEARNEST_GN_A_NZ, k) ? -m * QA[k] : 0;
+        LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {  /* by block: the pattern a constant */
+          LEARNEST_UNROLL_BLOCK for (r = 0; r < LEARNEST_NX; ++r) {
+            k = r + c * LEARNEST_NX;
+            E[k] = !dq || LEARNEST_GN_NZ(LEARNEST_GN_A_NZ, k) ? -m * QA[k] : 0;
+          }
         }
       }
       learnest_gn_term(LEARNEST_NX, A, LEARNEST_GN_A_NZ, dq, QA, Qw, m, hess, D, g);
@@ -360,11 +371,14 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
 }
 
 /* Solve H z = b in place for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i
- * (n x n, column-major, at D + i bs; lower triangles read) and N blocks E_i = H_{i+1, i} (at
- * E + i bs), z_i at z + i n (apart from D and E), by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
- * B_i = E_i L_i^-T (solved column by column in place: every inner loop runs over a whole
- * column). D and E are overwritten by the factor; factor = 0: they hold it already (from an
- * earlier call), and only the substitutions run. 0 if H is not positive definite. */
+ * (n x n, column-major, at D + i bs; lower triangles read; n <= LEARNEST_NX) and N blocks
+ * E_i = H_{i+1, i} (at E + i bs), z_i at z + i n (apart from D and E), by the block Cholesky
+ * recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = E_i L_i^-T (solved column by column in
+ * place, each entry's sum kept in a register). The row a block's loop reuses is copied to a
+ * local array first: D and E may overlap as far as the compiler knows, so it would reload the
+ * row after every store. D and E are overwritten by the factor; factor = 0: they hold it
+ * already (from an earlier call), and only the substitutions run. 0 if H is not positive
+ * definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
                                       learnest_real* LEARNEST_RESTRICT z, int factor) {
   int i, r, c, k;
@@ -373,9 +387,11 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * bs;
       LEARNEST_UNROLL_BLOCK for (c = 0; c < n; ++c) {
+        learnest_real row[LEARNEST_NX];  /* row c of B: a local copy, which no store to D can change */
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) row[k] = B[c + k * n];
         LEARNEST_UNROLL_BLOCK for (r = c; r < n; ++r) {
           learnest_real v = 0;
-          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) v += B[r + k * n] * B[c + k * n];
+          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) v += B[r + k * n] * row[k];
           Di[r + c * n] -= v;
         }
       }
@@ -384,14 +400,14 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     if (i < LEARNEST_N) {  /* B_i L_i' = E_i: column c of B from the columns before it */
       learnest_real* B = E + i * bs;
       LEARNEST_UNROLL_BLOCK for (c = 0; c < n; ++c) {
-        learnest_real* Bc = B + c * n;
         const learnest_real inv = 1 / Di[c + c * n];
-        for (k = 0; k < c; ++k) {
-          const learnest_real l = Di[c + k * n];
-          const learnest_real* Bk = B + k * n;
-          LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) Bc[r] -= Bk[r] * l;
+        learnest_real row[LEARNEST_NX];  /* row c of L_i: a local copy, which no store to E can change */
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < c; ++k) row[k] = Di[c + k * n];
+        LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) {  /* entry (r, c) kept in a register */
+          learnest_real v = B[r + c * n];
+          LEARNEST_UNROLL_BLOCK for (k = 0; k < c; ++k) v -= B[r + k * n] * row[k];
+          B[r + c * n] = v * inv;
         }
-        LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) Bc[r] *= inv;
       }
     }
   }
