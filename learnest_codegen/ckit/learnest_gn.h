@@ -114,17 +114,23 @@ LEARNEST_KIT void learnest_gn_scale(struct learnest_gn* s, const struct learnest
 #endif
 }
 
-/* Linearise every stage and node of window w at the states X into L. */
+/* Linearise every stage and node of window w that holds a sample at the states X into L. A
+ * stage without one (mask 0: the empty stages of a window that is filling, after init or a
+ * restart) is not evaluated: the assembly and the cost read a stage's F, A, h and C only
+ * under its mask, and an empty stage stays empty until it leaves the window (the masks move
+ * with their stages, learnest_window_shift), so its entries of L are never read. The empty
+ * stages are the oldest: the loops start at the first stage that holds a sample. */
 LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct learnest_window* w,
                                         const learnest_real* X, struct learnest_lin* L) {
-  int i;
+  int i, first = 0;
+  while (first < LEARNEST_N && w->mask[first] == 0) ++first;
 #if defined(LEARNEST_MODEL_STAGE_BATCH) && LEARNEST_SIMD
   /* The stages LEARNEST_MODEL_STAGE_LANES at a time (the same bits; spare lanes repeat the
    * last stage). */
   enum { B = LEARNEST_MODEL_STAGE_LANES };
   learnest_real xb[LEARNEST_NX * B], ub[LEARNEST_NU * B + 1], Fb[LEARNEST_NX * B];
   learnest_real Ab[LEARNEST_NXX * B];
-  for (i = 0; i < LEARNEST_N; i += B) {  /* stage i: x_i and u_{i+1} */
+  for (i = first; i < LEARNEST_N; i += B) {  /* stage i: x_i and u_{i+1} */
     learnest_lanes_gather(xb, X, LEARNEST_NX, i, LEARNEST_N - 1, B);
     learnest_lanes_gather(ub, w->U + LEARNEST_NU, LEARNEST_NU, i, LEARNEST_N - 1, B);
     learnest_model_stage_batch(xb, ub, Fb, Ab);
@@ -132,12 +138,12 @@ LEARNEST_KIT void learnest_gn_linearise(struct learnest_model* md, const struct 
     learnest_lanes_scatter(L->A, Ab, LEARNEST_NXX, i, LEARNEST_N - 1, B);
   }
 #else
-  for (i = 0; i < LEARNEST_N; ++i) {
+  for (i = first; i < LEARNEST_N; ++i) {
     learnest_model_stage(md, X + i * LEARNEST_NX, w->U + (i + 1) * LEARNEST_NU, L->F + i * LEARNEST_NX,
                          L->A + i * LEARNEST_NXX);
   }
 #endif
-  for (i = 0; i <= LEARNEST_N; ++i) {
+  for (i = first; i <= LEARNEST_N; ++i) {
     learnest_model_node(md, X + i * LEARNEST_NX, w->U + i * LEARNEST_NU, L->h + i * LEARNEST_NY,
                         L->C + i * LEARNEST_NY * LEARNEST_NX);
   }
