@@ -20,10 +20,13 @@
  * more than double its code for a tenth fewer instructions. */
 #if defined(__clang__) || (defined(LEARNEST_NCOMP) && LEARNEST_NCOMP > 1)
 #define LEARNEST_UNROLL_BLOCK LEARNEST_UNROLL
+#define LEARNEST_BLOCK_WHOLE 0
 #elif defined(__GNUC__) && __GNUC__ >= 8
 #define LEARNEST_UNROLL_BLOCK _Pragma("GCC unroll 16")
+#define LEARNEST_BLOCK_WHOLE 1 /* the block loops unrolled whole: their indices are constants */
 #else
 #define LEARNEST_UNROLL_BLOCK
+#define LEARNEST_BLOCK_WHOLE 0
 #endif
 
 /* A pointer argument whose array no other argument of the call overlaps (C99's restrict, spelt

@@ -380,9 +380,11 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
  * (n x n, column-major, at D + i bs; lower triangles read; n <= LEARNEST_NX) and N blocks
  * E_i = H_{i+1, i} (at E + i bs), z_i at z + i n (apart from D and E), by the block Cholesky
  * recursion L_i L_i' = D_i - B_{i-1} B_{i-1}', B_i = E_i L_i^-T (solved column by column in
- * place, each entry's sum kept in a register). The row a block's loop reuses is copied to a
- * local array first: D and E may overlap as far as the compiler knows, so it would reload the
- * row after every store. D and E are overwritten by the factor; factor = 0: they hold it
+ * place, each entry's sum kept in a register). The row of L_i that column c of B_i reuses is
+ * copied to a local array first (D and E may overlap as far as the compiler knows, so it would
+ * reload the row after every store), and so is the row of B_{i-1} that D_i's update reuses
+ * when the block loops are unrolled whole (LEARNEST_BLOCK_WHOLE; otherwise, for groups of
+ * states and under clang, that copy costs more than it saves). D and E are overwritten by the factor; factor = 0: they hold it
  * already (from an earlier call), and only the substitutions run. 0 if H is not positive
  * definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
@@ -393,11 +395,15 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * bs;
       LEARNEST_UNROLL_BLOCK for (c = 0; c < n; ++c) {
-        learnest_real row[LEARNEST_NX];  /* row c of B: a local copy, which no store to D can change */
-        LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) row[k] = B[c + k * n];
+        learnest_real row[LEARNEST_NX];  /* row c of B, copied when the loops are unrolled whole */
+        const learnest_real* Bc = LEARNEST_BLOCK_WHOLE ? row : B + c;
+        const int step = LEARNEST_BLOCK_WHOLE ? 1 : n;
+        if (LEARNEST_BLOCK_WHOLE) {
+          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) row[k] = B[c + k * n];
+        }
         LEARNEST_UNROLL_BLOCK for (r = c; r < n; ++r) {
           learnest_real v = 0;
-          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) v += B[r + k * n] * row[k];
+          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) v += B[r + k * n] * Bc[k * step];
           Di[r + c * n] -= v;
         }
       }
