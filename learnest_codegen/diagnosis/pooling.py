@@ -35,7 +35,8 @@ from .shrink import HeldOut
 
 def leave_one_out(system: System, chosen: Sequence[Effect], theta: np.ndarray, segments: Sequence[Segment],
                   rows, sigma, settings: FitSettings, iterations: int = 8) -> tuple[list[HeldOut], list[str]]:
-    """Every segment with the chosen effects refitted (from the pooled ``theta``) on the others.
+    """Every segment with the chosen effects refitted (from the pooled ``theta``) on the others, by
+    generalised least squares as the pooled fit (:func:`~learnest_codegen.diagnosis.selection.refit`).
 
     Returns the held-out segments and the refinement status of each fold.
     """
@@ -46,7 +47,7 @@ def leave_one_out(system: System, chosen: Sequence[Effect], theta: np.ndarray, s
             status.append("nothing to fit")
             continue
         others = pairs_of([s for i, s in enumerate(segments) if i != k])
-        res = refit(system, chosen, theta, others, rows, sigma, settings, iterations)
+        res = refit(system, chosen, theta, others, rows, sigma, settings, iterations, whitened=True)
         held.append(HeldOut(seg, res.theta))
         status.append(res.status)
     return held, status
