@@ -6,8 +6,11 @@ estimators over a hand-written linear model (``kit_ukf.c``, ``kit_gn.c``, ``kit_
 ``kit_gn_groups.c``: a model whose states fall apart in groups), or over that model written by
 hand in CasADi's calling convention (``kit_casadi.h``) behind ``learnest_casadi.h``'s hooks
 (``kit_casadi_gn.c``; ``kit_casadi_ukf.c``: the UKF's own sigma points; ``kit_ipopt.c``: the
-Ipopt MHE over a hand-written nlpsol linked to the casadi wheel's libipopt). Each is compiled
-under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float
+Ipopt MHE over a hand-written nlpsol linked to the casadi wheel's libipopt), or over a nonlinear
+model written by hand in the scalar and the lane-parallel form (``kit_lanes.h``: the batch hooks,
+the UKF's batched sigma points in ``kit_lanes_ukf.c``, the MHE's batched stages in
+``kit_lanes_gn.c``, each against its scalar build, closed forms, FilterPy and the Python MHE).
+Each is compiled under ``-std=c99 -Wall -Wextra -Werror -pedantic`` with gcc and clang, in double and float
 (``kit_ipopt.c``: double, Ipopt's precision), and as C++ with g++; the results are compared
 with numpy.linalg, a dense solve, the Python gate (``estimators/gate.py``), the Python MHE's
 window bookkeeping (``estimators/mhe.py``, ``mhe_window.py``), the Ipopt MHE (CasADi's
@@ -17,12 +20,14 @@ nlpsol) and FilterPy's Kalman and unscented Kalman filters.
 from __future__ import annotations
 
 import ctypes
+import platform
 import re
 import shutil
 import subprocess
 from dataclasses import replace
 from pathlib import Path
 
+import casadi as cs
 import numpy as np
 import pytest
 from conftest import rounding, unscented_rounding
@@ -31,10 +36,12 @@ from test_ukf import update_gain
 from learnest_codegen import NoiseModel, Signal, System, get_system
 from learnest_codegen.codegen.mhe import arrival_defines, bounds_defines
 from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
+from learnest_codegen.estimators.ekf import EKF, EKFSettings
 from learnest_codegen.estimators.gate import GateSettings, GateState
 from learnest_codegen.estimators.mhe import MHE
+from learnest_codegen.estimators.mhe_gn import DEFAULT_TOLERANCE
 from learnest_codegen.estimators.mhe_problem import MHESettings, mhe_settings
-from learnest_codegen.export import prior_model
+from learnest_codegen.export import DiscreteModel, prior_model
 from learnest_codegen.runtime.limits import LIMITS
 from learnest_codegen.runtime.status import STATUS_NAMES
 from learnest_codegen.toolchain import casadi_dirs
@@ -46,7 +53,7 @@ FLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-fno-ma
 DTYPES = {"double": np.float64, "float": np.float32}
 CODES = {name: code for code, name in STATUS_NAMES.items()}
 SOURCE_NAMES = ["kit_core", "kit_gn", "kit_gn_groups", "kit_ukf", "kit_ekf", "kit_casadi_gn",
-                "kit_casadi_ukf", "kit_ipopt"]
+                "kit_casadi_ukf", "kit_ipopt", "kit_lanes_ukf", "kit_lanes_gn"]
 CASADI_INCLUDE, CASADI_LIB = casadi_dirs()
 #: What a source needs besides the kit: Ipopt's headers and library (the casadi wheel's, as
 #: codegen/mhe.py links a generated Ipopt MHE).
@@ -446,8 +453,9 @@ def start(k, prefix, model_matrices, x0, P0, Q, R):
     handle = ctypes.c_void_p()
     assert k(f"{prefix}_init", memory, ctypes.c_size_t(memory.nbytes),
              *(k.a(a) for a in (x0, P0, Q, R)), ctypes.byref(handle)) == 0
-    Phi, Gamma, C = model_matrices
-    assert k("kt_set_model", handle, k.a(Phi.T), k.a(Gamma.T), k.a(C.T)) == 0
+    if model_matrices is not None:  # None: the source's model is fixed (kit_lanes.h)
+        Phi, Gamma, C = model_matrices
+        assert k("kt_set_model", handle, k.a(Phi.T), k.a(Gamma.T), k.a(C.T)) == 0
     return memory, handle
 
 
@@ -872,3 +880,252 @@ def test_the_apis_other_doors_from_the_kit_alone(libraries, linear):
         k("tgn_get_state", h, X_c[i])
     X_py = MHE(model, settings).run(run.u[:T], Y, x0, valid=valid[:T])
     np.testing.assert_allclose(X_c, X_py, rtol=0, atol=1e-7)
+
+
+# -- the lane-parallel paths over a hand-written nonlinear model ------------------------------
+
+VECTORS = shutil.which("gcc") is not None and platform.machine() == "x86_64"
+LANES = {"double": 4, "float": 8}  # learnest_simd.h's lanes a 32-byte vector
+needs_vectors = pytest.mark.skipif(not VECTORS, reason="learnest_simd.h's vectors are GCC on x86-64")
+G, B, C_DRAG, D_DRAG = 4.0, 1.0, 0.5, 0.1  # kit_lanes.h's constants
+#: The dependent operations of kit_lanes.h's F1 and A11 (eleven + - * and the kit's sin, cos
+#: and tanh, each within 3 ulp: three operations each).
+MODEL_OPS = 20
+
+
+def lanes_model(x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """kit_lanes.h's model in closed form (numpy, float64): F and A = dF/dx of the points x
+    (n, 2) with inputs u (n, 1)."""
+    x0, x1, u0 = x[:, 0], x[:, 1], u[:, 0]
+    F = np.stack([x0 + dt * x1, x1 + dt * (B * u0 * np.cos(x0) - G * np.sin(x0)
+                                           - C_DRAG * np.tanh(x1) - D_DRAG * x1 * np.abs(x1))], axis=1)
+    A = np.zeros((len(x), 2, 2))
+    A[:, 0, 0], A[:, 0, 1] = 1.0, dt
+    A[:, 1, 0] = dt * (-G * np.cos(x0) - B * u0 * np.sin(x0))
+    A[:, 1, 1] = 1.0 + dt * (-C_DRAG * (1 - np.tanh(x1) ** 2) - 2 * D_DRAG * np.abs(x1))
+    return F, A
+
+
+def lanes_scale(x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """The largest term's size in each point's F1 and A11 (what their rounding is relative to)."""
+    x0, x1, u0 = np.abs(x[:, 0]), np.abs(x[:, 1]), np.abs(u[:, 0])
+    return np.maximum(x0 + x1, 1.0 + dt * (B * u0 + G + C_DRAG + 2 * D_DRAG * x1 + D_DRAG * x1**2))
+
+
+def lanes_casadi_model(system: System) -> DiscreteModel:
+    """kit_lanes.h's model as CasADi functions, for the Python MHE (CasADi's nlpsol with Ipopt)."""
+    x, u, dt = cs.SX.sym("x", 2), cs.SX.sym("u", 1), system.dt
+    F = cs.vertcat(x[0] + dt * x[1], x[1] + dt * (B * u[0] * cs.cos(x[0]) - G * cs.sin(x[0])
+                                                 - C_DRAG * cs.tanh(x[1]) - D_DRAG * x[1] * cs.fabs(x[1])))
+    return DiscreteModel(system, "nominal", cs.Function("F", [x, u], [F], ["x", "u"], ["x_next"]),
+                         cs.Function("f", [x, u], [(F - x) / dt], ["x", "u"], ["xdot"]),
+                         system.casadi_h(), dt)
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    """The nonlinear model's system (the linear system's names, sizes and noise), its CasADi
+    model and a simulated run (F with process noise, outputs with noise, missing at random and
+    for ten samples in a row)."""
+    system = linear_system()
+    rng = np.random.default_rng(11)
+    T = 160
+    u = (2.0 * np.sin(0.7 * system.dt * np.arange(T)))[:, None]
+    x = np.empty((T, 2))
+    x[0] = (1.0, 0.0)
+    for i in range(1, T):
+        x[i] = lanes_model(x[i - 1][None], u[i - 1][None], system.dt)[0][0] + rng.normal(
+            scale=system.noise.process_std)
+    y = x + rng.normal(scale=system.noise.measurement_std, size=x.shape)
+    valid = rng.random(y.shape) < 0.7
+    valid[60:70] = False
+    return system, lanes_casadi_model(system), u, y, valid
+
+
+@needs_vectors
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_lane_parallel_hooks_equal_the_scalar_hooks_and_the_closed_forms(libraries, real):
+    """learnest_casadi.h's batch hooks (F, and the stage F with A) with learnest_casadi.h's lane
+    gather and scatter over kit_lanes.h's batch copies (learnest_simd.h's sin, cos, tanh, fabs
+    and square) on 11 points (batches with spare lanes): bit for bit the scalar hooks, and the
+    closed forms to the model's rounding. Points include both tanh branches, its saturation,
+    and angles beyond the vector sin/cos reduction range (its per-lane scalar fallback)."""
+    k = libraries("kit_lanes_gn", "gcc", real)
+    rng = np.random.default_rng(5)
+    dt = 0.05
+    for big in (30.0, 1e6):
+        X = k.a(np.column_stack([rng.uniform(-big, big, 11), rng.uniform(-12, 12, 11)]))
+        X[:4, 1] = (0.0, 0.1, -0.3, 40.0)
+        U = k.a(rng.uniform(-3, 3, (11, 1)))
+        for stage in (False, True):
+            out = {}
+            for lanes in (1, 2):
+                F, A = k.a(np.zeros((11, 2))), k.a(np.zeros((11, 2, 2)))
+                used = k("kl_model_points", lanes, 11, X, U, F, A if stage else None)
+                assert used == (1 if lanes == 1 else LANES[real])
+                out[lanes] = F, A
+            np.testing.assert_array_equal(out[2][0], out[1][0])
+            np.testing.assert_array_equal(out[2][1], out[1][1])
+        F_ref, A_ref = lanes_model(X.astype(float), U.astype(float), dt)
+        tol = rounding(k.dtype, ops=MODEL_OPS) * lanes_scale(X.astype(float), U.astype(float), dt)
+        F, A = out[1]
+        assert np.all(np.abs(F - F_ref) <= tol[:, None])
+        assert np.all(np.abs(A.transpose(0, 2, 1) - A_ref) <= tol[:, None, None])  # A column-major
+
+
+@needs_vectors
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_lane_parallel_ukf_equals_the_scalar_ukf_and_filterpys_ukf(libraries, pendulum, real):
+    """learnest_ukf.h's batched sigma-point propagation (F on 4 or 8 points a call, kit_lanes_ukf.c)
+    against the same source built with -DLEARNEST_NO_SIMD (one call a point): the same state
+    and covariance bit for bit at every sample; and against FilterPy's UnscentedKalmanFilter
+    (Merwe points, alpha 0.5, beta 2, kappa 1) on the nonlinear model in closed form, with the
+    bound of test_kit_sigma_points_equal_filterpys_ukf plus the model's rounding."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    system, _, U, Y, valid = pendulum
+    vector = libraries("kit_lanes_ukf", "gcc", real)
+    scalar = libraries("kit_lanes_ukf", "gcc", real, {"LEARNEST_NO_SIMD": 1})
+    none = (None,) * 4
+    assert vector("kl_model_points", 2, 0, *none) == LANES[real]
+    assert scalar("kl_model_points", 2, 0, *none) == 0  # no vectors: the scalar loop
+    Q, R = np.diag(np.square(system.noise.process_std)), np.diag(np.square(system.noise.measurement_std))
+    P0, x0 = np.diag(np.square(system.noise.initial_std)), np.array(system.x0, dtype=float)
+    handles = [start(lib, "tlu", None, x0, P0, Q, R) for lib in (vector, scalar)]
+    points = MerweScaledSigmaPoints(2, 0.5, 2.0, 1.0)
+    ukf = UnscentedKalmanFilter(2, 2, system.dt, hx=lambda s, **_: s, points=points,
+                                fx=lambda s, dt, u: lanes_model(s[None], u[None], dt)[0][0])
+    ukf.x, ukf.P, ukf.Q = x0.copy(), P0.copy(), Q
+    bound_x = bound_P = 0.0
+    for i in range(len(Y)):
+        u = U[max(i - 1, 0)]
+        if i > 0:
+            ukf.predict(u=u)
+        else:
+            ukf.sigmas_f = points.sigma_points(ukf.x, ukf.P)
+            ukf.x_prior, ukf.P_prior = ukf.x.copy(), ukf.P.copy()
+        keep = valid[i]
+        gain_x = gain_P = 1.0
+        if keep.any():
+            ukf.update(Y[i][keep], R=R[np.ix_(keep, keep)], hx=lambda s, keep=keep: s[keep])
+            gain_x, gain_P = update_gain(ukf, ukf.sigmas_h, ukf.P_prior)
+        else:
+            ukf.x, ukf.P = ukf.x_prior.copy(), ukf.P_prior.copy()
+        states = []
+        for lib, (_, h) in zip((vector, scalar), handles):
+            y = lib.a(np.where(keep, Y[i], np.nan))
+            assert lib("tlu_step", h, lib.a(u), y, keep.astype(np.uint8)) == 0
+            x, P = lib.a(np.zeros(2)), lib.a(np.zeros((2, 2)))
+            lib("tlu_get_state", h, x)
+            lib("tlu_get_covariance", h, P)
+            states.append((x, P))
+        np.testing.assert_array_equal(states[0][0], states[1][0], err_msg=f"{i}")
+        np.testing.assert_array_equal(states[0][1], states[1][1], err_msg=f"{i}")
+        x, P = states[0]
+        cond = max(np.abs(points.Wm).sum(), np.abs(points.Wc).sum())
+        bound_x += rounding(vector.dtype, ops=3 * 2 + 2 + MODEL_OPS, cond=cond * gain_x)
+        bound_P += rounding(vector.dtype, ops=3 * 2 + 2 + MODEL_OPS, cond=cond * gain_P)
+        np.testing.assert_allclose(x, ukf.x, rtol=0, atol=bound_x * np.abs(ukf.x).max(), err_msg=f"{i}")
+        np.testing.assert_allclose(P, ukf.P, rtol=0, atol=bound_P * np.abs(ukf.P).max(), err_msg=f"{i}")
+
+
+@needs_vectors
+@pytest.mark.parametrize("real", list(DTYPES))
+def test_lane_parallel_mhe_equals_the_scalar_mhe_and_the_ipopt_mhe(libraries, pendulum, real):
+    """learnest_gn.h's batched linearisation of the window's stages (4 or 8 stages a call of
+    learnest_casadi.h's stage batch hook, horizon 6: spare lanes) in the embedded MHE over the
+    nonlinear model (kit_lanes_gn.c), against the same source built with -DLEARNEST_NO_SIMD
+    (one call a stage): the same estimates bit for bit; in double, also the Python MHE
+    (CasADi's nlpsol with Ipopt on the model's CasADi form) to 1e-7, as the linear model's."""
+    system, model, U, Y, valid = pendulum
+    vector = libraries("kit_lanes_gn", "gcc", real)
+    scalar = libraries("kit_lanes_gn", "gcc", real, {"LEARNEST_NO_SIMD": 1})
+    assert scalar("kl_model_points", 2, 0, *(None,) * 4) == 0
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    T = 120
+    Ym = np.where(valid[:T], Y[:T], np.nan)
+    out = []
+    for lib in (vector, scalar):
+        memory, h = start(lib, "tlg", None, x0, P0, Q, R)
+        assert lib("tlg_set_arrival", h, lib.a(P0)) == 0
+        if real == "float":  # the float MHEs' default tolerance (estimators/mhe_gn.py)
+            assert lib("tlg_set_options", h, 0, 30, DEFAULT_TOLERANCE["float32"]) == 0
+        X = lib.a(np.zeros((T, 2)))
+        assert lib("tlg_run", h, T, lib.a(U[:T]), lib.a(Ym), valid[:T].astype(np.uint8), X) == 0
+        out.append(X)
+    np.testing.assert_array_equal(out[0], out[1])
+    assert np.all(np.isfinite(out[0]))
+    if real == "double":
+        X_py = MHE(model, settings).run(U[:T], Ym, x0, valid=valid[:T])
+        np.testing.assert_allclose(out[0], X_py, rtol=0, atol=1e-7)
+
+
+def test_gate_accessors_and_the_reseed_equal_the_python_filter(libraries, linear):
+    """The gate's and the input check's accessors (get_rejected, rejections, get_input_rejected,
+    input_rejections) and the Kalman filters' re-seed of a lost estimate (learnest_kalman.h),
+    on the kit's EKF over the linear model with input limits, against the Python EKF
+    (estimators/ekf.py: FilterPy's filter in the step every reference Kalman filter shares):
+    a two-sample outlier on one output (rejected), then a lasting offset of 3 on the other
+    (rejected until the estimate is lost, then re-seeded). Per sample: the status bits,
+    the rejected outputs and inputs and their counts exactly; the estimate to 1e-10 of its size
+    (the two filters' rounding, amplified by the re-seed's wide prior)."""
+    system, model, matrices, run, valid = linear
+    settings = EKFSettings.from_system(system, input_limits=((-0.8, 0.8),))
+    k = libraries("kit_ekf", "gcc", "double", {"LEARNEST_INPUT_LO": "{-0.8}", "LEARNEST_INPUT_HI": "{0.8}"})
+    x0 = np.array(system.x0, dtype=float)
+    memory, h = start(k, "tekf", matrices, x0, settings.P0(), settings.Q(), settings.R())
+    gate = settings.gate
+    assert k("tekf_set_gate", h, float(gate.threshold), gate.recover_after, float(gate.inflation)) == 0
+    ekf = EKF(model, settings)
+    ekf.reset(x0)
+    Y = run.y[:160].copy()
+    Y[20:22, 1] += 5.0
+    Y[50:, 0] += 3.0
+    statuses = []
+    for i in range(len(Y)):
+        u = run.u[max(i - 1, 0)]
+        code = k("tekf_step", h, k.a(u), k.a(Y[i]), None)
+        ekf.step(u, Y[i])
+        assert code == ekf.last_status, i
+        statuses.append(code)
+        x, rejected, input_rejected = k.a(np.zeros(2)), np.zeros(2, np.intc), np.zeros(1, np.intc)
+        k("tekf_get_state", h, x)
+        assert k("tekf_get_rejected", h, rejected) == 0
+        assert k("tekf_get_input_rejected", h, input_rejected) == 0
+        np.testing.assert_array_equal(rejected.astype(bool), ekf.rejected, err_msg=f"{i}")
+        np.testing.assert_array_equal(input_rejected.astype(bool), ekf.input_rejected, err_msg=f"{i}")
+        assert k("tekf_rejections", h) == ekf.rejections
+        assert k("tekf_input_rejections", h) == ekf.input_rejections
+        np.testing.assert_allclose(x, ekf.x, rtol=0, atol=1e-10 * np.abs(ekf.x).max(), err_msg=f"{i}")
+    statuses = np.array(statuses)
+    assert np.all(statuses[20:22] & 1) and np.any(statuses & 2)  # outliers rejected, inputs replaced
+    lost = np.flatnonzero(statuses & 4)  # lost under the offset, re-seeded, then accepted
+    assert len(lost) and lost[0] > 50 and not np.any(statuses[lost[0] + 1:lost[0] + 6] & 1)
+
+
+def test_mhe_set_noise_from_the_kit_alone_equals_the_python_mhe(libraries, linear):
+    """The MHEs' run-time tuning (learnest_mhe_api.h's set_noise: Q and R from the next step on,
+    the window and gate kept) on the kit's Gauss-Newton MHE against the Python MHE's set_noise,
+    to 1e-7 as the embedded MHE above."""
+    system, model, matrices, run, valid = linear
+    settings = mhe_settings(model, MHESettings.from_system(system, horizon=6))
+    Q, R, P0 = settings.covariances()
+    x0 = np.array(system.x0, dtype=float)
+    k = libraries("kit_gn", "gcc", "double")
+    memory, h = start(k, "tgn", matrices, x0, P0, Q, R)
+    assert k("tgn_set_arrival", h, k.a(P0)) == 0
+    mhe = MHE(model, settings)
+    mhe.reset(x0)
+    T = 120
+    Y = np.where(valid[:T], run.y[:T], np.nan)
+    x = k.a(np.zeros(2))
+    for i in range(T):
+        if i == 40:
+            assert k("tgn_set_noise", h, k.a(9 * Q), k.a(0.25 * R)) == 0
+            mhe.set_noise(Q=9 * Q, R=0.25 * R)
+        assert k("tgn_step", h, k.a(run.u[max(i - 1, 0)]), k.a(Y[i]), valid[i].astype(np.uint8)) >= 0
+        x_py = mhe.step(run.u[max(i - 1, 0)], Y[i], valid=valid[i])
+        k("tgn_get_state", h, x)
+        np.testing.assert_allclose(x, x_py, rtol=0, atol=1e-7, err_msg=f"{i}")

@@ -19,7 +19,12 @@ import torch
 
 from learnest_codegen import get_system, simulation
 from learnest_codegen.codegen.mhe import generate_mhe
-from learnest_codegen.codegen.mhe_gn import generate_embedded_mhe, model_functions, state_groups
+from learnest_codegen.codegen.mhe_gn import (
+    generate_embedded_mhe,
+    model_functions,
+    pattern_defines,
+    state_groups,
+)
 from learnest_codegen.compilation import estimator_kind
 from learnest_codegen.data import write_run
 from learnest_codegen.errors import DataError, ModelMismatchError, ShapeError, SolverError
@@ -358,6 +363,31 @@ def test_state_groups_are_read_off_the_jacobians(cartpole):
     torch.manual_seed(0)
     assert _groups(hybrid_model(quad, make_net(quad))) == ((tuple(range(9)), tuple(range(6))),)
     assert _groups(prior_model(cartpole)) == (((0, 1, 2, 3), (0, 1)),)
+
+
+def test_jacobian_patterns_are_the_exact_zeros_of_the_evaluated_jacobians():
+    """The tables the kit's assembly skips by (LEARNEST_A_PATTERN, LEARNEST_C_PATTERN): for the
+    KNODE quadrotor, A = dF/dx is the identity in the position columns (neither the prior nor
+    the net reads the position) and dense elsewhere, C selects position and acceleration; at
+    random points every entry outside the tables is exactly 0 (a skipped term adds nothing)."""
+    quad = get_system("quadrotor")
+    torch.manual_seed(0)
+    model = hybrid_model(quad, make_net(quad))
+    stage, node, _ = model_functions(model, "m")
+    tables = pattern_defines(stage, node, model.nx)
+    A_nz = np.array(json.loads(tables["LEARNEST_A_PATTERN"].replace("{", "[").replace("}", "]")))
+    C_nz = np.array(json.loads(tables["LEARNEST_C_PATTERN"].replace("{", "[").replace("}", "]")))
+    A_nz, C_nz = A_nz.reshape(9, 9).T, C_nz.reshape(9, 6).T  # column-major tables
+    expected_A = np.ones((9, 9), dtype=int)
+    expected_A[:, :3] = np.eye(9, 3, dtype=int)
+    assert np.array_equal(A_nz, expected_A)
+    assert np.array_equal(C_nz, np.eye(9, dtype=int)[[0, 1, 2, 6, 7, 8]])
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x, u = rng.normal(size=9), rng.uniform(0, 1, size=4)
+        A, C = np.array(stage(x, u)[1]), np.array(node(x, u)[1])
+        assert np.all(A[A_nz == 0] == 0) and np.all(A[A_nz == 1] != 0)
+        assert np.all(C[C_nz == 0] == 0)
 
 
 def test_separate_axes_are_solved_one_by_one_and_agree_with_ipopt(tmp_path):

@@ -14,6 +14,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from scipy import special
 
 from learnest_codegen.codegen.casadi_c import MATH_ROUTINES, clean
 from learnest_codegen.codegen.templates import kit_files
@@ -86,3 +87,68 @@ def test_generated_model_calls_the_kit_routines():
     assert "casadi_sq(a2)" in out  # CasADi's own helpers stay
     assert out.index('#include "learnest_math.h"') < out.index("static int f")
     assert {"sin", "cos", "tanh", "exp", "sqrt", "fabs"} <= set(MATH_ROUTINES)
+
+
+#: The C library's routines behind learnest_<name> (learnest_math.h's LEARNEST_LIBM_1 and _2),
+#: numpy's (scipy's erf) twins and a domain on which both are finite.
+LIBM = {"sqrt": (np.sqrt, (0, 50)), "fabs": (np.abs, (-50, 50)), "tan": (np.tan, (-1.5, 1.5)),
+        "asin": (np.arcsin, (-1, 1)), "acos": (np.arccos, (-1, 1)), "atan": (np.arctan, (-50, 50)),
+        "sinh": (np.sinh, (-20, 20)), "cosh": (np.cosh, (-20, 20)), "asinh": (np.arcsinh, (-50, 50)),
+        "acosh": (np.arccosh, (1, 50)), "atanh": (np.arctanh, (-0.99, 0.99)), "log": (np.log, (1e-3, 50)),
+        "log1p": (np.log1p, (-0.99, 50)), "expm1": (np.expm1, (-20, 20)), "floor": (np.floor, (-50, 50)),
+        "ceil": (np.ceil, (-50, 50)), "erf": (special.erf, (-5, 5)),
+        "atan2": (np.arctan2, (-50, 50)), "pow": (np.power, (0.1, 5)), "fmod": (np.fmod, (0.5, 50)),
+        "fmin": (np.fmin, (-50, 50)), "fmax": (np.fmax, (-50, 50)), "hypot": (np.hypot, (-50, 50)),
+        "copysign": (np.copysign, (-50, 50))}
+
+LIBM_MAIN = r"""
+#include <stdio.h>
+#define LEARNEST_REAL REAL
+#include "learnest_math.h"
+static const double args[][2] = {ARGS};
+int main(void) {
+  int i;
+  for (i = 0; i < (int)(sizeof args / sizeof args[0]); ++i) {
+    REAL x = (REAL)args[i][0], y = (REAL)args[i][1];
+    (void)y;
+    printf("%.17g %.17g %.17g\n", (double)x, (double)y, (double)CALL);
+  }
+  return 0;
+}
+"""
+
+
+@pytest.mark.parametrize("real", ["double", "float"])
+def test_library_routines_run_in_the_builds_precision(real, tmp_path):
+    """Every learnest_<name> that is the C library's (the generated model's other math calls)
+    on 64 arguments of its domain: a float build calls no double routine and a double build no
+    float one (the program's undefined symbols; the compiler inlines some, such as sqrt and
+    fabs), and each result is within 2 ulp of its precision of numpy's (the C library's
+    routines are within 1 ulp of the exact result: two implementations differ by at most 2)."""
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not found")
+    assert set(LIBM) == set(MATH_ROUTINES) - {"sin", "cos", "tanh", "exp"}  # the kit's own: above
+    for path in kit_files():
+        shutil.copy(path, tmp_path / path.name)
+    rng = np.random.default_rng(2)
+    dtype = np.float32 if real == "float" else np.float64
+    for name, (twin, (lo, hi)) in LIBM.items():
+        two = twin in (np.arctan2, np.power, np.fmod, np.fmin, np.fmax, np.hypot, np.copysign)
+        args = rng.uniform(lo, hi, (64, 2)).astype(dtype).astype(float).tolist()
+        source = tmp_path / f"{name}.c"
+        call = f"learnest_{name}(x, y)" if two else f"learnest_{name}(x)"
+        source.write_text(LIBM_MAIN.replace("ARGS", ", ".join(f"{{{a.hex()}, {b.hex()}}}" for a, b in args))
+                          .replace("CALL", call))
+        exe = tmp_path / name
+        subprocess.run(["gcc", "-O2", "-std=c99", "-ffp-contract=off", "-fno-math-errno", "-Wall",
+                        "-Wextra", "-Werror", "-pedantic", f"-DREAL={real}", f"-I{tmp_path}",
+                        str(source), "-lm", "-o", str(exe)], check=True)
+        out = np.loadtxt(subprocess.run([str(exe)], capture_output=True, text=True,
+                                        check=True).stdout.splitlines())
+        x, y, value = out[:, 0], out[:, 1], out[:, 2]
+        reference = twin(x, y) if two else twin(x)
+        calls = {line.split()[-1].split("@")[0] for line in subprocess.run(
+            ["nm", "-u", str(exe)], capture_output=True, text=True, check=True).stdout.splitlines()}
+        assert (name if real == "float" else f"{name}f") not in calls, name  # the build's precision
+        spacing = np.spacing(np.abs(reference).astype(dtype)).astype(float)
+        assert np.all(np.abs(value - reference) <= 2 * spacing), name

@@ -66,26 +66,29 @@ LEARNEST_KIT_INLINE void learnest_casadi_xu(struct learnest_model* md, learnest_
   (void)learnest_casadi_call(md, f, io.in, 2, io.out, b ? 2 : 1);
 }
 
+/* The hooks: hook(md, x, u, a, b) -> (a, b) = fn(x, u), and hook(md, x, u, a) -> a = fn(x, u). */
+#define LEARNEST_CASADI_HOOK2_(hook, fn)                                                      \
+  LEARNEST_KIT void hook(struct learnest_model* md, const learnest_real* x, const learnest_real* u, \
+                         learnest_real* a, learnest_real* b) {                                \
+    learnest_casadi_xu(md, fn, x, u, a, b);                                                  \
+  }
+#define LEARNEST_CASADI_HOOK1_(hook, fn)                                                      \
+  LEARNEST_KIT void hook(struct learnest_model* md, const learnest_real* x, const learnest_real* u, \
+                         learnest_real* a) {                                                  \
+    learnest_casadi_xu(md, fn, x, u, a, 0);                                                  \
+  }
+
 #ifdef LEARNEST_MODEL_STAGE
-LEARNEST_KIT void learnest_model_stage(struct learnest_model* md, const learnest_real* x,
-                                       const learnest_real* u, learnest_real* F,
-                                       learnest_real* A) {
-  learnest_casadi_xu(md, LEARNEST_MODEL_STAGE, x, u, F, A);
-}
+LEARNEST_CASADI_HOOK2_(learnest_model_stage, LEARNEST_MODEL_STAGE)  /* (F, A = dF/dx) */
 #endif
-
 #ifdef LEARNEST_MODEL_NODE
-LEARNEST_KIT void learnest_model_node(struct learnest_model* md, const learnest_real* x,
-                                      const learnest_real* u, learnest_real* h, learnest_real* C) {
-  learnest_casadi_xu(md, LEARNEST_MODEL_NODE, x, u, h, C);
-}
+LEARNEST_CASADI_HOOK2_(learnest_model_node, LEARNEST_MODEL_NODE)  /* (h, C = dh/dx) */
 #endif
-
 #ifdef LEARNEST_MODEL_F
-LEARNEST_KIT void learnest_model_F(struct learnest_model* md, const learnest_real* x,
-                                   const learnest_real* u, learnest_real* F) {
-  learnest_casadi_xu(md, LEARNEST_MODEL_F, x, u, F, 0);
-}
+LEARNEST_CASADI_HOOK1_(learnest_model_F, LEARNEST_MODEL_F)
+#endif
+#ifdef LEARNEST_MODEL_H
+LEARNEST_CASADI_HOOK1_(learnest_model_h, LEARNEST_MODEL_H)
 #endif
 
 #if defined(LEARNEST_MODEL_F_BATCH) || defined(LEARNEST_MODEL_STAGE_BATCH)
@@ -138,13 +141,6 @@ LEARNEST_KIT void learnest_model_F_batch(const learnest_real* x, const learnest_
 LEARNEST_KIT void learnest_model_stage_batch(const learnest_real* x, const learnest_real* u,
                                              learnest_real* F, learnest_real* A) {
   learnest_casadi_batch(LEARNEST_MODEL_STAGE_BATCH, x, u, F, A);
-}
-#endif
-
-#ifdef LEARNEST_MODEL_H
-LEARNEST_KIT void learnest_model_h(struct learnest_model* md, const learnest_real* x,
-                                   const learnest_real* u, learnest_real* h) {
-  learnest_casadi_xu(md, LEARNEST_MODEL_H, x, u, h, 0);
 }
 #endif
 

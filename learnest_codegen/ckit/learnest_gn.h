@@ -55,6 +55,7 @@ struct learnest_gn {
   int dq, dr, dp;  /* Q, R, P diagonal (the usual tuning): their zero terms are skipped */
   int split;       /* the weights keep the model's groups apart: solve group by group */
   learnest_real tol;
+  learnest_real cost;  /* the cost at the point learnest_gn_build last assembled */
   learnest_real Q[LEARNEST_NXX], R[LEARNEST_NYY], P[LEARNEST_NXX];  /* weights / the largest */
   struct learnest_lin lin[2];  /* at the iterate (lin[cur]) and at the line search's point */
   int cur;
@@ -73,6 +74,22 @@ struct learnest_gn {
 
 /* The linearisation at the iterate. */
 #define LEARNEST_GN_LIN(s) (&(s)->lin[(s)->cur])
+
+/* The structural nonzeros of A and C (column-major, 1 a nonzero) when the generated glue gives
+ * them (LEARNEST_A_PATTERN, LEARNEST_C_PATTERN: codegen/mhe_gn.py), which the normal equations'
+ * assembly skips; without them, A and C are taken as dense. */
+#ifdef LEARNEST_A_PATTERN
+static const unsigned char learnest_gn_a_nz[LEARNEST_NXX] = LEARNEST_A_PATTERN;
+#define LEARNEST_GN_A_NZ learnest_gn_a_nz
+#else
+#define LEARNEST_GN_A_NZ ((const unsigned char*)0)
+#endif
+#ifdef LEARNEST_C_PATTERN
+static const unsigned char learnest_gn_c_nz[LEARNEST_NY * LEARNEST_NX] = LEARNEST_C_PATTERN;
+#define LEARNEST_GN_C_NZ learnest_gn_c_nz
+#else
+#define LEARNEST_GN_C_NZ ((const unsigned char*)0)
+#endif
 
 #include "learnest_gn_groups.h"
 
@@ -148,12 +165,24 @@ LEARNEST_KIT void learnest_gn_advance(struct learnest_gn* s, struct learnest_mod
 }
 
 /* r' W r for the n x n W; diag: W is diagonal (its zero terms skipped). */
-LEARNEST_KIT learnest_real learnest_gn_quad(const learnest_real* W, int diag, const learnest_real* r,
-                                            int n) {
+LEARNEST_KIT_INLINE learnest_real learnest_gn_quad(const learnest_real* W, int diag,
+                                                   const learnest_real* r, int n) {
   learnest_real acc = 0;
   int i;
   if (!diag) return learnest_quad(W, r, n);
-  LEARNEST_UNROLL for (i = 0; i < n; ++i) acc += W[i + i * n] * r[i] * r[i];
+  LEARNEST_UNROLL_BLOCK for (i = 0; i < n; ++i) acc += W[i + i * n] * r[i] * r[i];
+  return acc;
+}
+
+/* learnest_gn_quad(W, diag, r, n) given Wr = W r (learnest_gn_weigh): for a diagonal W the same
+ * products (W_ii r_i) r_i in the same order, so the same bits. */
+LEARNEST_KIT_INLINE learnest_real learnest_gn_quad_weighed(const learnest_real* W, int diag,
+                                                           const learnest_real* r, const learnest_real* Wr,
+                                                           int n) {
+  learnest_real acc = 0;
+  int i;
+  if (!diag) return learnest_quad(W, r, n);
+  LEARNEST_UNROLL_BLOCK for (i = 0; i < n; ++i) acc += Wr[i] * r[i];
   return acc;
 }
 
@@ -183,94 +212,125 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
   return c;
 }
 
-/* Wv = W v and WM = W M (M: n x cols, column-major) for the n x n W; diag: W is diagonal (the
- * zero terms are skipped, which changes no bit: adding an exact 0 is exact). */
+/* The structural nonzeros of a Jacobian (nz: column-major, one byte an entry; NULL: dense).
+ * Its structural zeros are exact zeros: a term they multiply adds an exact 0 and is skipped,
+ * which changes no bit; with the blocks unrolled and nz a constant table, the compiler drops
+ * those terms from the code. */
+LEARNEST_KIT_INLINE int learnest_gn_nz(const unsigned char* nz, int i) { return !nz || nz[i]; }
+#define LEARNEST_GN_NZ(nz, i) learnest_gn_nz(nz, i)
+
+/* Wv = W v and WM = W M (M: n x cols, column-major, structure nz) for the n x n W; diag: W is
+ * diagonal (its zero terms are skipped, and WM has M's structure). M's entries at its
+ * structural zeros are not read. */
 LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
-                                           const learnest_real* M, int cols, learnest_real* Wv,
-                                           learnest_real* WM) {
+                                           const learnest_real* M, const unsigned char* nz, int cols,
+                                           learnest_real* Wv, learnest_real* WM) {
   int r, c, k;
-  LEARNEST_UNROLL for (r = 0; r < n; ++r) {
+  LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) {
     if (diag) {
       Wv[r] = W[r + r * n] * v[r];
-      LEARNEST_UNROLL for (c = 0; c < cols; ++c) WM[r + c * n] = W[r + r * n] * M[r + c * n];
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < cols; ++c) {
+        WM[r + c * n] = LEARNEST_GN_NZ(nz, r + c * n) ? W[r + r * n] * M[r + c * n] : 0;
+      }
       continue;
     }
     Wv[r] = 0;
-    LEARNEST_UNROLL for (k = 0; k < n; ++k) Wv[r] += W[r + k * n] * v[k];
-    LEARNEST_UNROLL for (c = 0; c < cols; ++c) {
+    LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) Wv[r] += W[r + k * n] * v[k];
+    LEARNEST_UNROLL_BLOCK for (c = 0; c < cols; ++c) {
       learnest_real t = 0;
-      LEARNEST_UNROLL for (k = 0; k < n; ++k) t += W[r + k * n] * M[k + c * n];
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
+        if (LEARNEST_GN_NZ(nz, k + c * n)) t += W[r + k * n] * M[k + c * n];
+      }
       WM[r + c * n] = t;
     }
   }
 }
 
-/* A term m |W^(1/2) r|^2 of a node's residual r (n of them) with Jacobian J (n x NX) in the
- * normal equations: D += m J' W J (its lower triangle; hess = 0: D is left) and g -= m J' W r,
- * given WJ = W J and Wr = W r (learnest_gn_weigh). */
-LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const learnest_real* WJ,
-                                          const learnest_real* Wr, learnest_real m, int hess,
-                                          learnest_real* D, learnest_real* g) {
+/* A term m |W^(1/2) r|^2 of a node's residual r (n of them) with Jacobian J (n x NX,
+ * structure nz) in the normal equations: D += m J' W J (its lower triangle; hess = 0: D is
+ * left) and g -= m J' W r, given WJ = W J and Wr = W r (learnest_gn_weigh; diag: W is
+ * diagonal, so WJ has J's structure). */
+LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const unsigned char* nz, int diag,
+                                          const learnest_real* WJ, const learnest_real* Wr,
+                                          learnest_real m, int hess, learnest_real* D, learnest_real* g) {
   int r, c, k;
-  LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+  LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
     if (hess) {
-      LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
+      LEARNEST_UNROLL_BLOCK for (r = c; r < LEARNEST_NX; ++r) {
         learnest_real v = 0;
-        LEARNEST_UNROLL for (k = 0; k < n; ++k) v += J[k + r * n] * WJ[k + c * n];
-        D[r + c * LEARNEST_NX] += m * v;
+        int any = 0;  /* a structural zero of J'WJ adds nothing */
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
+          if (LEARNEST_GN_NZ(nz, k + r * n) && (!diag || LEARNEST_GN_NZ(nz, k + c * n))) {
+            v += J[k + r * n] * WJ[k + c * n];
+            any = 1;
+          }
+        }
+        if (any) D[r + c * LEARNEST_NX] += m * v;
       }
     }
-    LEARNEST_UNROLL for (k = 0; k < n; ++k) g[c] -= m * J[k + c * n] * Wr[k];
+    LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
+      if (LEARNEST_GN_NZ(nz, k + c * n)) g[c] -= m * J[k + c * n] * Wr[k];
+    }
   }
 }
 
 /* The normal equations H dx = -g of the Gauss-Newton model at X (half the cost's Hessian and
  * gradient): diagonal blocks D_i (their lower triangles: all the factorisation reads), blocks
- * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are).
+ * E_i = H_{i+1, i}, gradient g; hess = 0: the gradient alone (D and E are left as they are);
+ * and the cost at X (learnest_gn_cost's sum, term by term in its order: the same bits).
  * Diagonal weights (the usual tuning) skip their zero terms. */
 LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct learnest_window* w,
                                            const learnest_real* X, int hess) {
   const struct learnest_lin* L = LEARNEST_GN_LIN(s);
   const int dq = s->dq, dr = s->dr, dp = s->dp;
   int i, r, c, k;
-  if (hess) {
-    memset(s->D, 0, sizeof s->D);
-    memset(s->E, 0, sizeof s->E);  /* stages with m_i = 0 couple nothing */
+  if (hess) {  /* D_0 from 0; each stage sets D_{i+1}'s lower triangle and E_i whole below */
+    LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NXX; ++k) s->D[k] = 0;
   }
   memset(s->g, 0, sizeof s->g);
+  s->cost = 0;
   for (i = 0; i <= LEARNEST_N; ++i) {
     learnest_real* D = s->D + i * LEARNEST_NXX;
     learnest_real* g = s->g + i * LEARNEST_NX;
     const learnest_real* x = X + i * LEARNEST_NX;
     learnest_real a = i ? 1 - w->mask[i - 1] : 1, m = w->mask[i];
     if (a != 0) {  /* arrival term a |x_i - xbar|^2_P */
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = x[k] - w->xbar[k];
+      s->cost += a * learnest_gn_quad(s->P, dp, s->rw, LEARNEST_NX);
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
         if (dp) {
           if (hess) D[c + c * LEARNEST_NX] += a * s->P[c + c * LEARNEST_NX];
           g[c] += a * s->P[c + c * LEARNEST_NX] * s->rw[c];
           continue;
         }
-        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NX; ++r) {
+        LEARNEST_UNROLL_BLOCK for (r = 0; r < LEARNEST_NX; ++r) {
           if (hess && r >= c) D[r + c * LEARNEST_NX] += a * s->P[r + c * LEARNEST_NX];
           g[r] += a * s->P[r + c * LEARNEST_NX] * s->rw[c];
         }
       }
     }
-    if (m == 0) continue;
+    if (m == 0) {  /* the stage couples nothing: E_i = 0, D_{i+1} starts from 0 */
+      if (hess && i < LEARNEST_N) {
+        memset(s->D + (i + 1) * LEARNEST_NXX, 0, LEARNEST_NXX * sizeof *s->D);
+        memset(s->E + i * LEARNEST_NXX, 0, LEARNEST_NXX * sizeof *s->E);
+      }
+      continue;
+    }
     {  /* measurement term m |G (y_i - h(x_i))|^2_R: D += C'RC, g -= C'R v (C, v weighted) */
       const learnest_real* Gi = w->G + i * LEARNEST_NY;
       learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
-        LEARNEST_UNROLL for (r = 0; r < LEARNEST_NY; ++r) {
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
+        LEARNEST_UNROLL_BLOCK for (r = 0; r < LEARNEST_NY; ++r) {
+          if (!LEARNEST_GN_NZ(LEARNEST_GN_C_NZ, r + c * LEARNEST_NY)) continue;
           C[r + c * LEARNEST_NY] = Gi[r] * L->C[i * LEARNEST_NY * LEARNEST_NX + r + c * LEARNEST_NY];
         }
       }
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NY; ++k) {
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NY; ++k) {
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
-      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, hess ? LEARNEST_NX : 0, Rv, RC);
-      learnest_gn_term(LEARNEST_NY, C, RC, Rv, m, hess, D, g);
+      learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, hess ? LEARNEST_NX : 0, Rv, RC);
+      s->cost += m * learnest_gn_quad_weighed(s->R, dr, s->rv, Rv, LEARNEST_NY);
+      learnest_gn_term(LEARNEST_NY, C, LEARNEST_GN_C_NZ, dr, RC, Rv, m, hess, D, g);
     }
     if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
       const learnest_real* A = L->A + i * LEARNEST_NXX;
@@ -278,16 +338,19 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       learnest_real* E = s->E + i * LEARNEST_NXX;
       learnest_real* gn = s->g + (i + 1) * LEARNEST_NX;
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
-      LEARNEST_UNROLL for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
-      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, hess ? LEARNEST_NX : 0, Qw, QA);
-      if (hess) {
-        LEARNEST_UNROLL for (k = 0; k < LEARNEST_NXX; ++k) E[k] = -m * QA[k];  /* H_{i+1,i} = -m Q A */
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
+      learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, hess ? LEARNEST_NX : 0, Qw, QA);
+      s->cost += m * learnest_gn_quad_weighed(s->Q, dq, s->rw, Qw, LEARNEST_NX);
+      if (hess) {  /* H_{i+1,i} = -m Q A (0 where a diagonal Q leaves A's structural zeros) */
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NXX; ++k) {
+          E[k] = !dq || LEARNEST_GN_NZ(LEARNEST_GN_A_NZ, k) ? -m * QA[k] : 0;
+        }
       }
-      learnest_gn_term(LEARNEST_NX, A, QA, Qw, m, hess, D, g);
-      LEARNEST_UNROLL for (c = 0; c < LEARNEST_NX; ++c) {
+      learnest_gn_term(LEARNEST_NX, A, LEARNEST_GN_A_NZ, dq, QA, Qw, m, hess, D, g);
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
         if (hess) {
-          LEARNEST_UNROLL for (r = c; r < LEARNEST_NX; ++r) {
-            if (!dq || r == c) Dn[r + c * LEARNEST_NX] += m * s->Q[r + c * LEARNEST_NX];
+          LEARNEST_UNROLL_BLOCK for (r = c; r < LEARNEST_NX; ++r) {
+            Dn[r + c * LEARNEST_NX] = !dq || r == c ? m * s->Q[r + c * LEARNEST_NX] : 0;
           }
         }
         gn[c] += m * Qw[c];
@@ -298,21 +361,21 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
 
 /* Solve H z = b in place for the symmetric block-tridiagonal H of N+1 diagonal blocks D_i
  * (n x n, column-major, at D + i bs; lower triangles read) and N blocks E_i = H_{i+1, i} (at
- * E + i bs), z_i at z + i n, by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
+ * E + i bs), z_i at z + i n (apart from D and E), by the block Cholesky recursion L_i L_i' = D_i - B_{i-1} B_{i-1}',
  * B_i = E_i L_i^-T (solved column by column in place: every inner loop runs over a whole
  * column). D and E are overwritten by the factor; factor = 0: they hold it already (from an
  * earlier call), and only the substitutions run. 0 if H is not positive definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
-                                      learnest_real* z, int factor) {
+                                      learnest_real* LEARNEST_RESTRICT z, int factor) {
   int i, r, c, k;
   for (i = 0; factor && i <= LEARNEST_N; ++i) {
     learnest_real* Di = D + i * bs;
     if (i > 0) {  /* D_i -= B_{i-1} B_{i-1}' (lower triangle) */
       const learnest_real* B = E + (i - 1) * bs;
-      LEARNEST_UNROLL for (c = 0; c < n; ++c) {
-        LEARNEST_UNROLL for (r = c; r < n; ++r) {
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < n; ++c) {
+        LEARNEST_UNROLL_BLOCK for (r = c; r < n; ++r) {
           learnest_real v = 0;
-          LEARNEST_UNROLL for (k = 0; k < n; ++k) v += B[r + k * n] * B[c + k * n];
+          LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) v += B[r + k * n] * B[c + k * n];
           Di[r + c * n] -= v;
         }
       }
@@ -320,15 +383,15 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     if (!learnest_cholesky(Di, n)) return 0;
     if (i < LEARNEST_N) {  /* B_i L_i' = E_i: column c of B from the columns before it */
       learnest_real* B = E + i * bs;
-      LEARNEST_UNROLL for (c = 0; c < n; ++c) {
+      LEARNEST_UNROLL_BLOCK for (c = 0; c < n; ++c) {
         learnest_real* Bc = B + c * n;
         const learnest_real inv = 1 / Di[c + c * n];
         for (k = 0; k < c; ++k) {
           const learnest_real l = Di[c + k * n];
           const learnest_real* Bk = B + k * n;
-          LEARNEST_UNROLL for (r = 0; r < n; ++r) Bc[r] -= Bk[r] * l;
+          LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) Bc[r] -= Bk[r] * l;
         }
-        LEARNEST_UNROLL for (r = 0; r < n; ++r) Bc[r] *= inv;
+        LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) Bc[r] *= inv;
       }
     }
   }
@@ -336,8 +399,8 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     learnest_real* zi = z + i * n;
     if (i > 0) {
       const learnest_real* B = E + (i - 1) * bs;
-      LEARNEST_UNROLL for (r = 0; r < n; ++r) {
-        LEARNEST_UNROLL for (k = 0; k < n; ++k) zi[r] -= B[r + k * n] * zi[k - n];
+      LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) {
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) zi[r] -= B[r + k * n] * zi[k - n];
       }
     }
     learnest_forward_subst(D + i * bs, n, zi);
@@ -346,8 +409,8 @@ LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_
     learnest_real* zi = z + i * n;
     if (i < LEARNEST_N) {
       const learnest_real* B = E + i * bs;
-      LEARNEST_UNROLL for (r = 0; r < n; ++r) {
-        LEARNEST_UNROLL for (k = 0; k < n; ++k) zi[r] -= B[k + r * n] * zi[n + k];
+      LEARNEST_UNROLL_BLOCK for (r = 0; r < n; ++r) {
+        LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) zi[r] -= B[k + r * n] * zi[n + k];
       }
     }
     learnest_backward_subst(D + i * bs, n, zi);
@@ -517,7 +580,11 @@ LEARNEST_KIT int learnest_gn_line_search(struct learnest_gn* s, struct learnest_
   learnest_real cost, slope = 0, alpha = 1, noise = -1, bound, trial_cost;
   int j, halvings;
   struct learnest_lin* trial = &s->lin[1 - s->cur];
-  cost = learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s));
+#if LEARNEST_NCOMP > 1
+  cost = s->split ? learnest_gn_cost(s, w, X, LEARNEST_GN_LIN(s)) : s->cost;
+#else
+  cost = s->cost;  /* summed at X by the step's assembly */
+#endif
   for (j = 0; j < LEARNEST_NW; ++j) slope += s->g[j] * s->dx[j];  /* half the cost's slope */
   for (halvings = 0; halvings <= LEARNEST_GN_MAX_HALVINGS; ++halvings) {
     for (j = 0; j < LEARNEST_NW; ++j) s->Xt[j] = X[j] + alpha * s->dx[j];

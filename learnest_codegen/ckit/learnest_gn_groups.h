@@ -25,10 +25,10 @@ static const unsigned char learnest_comp_of_y[LEARNEST_NY] = LEARNEST_COMP_OF_Y;
 #endif
 
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
-                                      learnest_real* z, int factor);
+                                      learnest_real* LEARNEST_RESTRICT z, int factor);
 LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int diag, const learnest_real* v,
-                                           const learnest_real* M, int cols, learnest_real* Wv,
-                                           learnest_real* WM);
+                                           const learnest_real* M, const unsigned char* nz, int cols,
+                                           learnest_real* Wv, learnest_real* WM);
 
 /* The n x n block of the ld x ld W at the rows and columns idx: a group's weight. */
 LEARNEST_KIT void learnest_gn_block(const learnest_real* W, int ld, const unsigned char* idx, int n,
@@ -100,7 +100,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
           s->rv[r] = Gi[O[r]] * (w->Y[i * LEARNEST_NY + O[r]] - L->h[i * LEARNEST_NY + O[r]]);
           for (c = 0; c < n; ++c) C[r + c * ny] = Gi[O[r]] * Ci[O[r] + S[c] * LEARNEST_NY];
         }
-        learnest_gn_weigh(Rk, ny, s->dr, s->rv, C, hess ? n : 0, Rv, RC);
+        learnest_gn_weigh(Rk, ny, s->dr, s->rv, C, 0, hess ? n : 0, Rv, RC);
         for (c = 0; c < n; ++c) {
           for (r = c; hess && r < n; ++r) {
             learnest_real v = 0;
@@ -120,7 +120,7 @@ LEARNEST_KIT void learnest_gn_build_split(struct learnest_gn* s, const struct le
           s->rw[r] = X[(i + 1) * LEARNEST_NX + S[r]] - L->F[i * LEARNEST_NX + S[r]];
           for (c = 0; c < n; ++c) A[r + c * n] = Ai[S[r] + S[c] * LEARNEST_NX];
         }
-        learnest_gn_weigh(Qk, n, s->dq, s->rw, A, hess ? n : 0, Qw, QA);
+        learnest_gn_weigh(Qk, n, s->dq, s->rw, A, 0, hess ? n : 0, Qw, QA);
         for (q = 0; hess && q < n * n; ++q) E[q] = -m * QA[q];  /* H_{i+1,i} = -m Q A */
         for (c = 0; c < n; ++c) {
           for (r = c; hess && r < n; ++r) {

@@ -90,20 +90,27 @@ LEARNEST_MATH_FN float learnest_expf_(float y) {
   return learnest_exp2_32f_[j] * p * scale;
 }
 
-LEARNEST_MATH_FN float learnest_tanhf_(float x) {
-  float a = x < 0 ? -x : x, t;
-  if (x != x) return x;
-  if (a >= 9.0f) {
-    t = 1.0f;  /* tanh(9) rounds to 1 in float */
-  } else if (a < 0.35f) {
-    float a2 = a * a;
-    t = a + a * a2 * (-3.33333333e-1f + a2 * (1.33333333e-1f + a2 * (-5.39682540e-2f
-        + a2 * (2.18694885e-2f + a2 * -8.86323552e-3f))));
-  } else {
-    t = 1.0f - 2.0f / (learnest_expf_(2.0f * a) + 1.0f);
+/* tanh(x) in type T, one body for both precisions: the odd series poly(a, a2) for |x| < small,
+ * 1 - 2/(exp(2|x|) + 1) up to big (the kit's exp in T), 1 beyond (tanh(big) rounds to 1 in T). */
+#define LEARNEST_TANH_(name, T, exp_, big, small, poly)          \
+  LEARNEST_MATH_FN T name(T x) {                                 \
+    T a = x < 0 ? -x : x, t;                                     \
+    if (x != x) return x;                                        \
+    if (a >= (big)) {                                            \
+      t = (T)1;                                                  \
+    } else if (a < (small)) {                                    \
+      T a2 = a * a;                                              \
+      t = poly(a, a2);                                           \
+    } else {                                                     \
+      t = (T)1 - (T)2 / (exp_((T)2 * a) + (T)1);                 \
+    }                                                            \
+    return x < 0 ? -t : t;                                       \
   }
-  return x < 0 ? -t : t;
-}
+
+#define LEARNEST_TANHF_POLY_(a, a2) \
+  (a + a * a2 * (-3.33333333e-1f + a2 * (1.33333333e-1f + a2 * (-5.39682540e-2f \
+   + a2 * (2.18694885e-2f + a2 * -8.86323552e-3f)))))
+LEARNEST_TANH_(learnest_tanhf_, float, learnest_expf_, 9.0f, 0.35f, LEARNEST_TANHF_POLY_)
 
 /* exp(y) in double for 0 <= y <= 700: y = (64 m + j) ln2/64 + r, |r| <= ln2/128, degree-5
  * Taylor polynomial times 2^(j/64) 2^m (about 1 ulp). */
@@ -117,20 +124,10 @@ LEARNEST_MATH_FN double learnest_expd_(double y) {
   return learnest_exp2_64_[k & 63] * p * scale;
 }
 
-LEARNEST_MATH_FN double learnest_tanhd_(double x) {
-  double a = x < 0 ? -x : x, t;
-  if (x != x) return x;
-  if (a >= 22.0) {
-    t = 1.0;  /* tanh(22) rounds to 1 in double */
-  } else if (a < 0.125) {
-    double a2 = a * a;
-    t = a + a * a2 * (-1.0 / 3 + a2 * (2.0 / 15 + a2 * (-17.0 / 315 + a2 * (62.0 / 2835
-        + a2 * (-1382.0 / 155925 + a2 * (21844.0 / 6081075 + a2 * (-929569.0 / 638512875)))))));
-  } else {
-    t = 1.0 - 2.0 / (learnest_expd_(2.0 * a) + 1.0);
-  }
-  return x < 0 ? -t : t;
-}
+#define LEARNEST_TANHD_POLY_(a, a2) \
+  (a + a * a2 * (-1.0 / 3 + a2 * (2.0 / 15 + a2 * (-17.0 / 315 + a2 * (62.0 / 2835 \
+   + a2 * (-1382.0 / 155925 + a2 * (21844.0 / 6081075 + a2 * (-929569.0 / 638512875))))))))
+LEARNEST_TANH_(learnest_tanhd_, double, learnest_expd_, 22.0, 0.125, LEARNEST_TANHD_POLY_)
 
 /* sin (c = 0) or cos (c = 1) in float: x = q pi/2 + r, |r| <= pi/4. */
 LEARNEST_MATH_FN float learnest_sincosf_(float x, int c) {
@@ -194,30 +191,16 @@ LEARNEST_MATH_1(tanh, learnest_tanhf_, learnest_tanhd_)
 LEARNEST_MATH_1(sin, learnest_sinf_, learnest_sind_)
 LEARNEST_MATH_1(cos, learnest_cosf_, learnest_cosd_)
 LEARNEST_MATH_1(exp, learnest_expf_, exp)
-LEARNEST_MATH_1(sqrt, sqrtf, sqrt)
-LEARNEST_MATH_1(fabs, fabsf, fabs)
-LEARNEST_MATH_1(tan, tanf, tan)
-LEARNEST_MATH_1(asin, asinf, asin)
-LEARNEST_MATH_1(acos, acosf, acos)
-LEARNEST_MATH_1(atan, atanf, atan)
-LEARNEST_MATH_1(sinh, sinhf, sinh)
-LEARNEST_MATH_1(cosh, coshf, cosh)
-LEARNEST_MATH_1(asinh, asinhf, asinh)
-LEARNEST_MATH_1(acosh, acoshf, acosh)
-LEARNEST_MATH_1(atanh, atanhf, atanh)
-LEARNEST_MATH_1(log, logf, log)
-LEARNEST_MATH_1(log1p, log1pf, log1p)
-LEARNEST_MATH_1(expm1, expm1f, expm1)
-LEARNEST_MATH_1(floor, floorf, floor)
-LEARNEST_MATH_1(ceil, ceilf, ceil)
-LEARNEST_MATH_1(erf, erff, erf)
-LEARNEST_MATH_2(atan2, atan2f, atan2)
-LEARNEST_MATH_2(pow, powf, pow)
-LEARNEST_MATH_2(fmod, fmodf, fmod)
-LEARNEST_MATH_2(fmin, fminf, fmin)
-LEARNEST_MATH_2(fmax, fmaxf, fmax)
-LEARNEST_MATH_2(hypot, hypotf, hypot)
-LEARNEST_MATH_2(copysign, copysignf, copysign)
+
+/* The C library's routines: learnest_<name> calls <name>f in a float build, <name> in a double
+ * one. */
+#define LEARNEST_LIBM_1(X) X(sqrt) X(fabs) X(tan) X(asin) X(acos) X(atan) X(sinh) X(cosh) \
+  X(asinh) X(acosh) X(atanh) X(log) X(log1p) X(expm1) X(floor) X(ceil) X(erf)
+#define LEARNEST_LIBM_2(X) X(atan2) X(pow) X(fmod) X(fmin) X(fmax) X(hypot) X(copysign)
+#define LEARNEST_LIBM_1_(name) LEARNEST_MATH_1(name, name##f, name)
+#define LEARNEST_LIBM_2_(name) LEARNEST_MATH_2(name, name##f, name)
+LEARNEST_LIBM_1(LEARNEST_LIBM_1_)
+LEARNEST_LIBM_2(LEARNEST_LIBM_2_)
 
 /* The kit's names. */
 #define LEARNEST_SQRT(x) learnest_sqrt(x)

@@ -1,14 +1,15 @@
 /* learnest_simd.h -- lane-parallel forms of the kit's math routines, for a model evaluated on
- * several points at once (the UKF's sigma points).
+ * several points at once (the UKF's sigma points, the MHEs' stages).
  *
- * A batch of LEARNEST_SIMD_LANES points is one GCC vector per quantity (lane i = point i):
+ * A batch of 4 (double) or 8 (float) points is one GCC vector per quantity (lane i = point i):
  * learnest_v4d (4 doubles) or learnest_v8f (8 floats), 32 bytes. + - * / on vectors are the
  * same IEEE operations as on scalars, lane by lane (the kit builds with -ffp-contract=off, so
  * no lane is contracted into an FMA), and each routine here computes, lane by lane, exactly
  * the operations of its scalar routine in learnest_math.h (branches become masks: both sides
  * are computed and each lane keeps its own; a rare side, such as an argument beyond the
  * reduction range, runs the scalar routine on each lane). A batched model therefore returns
- * the bits of the scalar model on every point (tests/test_simd.py compares them).
+ * the bits of the scalar model on every point (tests/test_simd.py compares them, and
+ * tests/test_ckit.py the kit's batched paths over a hand-written model, tests/ckit/kit_lanes.h).
  *
  * Available (LEARNEST_SIMD 1) with GCC compiling C for x86-64, where SSE2 is the
  * baseline: the code is built twice (target_clones), for AVX2 (one instruction a vector) and
@@ -31,7 +32,10 @@
 
 #if LEARNEST_SIMD
 /* The vectors are only passed between always-inlined routines (never through a call), so
- * the ABI of 32-byte vectors without AVX, which GCC warns about, does not arise. */
+ * the ABI of 32-byte vectors without AVX, which GCC warns about, does not arise. The pragma
+ * silences the warning; GCC's accompanying note ("the ABI for passing parameters with 32-byte
+ * alignment has changed in GCC 4.6") ignores it, and the package's flags (toolchain.CFLAGS,
+ * the folder's build fragment) carry -Wno-psabi for it. */
 #pragma GCC diagnostic ignored "-Wpsabi"
 
 #define LEARNEST_SIMD_FN static inline __attribute__((always_inline, unused))

@@ -57,7 +57,8 @@ def generate_embedded_mhe(model: DiscreteModel, settings: MHESettings | None, ou
         options={"MODE": f"{int(solver.mode == 'rti')}  /* {P}_MODE_{solver.mode.upper()} */",
                  "MAX_ITER": str(solver.max_iterations), "TOL": repr(solver.tolerance)},
         glue_defines={**{f"LEARNEST_DEFAULT_{k}": f"{P}_DEFAULT_{k}" for k in ("MODE", "MAX_ITER", "TOL")},
-                      **group_defines(groups), **bounds_defines(settings, solver.precision),
+                      **group_defines(groups), **pattern_defines(functions[0], functions[1], nx),
+                      **bounds_defines(settings, solver.precision),
                       **arrival_defines(settings)},
         extra={"model_instructions": model_instructions(model),
                "state_groups": [list(states) for states, _ in groups]},
@@ -110,10 +111,10 @@ def gn_workspace(nx: int, nu: int, ny: int, n: int, bounded: bool = False) -> di
     factors and steps; ``bounded``: also its bounded quadratic program's (a copy of the normal
     equations, two window vectors and the working set, a byte a variable)."""
     gn = (2 * (n * nx + n * nx * nx + (n + 1) * ny * (1 + nx)) + 4 * (n + 1) * nx
-          + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 1)
+          + (2 * n + 1) * nx * nx + 3 * nx * nx + ny * ny + nx + ny + 2)
     counts = mhe_workspace(nx, nu, ny, n, solution=False)
     out = {**counts, "reals": counts["reals"] + gn, "ints": counts["ints"] + 6,
-           "members": counts["members"] + 16}
+           "members": counts["members"] + 17}
     if bounded:
         out["reals"] += (2 * n + 1) * nx * nx + 2 * (n + 1) * nx
         out["ints"] += -(-(n + 1) * nx // 4)
@@ -176,6 +177,21 @@ def _jacobian_pattern(fn: cs.Function, x: cs.SX, u: cs.SX) -> list[tuple[int, in
     Jacobian stored dense: evaluated symbolically, its structural zeros dropped."""
     jac = cs.SX(fn(x, u)[1])
     return [(r, c) for c in range(jac.size2()) for r in range(jac.size1()) if not jac[r, c].is_zero()]
+
+
+def pattern_defines(stage: cs.Function, node: cs.Function, nx: int) -> dict[str, str]:
+    """The kit's ``LEARNEST_A_PATTERN`` and ``LEARNEST_C_PATTERN`` (learnest_gn.h): the structural
+    nonzeros of the Jacobians ``A`` and ``C``, column-major, 1 a nonzero, which the assembly of
+    the normal equations skips. A dense Jacobian gets no table (nothing to skip)."""
+    x, u = cs.SX.sym("x", nx), cs.SX.sym("u", stage.size1_in(1))
+    out = {}
+    for key, fn in (("LEARNEST_A_PATTERN", stage), ("LEARNEST_C_PATTERN", node)):
+        rows = fn.size1_out(1)
+        nz = set(_jacobian_pattern(fn, x, u))
+        if len(nz) < rows * nx:
+            out[key] = "{" + ", ".join("1" if (r, c) in nz else "0"
+                                       for c in range(nx) for r in range(rows)) + "}"
+    return out
 
 
 def group_defines(groups) -> dict[str, str]:
