@@ -36,7 +36,8 @@ from .shrink import HeldOut
 def leave_one_out(system: System, chosen: Sequence[Effect], theta: np.ndarray, segments: Sequence[Segment],
                   rows, sigma, settings: FitSettings, iterations: int = 8) -> tuple[list[HeldOut], list[str]]:
     """Every segment with the chosen effects refitted (from the pooled ``theta``) on the others, by
-    generalised least squares as the pooled fit (:func:`~learnest_codegen.diagnosis.selection.refit`).
+    ordinary least squares: whitened by an autoregression of a residual far above the noise floor
+    (unmodelled dynamics, as on the DART recordings), the refit predicts the held-out run worse.
 
     Returns the held-out segments and the refinement status of each fold.
     """
@@ -47,7 +48,7 @@ def leave_one_out(system: System, chosen: Sequence[Effect], theta: np.ndarray, s
             status.append("nothing to fit")
             continue
         others = pairs_of([s for i, s in enumerate(segments) if i != k])
-        res = refit(system, chosen, theta, others, rows, sigma, settings, iterations, whitened=True)
+        res = refit(system, chosen, theta, others, rows, sigma, settings, iterations)
         held.append(HeldOut(seg, res.theta))
         status.append(res.status)
     return held, status
