@@ -448,6 +448,45 @@ def _said(progress: bool, step: int, steps: int, what: str, model: TrainedModel,
               file=sys.stderr, flush=True)
 
 
+#: The largest RMS, in measurement-noise deviations, of the outputs of smoothed states that still
+#: describe the run: a working smoother fits its measurements to about one deviation (the
+#: quadrotor's: 0.93-0.97); a diverged one misses them by orders of magnitude.
+SMOOTHED_OUTPUT_RMS_MAX = 10.0
+
+
+def _diverged(zeta: np.ndarray, run: Run, system: System) -> str:
+    """Why the smoothed states ``zeta`` cannot be trained on, or ``""``: they are not finite, or
+    their outputs miss the run's measurements by more than :data:`SMOOTHED_OUTPUT_RMS_MAX`
+    noise deviations (RMS over the outputs measured)."""
+    if not np.isfinite(zeta).all():
+        return "states not finite"
+    std = np.asarray(system.noise.measurement_std, float)
+    with np.errstate(all="ignore"):
+        y_hat = np.asarray(system.h(zeta, run.u), float)  # every sample at once, as simulate does
+        r = ((y_hat - run.y) / np.where(std > 0, std, 1.0))[:, std > 0]
+        rms = float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(run.y[:, std > 0]).any() else 0.0
+    if not rms <= SMOOTHED_OUTPUT_RMS_MAX:
+        return f"its outputs miss the measurements by {rms:.3g} noise deviations RMS"
+    return ""
+
+
+def _finite(model: TrainedModel) -> bool:
+    """Whether the net's weights, its input scaling and its final loss are all finite."""
+    tensors = [p.detach() for p in model.net.parameters()] + [b.detach() for b in model.net.buffers()]
+    return (all(bool(torch.isfinite(t).all()) for t in tensors)
+            and bool(np.isfinite(model.meta.get("final_loss", 0.0))))
+
+
+def _refinement_stopped(model: TrainedModel, k: int, rounds: int, why: str, progress: bool) -> TrainedModel:
+    """``model`` (the last sound round's) with the reason the refinement stopped before round
+    ``k + 1`` of ``rounds`` recorded in its metadata and said on stderr."""
+    text = f"refinement round {k + 1} of {rounds} not used: {why}; the model of the round before is kept"
+    model.meta["refinement_stopped"] = text
+    if progress:
+        print(text, file=sys.stderr, flush=True)
+    return model
+
+
 def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_TRAINING, *,
                  observer: str | None = None, full_state: bool = False,
                  progress: bool = True) -> TrainedModel:
@@ -460,6 +499,11 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
     are chosen by the EKF innovation likelihood of the run's measurements
     (:func:`~learnest_codegen.observers.innovation_loglik`), not by the validation loss on the
     observer's states.
+
+    A refinement round whose smoother diverged through the last net (states not finite, or
+    outputs more than :data:`SMOOTHED_OUTPUT_RMS_MAX` noise deviations RMS from the
+    measurements) or whose net is not finite ends the refinement: the model of the round
+    before is returned, the reason in ``meta["refinement_stopped"]`` and on stderr.
     """
     check_sampling(run, system.dt, f"train_on_run({system.name})")
     start = time.perf_counter()
@@ -491,6 +535,14 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
     for k in range(rounds):
         zeta = ekf_rts(run, system, residual=model.net.casadi).zeta
         round_observer = f"{source}+ekf_rts*{k + 1}"
+        why = _diverged(zeta, run, system)
+        if why:
+            # The smoother diverged through the last net (it extrapolates where the smoother
+            # wanders): no later round can use these states, so the last model stands.
+            model = _refinement_stopped(model, k, rounds, f"the EKF-RTS through the model diverged ({why})",
+                                        progress)
+            break
+        previous = model
         if warm is None:  # every round from scratch, with the restarts
             model = train(system, zeta, run.u, run.dt, round_settings, observer=round_observer,
                           progress=progress, score=round_score)
@@ -504,6 +556,9 @@ def train_on_run(run: Run, system: System, settings: TrainingSettings = DEFAULT_
                                   restarts=1, warm_refinement=None),
                           observer=round_observer, progress=progress, init=model)
             model.meta.update(first, training=settings.to_json())
+        if not _finite(model):
+            model = _refinement_stopped(previous, k, rounds, "its net is not finite", progress)
+            break
         _said(progress, k + 2, rounds + 1, "smoothed through the model (EKF-RTS) and retrained", model, start)
     model.meta["train_seconds"] = time.perf_counter() - start  # observers and all rounds
     if choice:
