@@ -395,7 +395,7 @@ def test_real_rc_car_recordings(tmp_path):
     assert r["shrink"]["one_step"]["closed"] > 0.61
     # the pooled parameters are those the held-out runs were scored with: within the range of
     # the runs' own fits (a refit whitened by an autoregression of this residual, far above the
-    # noise floor, had put the Coulomb friction at 15.5 where every run's fit is 3.3-3.9)
+    # noise floor, puts the Coulomb friction at 15.5 where every run's fit is 3.3-3.9)
     for c in r["consistency"]:
         (value,) = found[c["effect"]]["params"].values()
         assert min(c["per_run"]) <= value <= max(c["per_run"]), (c, value)
