@@ -270,9 +270,9 @@ def test_pendulum_rig_every_delay(key):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("late_ms", [0.0, 2.0])
-@pytest.mark.parametrize("seed", range(2, 9))
+@pytest.mark.parametrize("seed", range(2, 17))
 def test_pendulum_rig_on_other_swingups(late_ms, seed):
-    """The rig's twin on one swing-up, on time or 2 ms late, on the swing-ups of seeds 2-8 (the
+    """The rig's twin on one swing-up, on time or 2 ms late, on the swing-ups of seeds 2-16 (the
     self-test's is seed 1): right on each, the delay named within 1 ms when there is one and none
     when there is none."""
     (case,) = [c for c in CASES if c.system == "pendulum_rig" and f"{late_ms:g} ms late, 1 swing-up "
@@ -393,6 +393,12 @@ def test_real_rc_car_recordings(tmp_path):
     assert not any(name.startswith("actuator_gain") for name in found)
     assert 0.15 < found["back_emf(v via throttle)"]["params"]["k_e"] < 0.30
     assert r["shrink"]["one_step"]["closed"] > 0.61
+    # the pooled parameters are those the held-out runs were scored with: within the range of
+    # the runs' own fits (a refit whitened by an autoregression of this residual, far above the
+    # noise floor, puts the Coulomb friction at 15.5 where every run's fit is 3.3-3.9)
+    for c in r["consistency"]:
+        (value,) = found[c["effect"]]["params"].values()
+        assert min(c["per_run"]) <= value <= max(c["per_run"]), (c, value)
     _honest(r)
 
 

@@ -10,6 +10,7 @@ import torch
 from learnest_codegen import get_system
 from learnest_codegen.diagnosis.cv import FitData, block_bootstrap, box_solve, cv_sse, grams
 from learnest_codegen.diagnosis.effects import (
+    Effect,
     corrected_dynamics,
     corrected_system,
     describe_library,
@@ -446,3 +447,41 @@ def test_wald_statistic_is_calibrated_on_noise_correlated_in_time():
         R = 6 * se * phi[:, :, 0] + ar1(n)[:, None]
         hits.append(wald(FitData(R, phi, np.ones(1), np.zeros(1)), [0], np.zeros(1), np.ones(1), 24))
     assert 4.5 < np.median(hits) < 7.5
+
+
+def test_a_candidate_in_the_span_of_the_chosen_set_never_ends_the_selection():
+    """A candidate whose feature is a combination of the chosen ones (an actuator gain beside the
+    inertia and the gravity torque it scales together) adds nothing: held out it ties with the set
+    itself, ahead of a real candidate that fits held out a little worse. It is no candidate: the
+    selection stops on (and reports) the best candidate that could add something."""
+    from learnest_codegen.diagnosis.cv import baseline
+    from learnest_codegen.diagnosis.search import Search
+
+    rng = np.random.default_rng(3)
+    n = 600
+    t = np.arange(n) / n
+    a, b = np.sin(12 * t), np.cos(5 * t) + t
+    spanned, unrelated = 2.0 * a - 0.5 * b, rng.normal(size=n)
+    Phi = np.stack([a, b, spanned, unrelated], axis=1)[:, None, :]
+    R0 = (3.0 * a + 2.0 * b)[:, None] + rng.normal(size=(n, 1))
+    effects = [Effect("viscous_friction", "v", f"direct:v{i}", "c", "-", None) for i in range(4)]
+
+    def data(theta):
+        return FitData(R0 - np.einsum("nsm,m->ns", Phi, theta), Phi, np.ones(1), np.zeros(4))
+
+    def refit(theta, chosen):
+        full = np.zeros(4)
+        full[chosen] = np.linalg.lstsq(Phi[:, 0, chosen], R0[:, 0], rcond=None)[0]
+        return full, "converged"
+
+    settings = FitSettings()
+    first = baseline(data(np.zeros(4)), settings)
+    search = Search(effects, data, None, refit, [0, 1, 2, 3], [[0], [1], [2], [3]], first, settings)
+    assert search._apply([0, 1], np.zeros(4))
+    G, b_, c = grams(search.data, settings=settings)
+    base = cv_sse(G, b_, c, [0, 1]).sum()
+    assert cv_sse(G, b_, c, [0, 1, 2]).sum() == pytest.approx(base, rel=1e-9)  # ties with the set
+    assert cv_sse(G, b_, c, [0, 1, 3]).sum() > base  # the real candidate fits held out worse
+    step = search.candidates()
+    assert step["index"] == 3 and not step["accept"], step
+    assert search._spanned(search.data, 2) and not search._spanned(search.data, 3)

@@ -114,7 +114,8 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
     umax = dict(zip(system.input_names, np.max(np.abs(fit_pairs.u), axis=0).tolist()))
     effects = library(system, default_context(system, speed, umax), settings.kinds)
     r0, _ = one_step(system, effects, np.zeros(len(effects)), fit_pairs, with_features=False)
-    sigma, floor_method, spurious = noise_floor(system, effects, fit_segs, fit_pairs, r0, source, settings)
+    sigma, floor_method, spurious, observer_error = noise_floor(system, effects, fit_segs, fit_pairs, r0,
+                                                                source, settings)
     rows = [system.state_names.index(s) for s in system.residual_state_names]
     bar.update()
 
@@ -124,7 +125,8 @@ def diagnose(system: System, runs: "Sequence[Run] | Recordings", *, model=None,
         where_part["knode"] = knode_comparison(system, model, fit_pairs, r0, rows)
     bar.update()
 
-    fit = fit_effects(system, effects, fit_pairs, rows, sigma[rows], spurious, settings.fit, labels)
+    fit = fit_effects(system, effects, fit_pairs, rows, sigma[rows], spurious, settings.fit, labels,
+                      observer_error)
     chosen = [effects[j] for j in fit.chosen]
     bar.update()
 

@@ -39,6 +39,8 @@ class FitSettings:
     t_min: float = 2.5  # fold-consistency t statistic to enter
     z_min: float = 4.0  # ... or, for a filter (a delay, a lag), the whole data's Wald statistic
     whiten_order: int = 20  # ... on data whitened by an AR(p <= this) of the residual (0: not whitened)
+    gls_excess: float = 1.0  # final parameters by GLS only when the ordinary fit leaves at most this
+    #                          mean square above the noise floor (noise units^2 a residual entry)
     t_drop: float = 1.5  # ... below which a chosen effect's loss lets it go (hysteresis: no flip-flop)
     min_gain: float = 0.01
     min_size: float = 0.1
@@ -60,9 +62,11 @@ class FitSettings:
 
     def __post_init__(self) -> None:
         if self.folds < 3 or self.whiten_order < 0 or self.max_effects < 1 or self.blocks < 4 \
-                or self.bootstrap < 10 or not self.bound > 1 or not 0 < self.max_step <= 10:
+                or self.bootstrap < 10 or not self.bound > 1 or not 0 < self.max_step <= 10 \
+                or not self.gls_excess >= 0:
             raise ValueError(f"FitSettings: need folds >= 3, whiten_order >= 0, max_effects >= 1, "
-                             f"blocks >= 4, bootstrap >= 10, bound > 1, 0 < max_step <= 10; got {self}")
+                             f"blocks >= 4, bootstrap >= 10, bound > 1, 0 < max_step <= 10, "
+                             f"gls_excess >= 0; got {self}")
 
     def to_json(self) -> dict:
         return asdict(self)

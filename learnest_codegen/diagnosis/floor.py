@@ -36,7 +36,7 @@ from .settings import DiagnosisSettings
 
 
 def calibration(system: System, effects: Sequence[Effect], segments: Sequence[Segment],
-                settings: DiagnosisSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                settings: DiagnosisSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Noise floor of the observer on the data's own trajectory (see the module docstring).
 
     The data's state observations ``z`` are taken as a true trajectory; it is exactly the
@@ -44,13 +44,14 @@ def calibration(system: System, effects: Sequence[Effect], segments: Sequence[Se
     residual along ``z``). Synthetic measurements ``h(z) + noise`` (the system's measurement
     noise) go through the same observer; the residual of "prior + d_k" on its output is then pure
     observer error, at the data's own speeds, accelerations and inputs. Returns the per-state RMS
-    ``(nx,)`` of that residual, its features ``(N, nx, m)`` and the residual ``(N, nx)``.
+    ``(nx,)`` of that residual, its features ``(N, nx, m)``, the residual ``(N, nx)`` and the
+    segment of each row ``(N,)``.
     """
     rng = np.random.default_rng(settings.seed + 7_777)
     from ..observers import observe
 
-    rs, Js = [], []
-    for seg in segments:
+    rs, Js, labels = [], [], []
+    for n, seg in enumerate(segments):
         run = seg.run
         y = np.asarray(system.h(seg.z, run.u))
         y = y + rng.normal(size=y.shape) * np.asarray(system.noise.measurement_std)
@@ -70,10 +71,11 @@ def calibration(system: System, effects: Sequence[Effect], segments: Sequence[Se
             diff[:, i] = np.angle(np.exp(1j * diff[:, i] * on_truth.dt)) / on_truth.dt
         rs.append(diff)
         Js.append(J)
+        labels.append(np.full(len(diff), n))
     r, J = np.concatenate(rs), np.concatenate(Js)
     if not np.isfinite(r).all():
         raise DataError("calibration residual is not finite")
-    return np.sqrt(np.mean(r**2, axis=0)), J, r
+    return np.sqrt(np.mean(r**2, axis=0)), J, r, np.concatenate(labels)
 
 
 def white_floor(r: np.ndarray) -> np.ndarray:
@@ -90,17 +92,21 @@ def derivative_scale(system: System, pairs: Pairs) -> np.ndarray:
 
 def noise_floor(system: System, effects: Sequence[Effect], segments: Sequence[Segment], pairs: Pairs,
                 r0: np.ndarray, source: str, settings: DiagnosisSettings):
-    """``(sigma (nx,), method, spurious (m,) or None)``: the floor per state, how it was found, and
-    what each effect's feature explains of pure observer error (weighted, noise units)."""
+    """``(sigma (nx,), method, spurious (m,) or None, error)``: the floor per state, how it
+    was found, what each effect's feature explains of pure observer error (weighted, noise units),
+    and that error itself with every feature at the prior (a :class:`~learnest_codegen.diagnosis.cv.
+    FitData` of the residual states, weighted; ``None`` without a calibration run), on which the
+    selection measures what a delay or a lag fitted like the data's would find in the observer's
+    error alone."""
     from .cv import single_feature_size, weighted
 
     scale = derivative_scale(system, pairs)
     method, cal, sigma_cal = "relative", None, np.zeros(system.nx)
     if source == "observer" and settings.calibrate:
         try:
-            sigma_cal, J_cal, r_cal = calibration(system, effects, segments, settings)
+            sigma_cal, J_cal, r_cal, runs_cal = calibration(system, effects, segments, settings)
             method = "calibration (the observer on synthetic measurements of the data's trajectory)"
-            cal = (J_cal, r_cal)
+            cal = (J_cal, r_cal, runs_cal)
         except Exception as exc:  # noqa: BLE001 - an observer that fails here; fall back, say so
             sigma_cal = white_floor(r0)
             method = f"white part of the residual (calibration failed: {exc!r})"
@@ -108,5 +114,6 @@ def noise_floor(system: System, effects: Sequence[Effect], segments: Sequence[Se
         sigma_cal, method = white_floor(r0), "white part of the residual"
     sigma = np.maximum(np.maximum(sigma_cal, settings.relative_floor * scale), 1e-12)
     rows = [system.state_names.index(s) for s in system.residual_state_names]
-    spurious = single_feature_size(weighted(cal[1], cal[0], rows, sigma[rows])) if cal is not None else None
-    return sigma, method, spurious
+    error = weighted(cal[1], cal[0], rows, sigma[rows], runs=cal[2]) if cal is not None else None
+    spurious = single_feature_size(error) if error is not None else None
+    return sigma, method, spurious, error

@@ -35,7 +35,9 @@ from .shrink import HeldOut
 
 def leave_one_out(system: System, chosen: Sequence[Effect], theta: np.ndarray, segments: Sequence[Segment],
                   rows, sigma, settings: FitSettings, iterations: int = 8) -> tuple[list[HeldOut], list[str]]:
-    """Every segment with the chosen effects refitted (from the pooled ``theta``) on the others.
+    """Every segment with the chosen effects refitted (from the pooled ``theta``) on the others, by
+    ordinary least squares: whitened by an autoregression of a residual far above the noise floor
+    (unmodelled dynamics, as on the DART recordings), the refit predicts the held-out run worse.
 
     Returns the held-out segments and the refinement status of each fold.
     """

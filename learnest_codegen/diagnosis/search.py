@@ -33,9 +33,13 @@ be made), with ``base`` the held-out SSE per fold of the set it joins and ``tria
   within the floor's size, the whole data's Wald statistic (:func:`wald`, by generalised least
   squares) above ``z_min`` stands for the fold consistency and the gain thresholds (held out it
   must still fit no worse than the spread of a pure-noise sum of squares), and the Wald statistic
-  of the filter minus its mirror fitted with it for significantly better than the mirror; a
-  chosen filter keeps its place on the same statistic; every filter of the library is tested at
-  each step, whatever its held-out rank;
+  of the filter minus its mirror fitted with it for significantly better than the mirror, and
+  the filter's parameter ``z_min`` joint standard errors above the same whitened fit on the
+  calibration's pure observer error for the observer-artefact test (a raw RMS is dominated by
+  the slow scatter the whitened fit discounts); a chosen filter keeps its place on the same
+  statistic; every filter of the library is tested at each step, whatever its held-out rank;
+* **adds something**: a candidate whose features lie in the span of the chosen ones (within
+  the exact-duplicate tolerance) is no candidate (:meth:`Search._spanned`);
 * **jointly** (small subsets): when no candidate passes alone, or a pair fits significantly
   better than the best single one, two candidates enter together, each passing the tests
   against the other alone;
@@ -132,7 +136,8 @@ def sandwich(P: np.ndarray, e: np.ndarray, G: np.ndarray, label: np.ndarray) -> 
 def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blocks: int,
          order: int = 0) -> float:
     """The Wald statistic of ``weights' theta`` over the columns ``idx``: ``theta`` the parameters
-    (``at`` at the data's linearisation plus the step fitted with all of them, bounded).
+    (``at`` at the data's linearisation plus the step fitted with all of them, bounded), divided by
+    its standard error (both from :func:`estimate`).
 
     It weighs the evidence for a parameter where it lies: a sub-sample input delay is seen only
     where the input changes (a swing-up's torque switches a few times a swing), so its held-out
@@ -147,6 +152,13 @@ def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blo
     scatter it does not share, and whitened the same data fix it several times more precisely.
     With ``order`` 0: plain least squares, the standard error from :func:`sandwich` on ``blocks``
     contiguous stretches."""
+    value, se = estimate(data, idx, at, weights, blocks, order)
+    return value / max(se, 1e-300)
+
+
+def estimate(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blocks: int,
+             order: int = 0) -> tuple[float, float]:
+    """``(weights' theta, its standard error)`` of :func:`wald`'s fit."""
     P, R = data.Phi[:, :, idx], data.R
     G = np.einsum("ksi,ksj->ij", P, P)
     step = box_solve(G, np.einsum("ksi,ks->i", P, R), data.lo[idx], data.hi[idx])
@@ -158,7 +170,7 @@ def wald(data: FitData, idx: list[int], at: np.ndarray, weights: np.ndarray, blo
     else:
         e = R - np.einsum("ksi,i->ks", P, step)
         cov = sandwich(P, e, G, _fold_labels(len(R), min(blocks, len(R))))
-    return float(weights @ (at + step) / max(np.sqrt(max(weights @ cov @ weights, 0.0)), 1e-300))
+    return float(weights @ (at + step)), float(np.sqrt(max(weights @ cov @ weights, 0.0)))
 
 
 def newey_west(P: np.ndarray, e: np.ndarray, G: np.ndarray, runs: np.ndarray) -> np.ndarray:
@@ -190,16 +202,34 @@ def whiten(P: np.ndarray, R: np.ndarray, e: np.ndarray, runs: np.ndarray | None,
     criterion, and ``x_k - sum_i a_i x_{k-1-i}`` applied to every column (the first ``order``
     rows of each run dropped; a run too short to fit is left out). A white residual gives
     ``a ~ 0``: the data unchanged."""
+    return apply_ar(P, R, ar_filters(e, runs, order), runs, order)
+
+
+def ar_filters(e: np.ndarray, runs: np.ndarray | None, order: int) -> dict:
+    """Per run and residual state of ``e (N, S)``, the coefficients of :func:`_ar_fit` (``p <=
+    order`` by Akaike's criterion); a run too short to fit has none."""
+    runs = np.zeros(len(e), int) if runs is None else np.asarray(runs)
+    out = {}
+    for run in np.unique(runs):
+        rows = np.flatnonzero(runs == run)
+        if len(rows) > 4 * order + 2:
+            out[run] = [_ar_fit(e[rows, s], order) for s in range(e.shape[1])]
+    return out
+
+
+def apply_ar(P: np.ndarray, R: np.ndarray, filters: dict, runs: np.ndarray | None,
+             order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features and residual filtered by :func:`ar_filters`' polynomials (see :func:`whiten`)."""
     runs = np.zeros(len(R), int) if runs is None else np.asarray(runs)
     keep_P, keep_R, keep_run = [], [], []
     for run in np.unique(runs):
         rows = np.flatnonzero(runs == run)
         n = len(rows)
-        if n <= 4 * order + 2:
+        if run not in filters:
             continue
         Pr, Rr = np.empty((n - order,) + P.shape[1:]), np.empty((n - order, R.shape[1]))
         for s in range(R.shape[1]):
-            a = _ar_fit(e[rows, s], order)
+            a = filters[run][s]
             lag = [rows[order - i - 1:n - i - 1] for i in range(len(a))]
             Pr[:, s] = P[rows[order:], s] - sum(a[i] * P[lag[i], s] for i in range(len(a)))
             Rr[:, s] = R[rows[order:], s] - sum(a[i] * R[lag[i], s] for i in range(len(a)))
@@ -262,8 +292,9 @@ class Search:
     """
 
     def __init__(self, effects, data: Callable, local: Callable, refit: Callable, pool: list[int],
-                 groups: list[list[int]], first, settings: FitSettings):
+                 groups: list[list[int]], first, settings: FitSettings, error: FitData | None = None):
         self.effects, self._data, self._local, self._refit = effects, data, local, refit
+        self.error = error  # the observer's own error (calibration), every feature at the prior
         self.pool, self.groups, self.first, self.settings = pool, groups, first, settings
         self.theta = np.zeros(len(effects))
         self.chosen: list[int] = []
@@ -345,13 +376,22 @@ class Search:
         # held out it must then fit no worse than the spread of a pure-noise sum of squares
         filt = single and self.effects[j].is_filter
         z = (self._filter_wald(base_cols, j, start) if filt and (t_stat <= s.t_min or gain <= need_gain)
-             and gain > -self._noise(data) and size > need and remaining <= data.floor else None)
+             and gain > -self._noise(data) and (size > need or self.error is not None)
+             and remaining <= data.floor else None)
         step["z"] = None if z is None else z[0]
         significant = z is not None and z[0] > s.z_min
+        # the filter's term against the observer's own artefact, in the statistic's own terms: its
+        # parameter fitted the same way (whitened, bounded, with the same effects) on the
+        # calibration's pure observer error, the two estimates apart by z_min joint standard errors
+        artefact = (self._artefact(base_cols, j, z[2], z[3]) if significant and self.error is not None
+                    else None)
+        if artefact is not None:
+            step["z_over_observer"] = artefact
+        above = size > need or (artefact is not None and artefact > s.z_min)
         enough = gain > need_gain or significant
         reasons = [why for ok, why in ((t_stat > s.t_min or significant, "not consistent across folds"),
                                        (enough, "explains too little of the gap"),
-                                       (size > need, "below the noise / observer-artefact level"))
+                                       (above, "below the noise / observer-artefact level"))
                    if not ok]
         if not reasons and filt:
             G, b, c = grams(data, settings=s)
@@ -377,10 +417,11 @@ class Search:
         step["reason"] = "; ".join(reasons)
         return step
 
-    def _filter_wald(self, base_cols: list[int], j: int, start: float) -> tuple[float, float]:
+    def _filter_wald(self, base_cols: list[int], j: int, start: float) -> tuple[float, float, float, float]:
         """The Wald statistics (:func:`wald`) of filter ``j`` joining ``base_cols`` (linearised at
         ``start``), and of its excess over its time mirror fitted with it (the delay minus the
-        advance: a smoother's symmetric blur fits both alike, a late input the delay alone)."""
+        advance: a smoother's symmetric blur fits both alike, a late input the delay alone); then
+        the filter's parameter and its standard error (:func:`estimate`)."""
         k = len(base_cols)
         at = np.concatenate([self.theta[base_cols], [start]])
         fwd = self._local(base_cols + [j], at)
@@ -391,8 +432,24 @@ class Search:
         alone, against = np.zeros(k + 1), np.zeros(k + 2)
         alone[k], against[k], against[k + 1] = 1.0, 1.0, -1.0
         blocks, order = self.settings.blocks, self.settings.whiten_order
-        return (wald(fwd, list(range(k + 1)), at, alone, blocks, order),
-                wald(both, list(range(k + 2)), np.append(at, 0.0), against, blocks, order))
+        value, se = estimate(fwd, list(range(k + 1)), at, alone, blocks, order)
+        return (value / max(se, 1e-300), wald(both, list(range(k + 2)), np.append(at, 0.0), against, blocks,
+                                              order), value, se)
+
+    def _artefact(self, base_cols: list[int], j: int, value: float, se: float) -> float:
+        """How far the filter ``j``'s parameter ``value`` (standard error ``se``) lies above what
+        the same fit finds in the observer's own error (the calibration run, ``self.error``): the
+        difference over the two standard errors combined. The observer's smoothing can look like a
+        late input; measured the same way as the data (whitened, within the parameter's range,
+        with the effects already chosen), it is compared in the statistic's own terms, not as a
+        raw RMS whose slow, correlated scatter the whitened fit does not count."""
+        cols = list(base_cols) + [j]
+        err = self.error
+        weights = np.zeros(len(cols))
+        weights[-1] = 1.0
+        s = self.settings
+        alone, alone_se = estimate(err, cols, np.zeros(len(cols)), weights, s.blocks, s.whiten_order)
+        return float((value - alone) / max(np.hypot(se, alone_se), 1e-300))
 
     def candidates(self, exclude=()) -> dict:
         """The next candidate: of the ``scan`` best by held-out SSE, the first that passes the tests;
@@ -402,7 +459,7 @@ class Search:
         base = cv_sse(G, b, c, self.chosen, data.lo, data.hi)
         trials = {}
         for j in self.pool:
-            if j in self.chosen or j in exclude:
+            if j in self.chosen or j in exclude or self._spanned(data, j):
                 continue
             trials[j] = self._trial(G, b, c, list(self.chosen), j, data)
         if not trials:
@@ -421,6 +478,24 @@ class Search:
             if pair is not None and (accepted is None or self._better(trials[accepted["index"]][0], pair[1])):
                 return pair[0]
         return accepted or steps[0]
+
+    def _spanned(self, data: FitData, j: int) -> bool:
+        """Whether candidate ``j``'s features lie in the span of the chosen ones on these data (each
+        within ``duplicate_cos`` of its projection, the test for an exact duplicate): added, it
+        explains nothing the set does not (an actuator gain beside the inertia, the gravity torque
+        and the friction it scales together), so it is no candidate. Ranked by held-out SSE it
+        would tie with the set itself, ahead of every real candidate that fits held out a little
+        worse, and end the selection in their place."""
+        if not self.chosen:
+            return False
+        P = data.Phi.reshape(-1, data.Phi.shape[2])
+        A = P[:, self.chosen]
+        for c in self.groups[j]:
+            col = P[:, c]
+            rest = col - A @ np.linalg.lstsq(A, col, rcond=None)[0]
+            if not col @ col > 0 or rest @ rest > (1.0 - self.settings.duplicate_cos ** 2) * (col @ col):
+                return False
+        return True
 
     def _better(self, single: np.ndarray, pair: np.ndarray) -> bool:
         """Whether a pair fits held out significantly better than the best single entry: by more

@@ -44,7 +44,7 @@ from .cv import FitData, aliases, baseline, block_bootstrap, cv_sse, fit_step, g
 from .effects import Effect
 from .fit import FitSettings, Pairs, one_step
 from .refine import Refined, bounds, refine
-from .search import Search
+from .search import Search, apply_ar, ar_filters
 
 
 @dataclass
@@ -119,38 +119,65 @@ class _Problem:
         return weighted(r, J, self.rows, self.sigma, self.spurious[cols], self.labels,
                         self.lo[cols] - values, self.hi[cols] - values, self.pairs.segment)
 
-    def refit(self, theta: np.ndarray, chosen: list[int]) -> tuple[np.ndarray, str]:
-        """Refine ``theta[chosen]`` jointly (others 0) with the damped, bounded LM."""
+    def refit(self, theta: np.ndarray, chosen: list[int], whitened: bool = False) -> tuple[np.ndarray, str]:
+        """Refine ``theta[chosen]`` jointly (others 0) with the damped, bounded LM (``whitened``:
+        then by generalised least squares, see :func:`refit`)."""
         full = np.zeros_like(theta)
         if not chosen:
             return full, "converged"
         out = refit(self.system, [self.effects[j] for j in chosen], theta[chosen], self.pairs, self.rows,
-                    self.sigma, self.settings)
+                    self.sigma, self.settings, whitened=whitened)
         full[chosen] = out.theta
         return full, out.status
 
 
 def refit(system: System, effects: Sequence[Effect], theta: np.ndarray, pairs: Pairs, rows, sigma,
-          settings: FitSettings = FitSettings(), iterations: int | None = None) -> Refined:
+          settings: FitSettings = FitSettings(), iterations: int | None = None,
+          whitened: bool = False) -> Refined:
     """Refine the parameters of ``effects`` (all of them, from ``theta``) on ``pairs`` with the
-    damped, bounded Levenberg-Marquardt of :mod:`~learnest_codegen.diagnosis.refine`."""
+    damped, bounded Levenberg-Marquardt of :mod:`~learnest_codegen.diagnosis.refine`.
+
+    With ``whitened`` (and ``settings.whiten_order`` > 0), by generalised least squares after
+    the ordinary fit: residual and Jacobian filtered by the autoregression of the ordinary fit's
+    residual, per run and state (:func:`~learnest_codegen.diagnosis.search.ar_filters`, the
+    filter held fixed while the parameters move). An observer's smoothing correlates the one-step
+    residual over many samples; ordinary least squares weighs the slow scatter as much as the
+    sharp events that fix an effect (a late torque's steps), and the whitened fit estimates such a
+    parameter several times more precisely (the Wald statistic of the selection uses the same
+    whitening)."""
     base = np.array([float(system.params[e.channel.split(":", 1)[1]]) if e.channel.startswith("param:")
                      else 0.0 for e in effects])
     lo, hi = bounds(system, effects, settings.bound)
+    its = settings.refine_iterations if iterations is None else iterations
 
     def evaluate(values):
         r, J = one_step(system, effects, values, pairs)
         d = weighted(r, J, rows, sigma)
         return d.R.ravel(), d.Phi.reshape(-1, len(effects))
 
-    return refine(evaluate, np.asarray(theta, float), lo, hi, lambda th: base + th,
-                  iterations=settings.refine_iterations if iterations is None else iterations,
-                  max_step=settings.max_step)
+    plain = refine(evaluate, np.asarray(theta, float), lo, hi, lambda th: base + th, iterations=its,
+                   max_step=settings.max_step)
+    order = settings.whiten_order
+    if not whitened or order <= 0 or not plain.ok:
+        return plain
+    r, _ = one_step(system, effects, plain.theta, pairs, with_features=False)
+    filters = ar_filters(weighted(r, np.zeros(r.shape + (0,)), rows, sigma).R, pairs.segment, order)
+
+    def evaluate_white(values):
+        r, J = one_step(system, effects, values, pairs)
+        d = weighted(r, J, rows, sigma)
+        P, R, _ = apply_ar(d.Phi, d.R, filters, pairs.segment, order)
+        return R.ravel(), P.reshape(-1, len(effects))
+
+    white = refine(evaluate_white, plain.theta, lo, hi, lambda th: base + th, iterations=its,
+                   max_step=settings.max_step)
+    return white if white.ok else plain
 
 
 def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: Sequence[int],
                 sigma: np.ndarray, spurious: np.ndarray | None = None,
-                settings: FitSettings = FitSettings(), labels: np.ndarray | None = None) -> EffectFit:
+                settings: FitSettings = FitSettings(), labels: np.ndarray | None = None,
+                error: FitData | None = None) -> EffectFit:
     """Select, refine and score effects of ``effects`` on ``pairs`` (see the module docstring).
 
     Parameters
@@ -162,6 +189,9 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
     spurious : per effect, what its feature explains of pure observer error (noise units).
     settings : :class:`~learnest_codegen.diagnosis.fit.FitSettings`.
     labels : cross-validation fold of each pair (default: contiguous time blocks).
+    error : the observer's own error on a calibration run, weighted, every feature at the prior
+        (:func:`~learnest_codegen.diagnosis.floor.noise_floor`): a delay or a lag must stand above
+        what the same fit finds there.
     """
     spurious = np.zeros(len(effects)) if spurious is None else np.asarray(spurious, float)
     prob = _Problem(system, effects, pairs, rows, sigma, spurious, labels, settings)
@@ -170,7 +200,9 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
     groups = _groups(effects)
     # a multi-parameter effect (a group) is a candidate as a whole, through its first column
     pool = [j for j in first.pool if groups[j][0] == j and all(k in first.pool for k in groups[j])]
-    search = Search(effects, prob.data, prob.local, prob.refit, pool, groups, first, settings)
+    if error is not None:  # fitted within the same physical ranges as the data
+        error = FitData(error.R, error.Phi, error.sigma, error.spurious, None, prob.lo, prob.hi, error.runs)
+    search = Search(effects, prob.data, prob.local, prob.refit, pool, groups, first, settings, error)
     swapped = []
     search.forward()
     for _ in range(settings.rounds):
@@ -184,6 +216,14 @@ def fit_effects(system: System, effects: Sequence[Effect], pairs: Pairs, rows: S
         moved |= search.restart()
         if not moved:
             break
+    excess = float(np.mean(search.data.R ** 2)) - 1.0  # what the ordinary fit leaves above the floor
+    if search.chosen and settings.whiten_order > 0 and excess <= settings.gls_excess:
+        # the final parameters by generalised least squares, when what is left is noise (an
+        # observer's correlated scatter): an autoregression fitted to a residual far above the
+        # floor whitens unmodelled dynamics, and the refit then drifts from every run's own fit
+        # (DART's Coulomb friction 15.5 where each run's ordinary fit gives 3.3-3.9)
+        search.theta, search.status = prob.refit(search.theta, search.chosen, whitened=True)
+        search.data = prob.data(search.theta)
     chosen, theta, data = search.chosen, search.theta, search.data
     G, b, c = grams(data, settings=settings)
     cv_share = float(np.clip((first.total - cv_sse(G, b, c, chosen, data.lo, data.hi).sum()) / first.gap,
