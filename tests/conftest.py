@@ -94,3 +94,17 @@ def user_system_file(tmp_path):
     path = tmp_path / "my_pendulum.py"
     path.write_text(USER_SYSTEM)
     return path
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """Under pytest-xdist, every other test goes to whichever worker is free, but the blocks of
+    one docs page (tests/test_readme.py) go to one worker, in the page's order: a page's blocks
+    build on each other (the files it asks the reader to write, the folder of the block before)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class PageScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            head, sep, rest = nodeid.partition("test_readme.py::test_block_runs_as_written[")
+            return f"{head}{sep}{rest.rsplit(':', 1)[0]}" if sep else nodeid
+
+    return PageScheduling(config, log)
