@@ -90,12 +90,14 @@ def quadrotor_model(data: str | None, out: Path):
     return knode_model(trained)[0], test.run, [c.name for c in train]
 
 
-def generate(bc, model, run, out: Path, estimator: str, steps: int | None):
-    """``examples/cortex_m``'s folder for ``estimator`` of ``model`` over ``run``."""
+def generate(bc, model, run, out: Path, estimator: str, steps: int | None, *, model_hash: str | None = None,
+             horizon: int | None = None):
+    """``examples/cortex_m``'s folder for ``estimator`` of ``model`` over ``run`` (its first
+    ``steps`` samples; all when ``None``)."""
     from learnest_codegen.compilation import compile_estimators
 
-    gen = compile_estimators(model, out, model_hash=f"bench-{model.kind}", estimators=(estimator,),
-                             precision=PRECISION)[estimator]
+    gen = compile_estimators(model, out, model_hash=model_hash or f"bench-{model.kind}",
+                             estimators=(estimator,), precision=PRECISION, horizon=horizon)[estimator]
     T = min(steps or len(run.y), len(run.y))
     U, Y = run.u[:T], run.y[:T]
     bc.write_run_header(gen.directory / "run_data.h", U, Y, model.system.dt)
@@ -202,13 +204,8 @@ def _nanobench(data: str | None) -> Path | None:
 def whole_run(bc, model, run, out: Path, model_hash: str) -> dict:
     """:data:`KNODE_ESTIMATOR` at N = :data:`KNODE_HORIZON` in float32 on the M4F over the whole
     ``run``, step by step."""
-    from learnest_codegen.compilation import compile_estimators
-
-    gen = compile_estimators(model, out / "gen", model_hash=model_hash, estimators=(KNODE_ESTIMATOR,),
-                             precision=PRECISION, horizon=KNODE_HORIZON)[KNODE_ESTIMATOR]
-    bc.write_run_header(gen.directory / "run_data.h", run.u, run.y, model.system.dt)
-    bc.write_estimator_config(gen.directory / "estimator_config.h", gen.prefix, estimator=KNODE_ESTIMATOR,
-                              precision=PRECISION)
+    _, gen = generate(bc, model, run, out / "gen", KNODE_ESTIMATOR, None, model_hash=model_hash,
+                      horizon=KNODE_HORIZON)
     paths = bc.build(gen.directory, out / "build", machine=MACHINE)
     fw = bc.run_qemu(paths["elf"], model.nx, machine=MACHINE, timeout=3600)
     host = bc.run_host(paths["host"], model.nx)

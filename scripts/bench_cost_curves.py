@@ -104,14 +104,9 @@ def host_count(bc, model, run, estimator: str, horizon: int | None, root: Path, 
 
 def m4f_count(cm, ex, model, run, estimator: str, horizon: int | None, root: Path, T: int) -> dict:
     """float32 on the Cortex-M4F in QEMU: instructions per step after the first, flash, RAM."""
-    from learnest_codegen.compilation import compile_estimators
-
-    gen = compile_estimators(model, root / "m4f", model_hash="cost-curves", estimators=(estimator,),
-                             precision=cm.PRECISION, horizon=horizon)[estimator]
-    U, Y = run.u[:SKIP + T], run.y[:SKIP + T]
-    ex.write_run_header(gen.directory / "run_data.h", U, Y, model.system.dt)
-    ex.write_estimator_config(gen.directory / "estimator_config.h", gen.prefix, estimator=estimator,
-                              precision=cm.PRECISION)
+    gen, _ = cm.generate(ex, model, run, root / "m4f", estimator, SKIP + T, model_hash="cost-curves",
+                         horizon=horizon)
+    U, Y = gen.U, gen.Y
     paths = ex.build(gen.directory, root / "m4f_build", machine=cm.MACHINE)
     fw = ex.run_qemu(paths["elf"], model.nx, machine=cm.MACHINE, timeout=3600)
     per_tick = 1e9 / fw.summary["tick_hz"]
