@@ -96,6 +96,7 @@ def user_system_file(tmp_path):
     return path
 
 
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: without it, never called
 def pytest_xdist_make_scheduler(config, log):
     """Under pytest-xdist, every other test goes to whichever worker is free, but the blocks of
     one docs page (tests/test_readme.py) go to one worker, in the page's order: a page's blocks
