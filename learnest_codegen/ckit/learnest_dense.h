@@ -38,6 +38,15 @@
 #define LEARNEST_RESTRICT
 #endif
 
+/* The structural nonzeros of a Jacobian (nz: column-major, one byte an entry; NULL: dense).
+ * Its structural zeros are exact zeros: a term one of them multiplies (by a finite factor) is
+ * +-0, and adding it changes no bit of a sum that is not -0 (a sum from +0 never is; one from a
+ * covariance entry only where that entry is -0, and then only the zero's sign). So the kit
+ * skips those terms: with the loops unrolled and nz a constant table, the compiler drops them
+ * from the code. */
+LEARNEST_KIT_INLINE int learnest_nz(const unsigned char* nz, int i) { return !nz || nz[i]; }
+#define LEARNEST_NZ(nz, i) learnest_nz(nz, i)
+
 /* In-place lower Cholesky factor of the n x n matrix M (only its lower triangle is read):
  * M = L L^T. 0 (M partly overwritten) if a pivot is not positive. */
 LEARNEST_KIT int learnest_cholesky(learnest_real* M, int n) {
@@ -125,24 +134,25 @@ LEARNEST_KIT int learnest_spd_inverse(const learnest_real* A, int n, learnest_re
   }
   for (j = 0; j < n; ++j) {  /* L row-major here: L[i * n + j], lower */
     learnest_real d = A[j * n + j];
-    for (k = 0; k < j; ++k) d -= L[j * n + k] * L[j * n + k];
+    LEARNEST_UNROLL_BLOCK for (k = 0; k < j; ++k) d -= L[j * n + k] * L[j * n + k];
     if (!(d > 0) || !isfinite(d)) return 0;
     L[j * n + j] = LEARNEST_SQRT(d);
-    for (i = j + 1; i < n; ++i) {
+    LEARNEST_UNROLL_BLOCK for (i = j + 1; i < n; ++i) {
       learnest_real v = (learnest_real)0.5 * (A[i * n + j] + A[j * n + i]);
-      for (k = 0; k < j; ++k) v -= L[i * n + k] * L[j * n + k];
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < j; ++k) v -= L[i * n + k] * L[j * n + k];
       L[i * n + j] = v / L[j * n + j];
     }
   }
   for (j = 0; j < n; ++j) {  /* column j of A^-1: solve L L^T x = e_j */
-    for (i = 0; i < n; ++i) {
+    LEARNEST_UNROLL_BLOCK for (i = 0; i < j; ++i) Ainv[i * n + j] = 0;  /* L^-1 e_j's leading zeros */
+    LEARNEST_UNROLL_BLOCK for (i = j; i < n; ++i) {
       learnest_real v = i == j ? 1 : 0;
-      for (k = 0; k < i; ++k) v -= L[i * n + k] * Ainv[k * n + j];
+      LEARNEST_UNROLL_BLOCK for (k = j; k < i; ++k) v -= L[i * n + k] * Ainv[k * n + j];
       Ainv[i * n + j] = v / L[i * n + i];
     }
-    for (i = n - 1; i >= 0; --i) {
+    LEARNEST_UNROLL_BLOCK for (i = n - 1; i >= 0; --i) {
       learnest_real v = Ainv[i * n + j];
-      for (k = i + 1; k < n; ++k) v -= L[k * n + i] * Ainv[k * n + j];
+      LEARNEST_UNROLL_BLOCK for (k = i + 1; k < n; ++k) v -= L[k * n + i] * Ainv[k * n + j];
       Ainv[i * n + j] = v / L[i * n + i];
     }
   }

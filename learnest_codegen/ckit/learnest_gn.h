@@ -75,22 +75,6 @@ struct learnest_gn {
 /* The linearisation at the iterate. */
 #define LEARNEST_GN_LIN(s) (&(s)->lin[(s)->cur])
 
-/* The structural nonzeros of A and C (column-major, 1 a nonzero) when the generated glue gives
- * them (LEARNEST_A_PATTERN, LEARNEST_C_PATTERN: codegen/mhe_gn.py), which the normal equations'
- * assembly skips; without them, A and C are taken as dense. */
-#ifdef LEARNEST_A_PATTERN
-static const unsigned char learnest_gn_a_nz[LEARNEST_NXX] = LEARNEST_A_PATTERN;
-#define LEARNEST_GN_A_NZ learnest_gn_a_nz
-#else
-#define LEARNEST_GN_A_NZ ((const unsigned char*)0)
-#endif
-#ifdef LEARNEST_C_PATTERN
-static const unsigned char learnest_gn_c_nz[LEARNEST_NY * LEARNEST_NX] = LEARNEST_C_PATTERN;
-#define LEARNEST_GN_C_NZ learnest_gn_c_nz
-#else
-#define LEARNEST_GN_C_NZ ((const unsigned char*)0)
-#endif
-
 #include "learnest_gn_groups.h"
 
 /* The weights of p divided by their largest diagonal entry, as the Ipopt MHE scales its cost. */
@@ -218,12 +202,6 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
   return c;
 }
 
-/* The structural nonzeros of a Jacobian (nz: column-major, one byte an entry; NULL: dense).
- * Its structural zeros are exact zeros: a term they multiply adds an exact 0 and is skipped,
- * which changes no bit; with the blocks unrolled and nz a constant table, the compiler drops
- * those terms from the code. */
-LEARNEST_KIT_INLINE int learnest_gn_nz(const unsigned char* nz, int i) { return !nz || nz[i]; }
-#define LEARNEST_GN_NZ(nz, i) learnest_gn_nz(nz, i)
 
 /* Wv = W v and WM = W M (M: n x cols, column-major, structure nz) for the n x n W; diag: W is
  * diagonal (its zero terms are skipped, and WM has M's structure). M's entries at its
@@ -236,7 +214,7 @@ LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int di
     if (diag) {
       Wv[r] = W[r + r * n] * v[r];
       LEARNEST_UNROLL_BLOCK for (c = 0; c < cols; ++c) {
-        WM[r + c * n] = LEARNEST_GN_NZ(nz, r + c * n) ? W[r + r * n] * M[r + c * n] : 0;
+        WM[r + c * n] = LEARNEST_NZ(nz, r + c * n) ? W[r + r * n] * M[r + c * n] : 0;
       }
       continue;
     }
@@ -245,7 +223,7 @@ LEARNEST_KIT_INLINE void learnest_gn_weigh(const learnest_real* W, int n, int di
     LEARNEST_UNROLL_BLOCK for (c = 0; c < cols; ++c) {
       learnest_real t = 0;
       LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
-        if (LEARNEST_GN_NZ(nz, k + c * n)) t += W[r + k * n] * M[k + c * n];
+        if (LEARNEST_NZ(nz, k + c * n)) t += W[r + k * n] * M[k + c * n];
       }
       WM[r + c * n] = t;
     }
@@ -266,7 +244,7 @@ LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const u
         learnest_real v = 0;
         int any = 0;  /* a structural zero of J'WJ adds nothing */
         LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
-          if (LEARNEST_GN_NZ(nz, k + r * n) && (!diag || LEARNEST_GN_NZ(nz, k + c * n))) {
+          if (LEARNEST_NZ(nz, k + r * n) && (!diag || LEARNEST_NZ(nz, k + c * n))) {
             v += J[k + r * n] * WJ[k + c * n];
             any = 1;
           }
@@ -275,7 +253,7 @@ LEARNEST_KIT_INLINE void learnest_gn_term(int n, const learnest_real* J, const u
       }
     }
     LEARNEST_UNROLL_BLOCK for (k = 0; k < n; ++k) {
-      if (LEARNEST_GN_NZ(nz, k + c * n)) g[c] -= m * J[k + c * n] * Wr[k];
+      if (LEARNEST_NZ(nz, k + c * n)) g[c] -= m * J[k + c * n] * Wr[k];
     }
   }
 }
@@ -327,7 +305,7 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       learnest_real C[LEARNEST_NY * LEARNEST_NX], RC[LEARNEST_NY * LEARNEST_NX], Rv[LEARNEST_NY];
       LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
         LEARNEST_UNROLL_BLOCK for (r = 0; r < LEARNEST_NY; ++r) {
-          if (!LEARNEST_GN_NZ(LEARNEST_GN_C_NZ, r + c * LEARNEST_NY)) continue;
+          if (!LEARNEST_NZ(LEARNEST_C_NZ, r + c * LEARNEST_NY)) continue;
           C[r + c * LEARNEST_NY] = Gi[r] * L->C[i * LEARNEST_NY * LEARNEST_NX + r + c * LEARNEST_NY];
         }
       }
@@ -335,12 +313,12 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
         s->rv[k] = Gi[k] * (w->Y[i * LEARNEST_NY + k] - L->h[i * LEARNEST_NY + k]);
       }
       if (hess) {  /* apart, so that each call's column count is a constant (loops unrolled whole) */
-        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, LEARNEST_NX, Rv, RC);
+        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_C_NZ, LEARNEST_NX, Rv, RC);
       } else {
-        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_GN_C_NZ, 0, Rv, RC);
+        learnest_gn_weigh(s->R, LEARNEST_NY, dr, s->rv, C, LEARNEST_C_NZ, 0, Rv, RC);
       }
       s->cost += m * learnest_gn_quad_weighed(s->R, dr, s->rv, Rv, LEARNEST_NY);
-      learnest_gn_term(LEARNEST_NY, C, LEARNEST_GN_C_NZ, dr, RC, Rv, m, hess, D, g);
+      learnest_gn_term(LEARNEST_NY, C, LEARNEST_C_NZ, dr, RC, Rv, m, hess, D, g);
     }
     if (i < LEARNEST_N) {  /* process term m |x_{i+1} - F(x_i)|^2_Q: couples x_i and x_{i+1} */
       const learnest_real* A = L->A + i * LEARNEST_NXX;
@@ -350,20 +328,20 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
       learnest_real QA[LEARNEST_NXX], Qw[LEARNEST_NX];
       LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) s->rw[k] = X[(i + 1) * LEARNEST_NX + k] - L->F[i * LEARNEST_NX + k];
       if (hess) {
-        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, LEARNEST_NX, Qw, QA);
+        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_A_NZ, LEARNEST_NX, Qw, QA);
       } else {
-        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_GN_A_NZ, 0, Qw, QA);
+        learnest_gn_weigh(s->Q, LEARNEST_NX, dq, s->rw, A, LEARNEST_A_NZ, 0, Qw, QA);
       }
       s->cost += m * learnest_gn_quad_weighed(s->Q, dq, s->rw, Qw, LEARNEST_NX);
       if (hess) {  /* H_{i+1,i} = -m Q A (0 where a diagonal Q leaves A's structural zeros) */
         LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {  /* by block: the pattern a constant */
           LEARNEST_UNROLL_BLOCK for (r = 0; r < LEARNEST_NX; ++r) {
             k = r + c * LEARNEST_NX;
-            E[k] = !dq || LEARNEST_GN_NZ(LEARNEST_GN_A_NZ, k) ? -m * QA[k] : 0;
+            E[k] = !dq || LEARNEST_NZ(LEARNEST_A_NZ, k) ? -m * QA[k] : 0;
           }
         }
       }
-      learnest_gn_term(LEARNEST_NX, A, LEARNEST_GN_A_NZ, dq, QA, Qw, m, hess, D, g);
+      learnest_gn_term(LEARNEST_NX, A, LEARNEST_A_NZ, dq, QA, Qw, m, hess, D, g);
       LEARNEST_UNROLL_BLOCK for (c = 0; c < LEARNEST_NX; ++c) {
         if (hess) {
           LEARNEST_UNROLL_BLOCK for (r = c; r < LEARNEST_NX; ++r) {

@@ -73,21 +73,31 @@ __attribute__((unused))
 #endif
 static const double learnest_exp2_64_[64] = {LEARNEST_EXP2_64(LEARNEST_EXP2_DOUBLE_, LEARNEST_EXP2_DOUBLE_)};
 
-/* exp(y) in float for any y: y = (32 m + j) ln2/32 + r, |r| <= ln2/64, cubic Taylor
- * polynomial times 2^(j/32) 2^m (own for -87 < y < 88: the same bits on every IEEE machine). */
-LEARNEST_MATH_FN float learnest_expf_(float y) {
+/* exp(y) in float for -87 < y < 88 and k = y 32/ln2 rounded to the nearest integer:
+ * y = (32 m + j) ln2/32 + r, |r| <= ln2/64, cubic Taylor polynomial times 2^(j/32) 2^m. The
+ * exponent's bits in unsigned arithmetic: 32 m = k - j exactly, and (k - j) / 32 + 127 (at
+ * least 1 here) is (unsigned)(k - j) >> 5 plus 127 modulo 2^32, which a shift computes. */
+LEARNEST_MATH_FN float learnest_expf_k_(float y, int k) {
   const float H = 0.02165985107421875f, L = 9.983182280848268e-07f;  /* ln2/32 in two parts */
-  float r, p, scale;
-  int k, j;
-  unsigned int bits;
-  if (!(y < 88.0f && y > -87.0f)) return (float)exp((double)y);  /* NaN, inf, extremes */
-  k = (int)(y * 46.16624130844683f + (y >= 0 ? 0.5f : -0.5f));
-  j = k & 31;
-  r = (y - (float)k * H) - (float)k * L;
-  p = 1.0f + r * (1.0f + r * (0.5f + r * 1.66666667e-1f));
-  bits = (unsigned int)((k - j) / 32 + 127) << 23;
+  const int j = k & 31;
+  const float r = (y - (float)k * H) - (float)k * L;
+  const float p = 1.0f + r * (1.0f + r * (0.5f + r * 1.66666667e-1f));
+  const unsigned int bits = (((unsigned int)(k - j) >> 5) + 127u) << 23;
+  float scale;
   memcpy(&scale, &bits, sizeof scale);
   return learnest_exp2_32f_[j] * p * scale;
+}
+
+/* exp(y) in float for any y (own for -87 < y < 88: the same bits on every IEEE machine). */
+LEARNEST_MATH_FN float learnest_expf_(float y) {
+  if (!(y < 88.0f && y > -87.0f)) return (float)exp((double)y);  /* NaN, inf, extremes */
+  return learnest_expf_k_(y, (int)(y * 46.16624130844683f + (y >= 0 ? 0.5f : -0.5f)));
+}
+
+/* learnest_expf_ for 0 <= y < 88 (tanh's argument), without its range test and sign: the same
+ * bits. */
+LEARNEST_MATH_FN float learnest_expf_pos_(float y) {
+  return learnest_expf_k_(y, (int)(y * 46.16624130844683f + 0.5f));
 }
 
 /* tanh(x) in type T, one body for both precisions: the odd series poly(a, a2) for |x| < small,
@@ -110,7 +120,7 @@ LEARNEST_MATH_FN float learnest_expf_(float y) {
 #define LEARNEST_TANHF_POLY_(a, a2) \
   (a + a * a2 * (-3.33333333e-1f + a2 * (1.33333333e-1f + a2 * (-5.39682540e-2f \
    + a2 * (2.18694885e-2f + a2 * -8.86323552e-3f)))))
-LEARNEST_TANH_(learnest_tanhf_, float, learnest_expf_, 9.0f, 0.35f, LEARNEST_TANHF_POLY_)
+LEARNEST_TANH_(learnest_tanhf_, float, learnest_expf_pos_, 9.0f, 0.35f, LEARNEST_TANHF_POLY_)
 
 /* exp(y) in double for 0 <= y <= 700: y = (64 m + j) ln2/64 + r, |r| <= ln2/128, degree-5
  * Taylor polynomial times 2^(j/64) 2^m (about 1 ulp). */

@@ -33,6 +33,23 @@
 #define LEARNEST_NYY (LEARNEST_NY * LEARNEST_NY)
 #define LEARNEST_NMAX (LEARNEST_NX > LEARNEST_NY ? LEARNEST_NX : LEARNEST_NY)
 
+/* The structural nonzeros of A = dF/dx and C = dh/dx (column-major, 1 a nonzero) when the
+ * generated glue gives them (LEARNEST_A_PATTERN, LEARNEST_C_PATTERN: codegen/mhe_gn.py): the
+ * normal equations' assembly, the carried covariance and the gate skip their zero terms
+ * (LEARNEST_NZ); without them, A and C are taken as dense. */
+#ifdef LEARNEST_A_PATTERN
+static const unsigned char learnest_a_nz[LEARNEST_NXX] = LEARNEST_A_PATTERN;
+#define LEARNEST_A_NZ learnest_a_nz
+#else
+#define LEARNEST_A_NZ ((const unsigned char*)0)
+#endif
+#ifdef LEARNEST_C_PATTERN
+static const unsigned char learnest_c_nz[LEARNEST_NY * LEARNEST_NX] = LEARNEST_C_PATTERN;
+#define LEARNEST_C_NZ learnest_c_nz
+#else
+#define LEARNEST_C_NZ ((const unsigned char*)0)
+#endif
+
 /* The parameters of one sample's problem: the window, then the weights Q, R, P (inverse
  * covariances, symmetric, column-major), exactly the parameter vector of the Ipopt MHE. */
 struct learnest_mhe_problem {
@@ -193,18 +210,22 @@ LEARNEST_KIT void learnest_mhe_carry(const struct learnest_mhe* m, const learnes
   learnest_real AP[LEARNEST_NXX];
   int i, j, l, keep[LEARNEST_NY];
   for (j = 0; j < LEARNEST_NY; ++j) keep[j] = m->now.w.G[j] == 1;
-  (void)learnest_masked_update(cov, H, m->R_cov, keep, 0, 0);  /* S not PD: the prediction */
-  for (i = 0; i < LEARNEST_NX; ++i) {  /* AP = A cov */
+  (void)learnest_masked_update(cov, H, LEARNEST_C_NZ, m->R_cov, keep, 0, 0);  /* S not PD: the prediction */
+  LEARNEST_UNROLL_BLOCK for (i = 0; i < LEARNEST_NX; ++i) {  /* AP = A cov */
     for (l = 0; l < LEARNEST_NX; ++l) {
       learnest_real v = 0;
-      for (j = 0; j < LEARNEST_NX; ++j) v += A[i + j * LEARNEST_NX] * cov[j * LEARNEST_NX + l];
+      LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NX; ++j) {
+        if (LEARNEST_NZ(LEARNEST_A_NZ, i + j * LEARNEST_NX)) v += A[i + j * LEARNEST_NX] * cov[j * LEARNEST_NX + l];
+      }
       AP[i * LEARNEST_NX + l] = v;
     }
   }
   for (i = 0; i < LEARNEST_NX; ++i) {  /* cov = AP A^T + Q_cov */
-    for (l = 0; l < LEARNEST_NX; ++l) {
+    LEARNEST_UNROLL_BLOCK for (l = 0; l < LEARNEST_NX; ++l) {
       learnest_real v = m->Q_cov[i * LEARNEST_NX + l];
-      for (j = 0; j < LEARNEST_NX; ++j) v += AP[i * LEARNEST_NX + j] * A[l + j * LEARNEST_NX];
+      LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NX; ++j) {
+        if (LEARNEST_NZ(LEARNEST_A_NZ, l + j * LEARNEST_NX)) v += AP[i * LEARNEST_NX + j] * A[l + j * LEARNEST_NX];
+      }
       cov[i * LEARNEST_NX + l] = v;
     }
   }
@@ -263,7 +284,7 @@ LEARNEST_KIT void learnest_restart_prior(const learnest_real* x_pred, const lear
   for (i = 0; i < LEARNEST_NX; ++i) xbar[i] = x_pred[i];
   for (i = 0; i < LEARNEST_NXX; ++i) cov[i] = 0;
   for (i = 0; i < LEARNEST_NX; ++i) cov[i * LEARNEST_NX + i] = pd[i];
-  (void)learnest_masked_update(cov, C, R_cov, keep, nu, xbar);  /* S not PD: the prediction */
+  (void)learnest_masked_update(cov, C, LEARNEST_C_NZ, R_cov, keep, nu, xbar);  /* S not PD: the prediction */
   learnest_symmetrise(cov, LEARNEST_NX);
 }
 
@@ -287,11 +308,13 @@ LEARNEST_KIT int learnest_mhe_gate(struct learnest_mhe* m, const struct learnest
   learnest_real pd[LEARNEST_NX], ceiling[LEARNEST_NX];
   const learnest_real* P_arr = m->carried_next ? m->Cn : m->P_cov;
   int i, j, k, any, reseed, keep[LEARNEST_NY];
-  for (i = 0; i < LEARNEST_NY; ++i) {
+  LEARNEST_UNROLL_BLOCK for (i = 0; i < LEARNEST_NY; ++i) {
     learnest_real s = 0;
-    for (j = 0; j < LEARNEST_NX; ++j) {
-      for (k = 0; k < LEARNEST_NX; ++k) {
-        s += C[i + j * LEARNEST_NY] * P_arr[j * LEARNEST_NX + k] * C[i + k * LEARNEST_NY];
+    LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NX; ++j) {
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) {
+        if (LEARNEST_NZ(LEARNEST_C_NZ, i + j * LEARNEST_NY) && LEARNEST_NZ(LEARNEST_C_NZ, i + k * LEARNEST_NY)) {
+          s += C[i + j * LEARNEST_NY] * P_arr[j * LEARNEST_NX + k] * C[i + k * LEARNEST_NY];
+        }
       }
     }
     s = g->rho * s + m->R_cov[i * LEARNEST_NY + i];

@@ -28,44 +28,48 @@ LEARNEST_KIT int learnest_masked_gain_update(learnest_real* P, const learnest_re
     }
   }
   if (!learnest_spd_inverse(Sm, LEARNEST_NY, Si, L)) return 0;
-  for (j = 0; j < LEARNEST_NY; ++j) {  /* K = P C' M S^-1 M, x += K z */
+  LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NY; ++j) {  /* K = P C' M S^-1 M, x += K z */
     for (i = 0; i < LEARNEST_NX; ++i) {
       learnest_real v = 0;
-      for (k = 0; k < LEARNEST_NY && keep[j]; ++k) {
-        v += keep[k] ? PCt[i + k * LEARNEST_NX] * Si[k + j * LEARNEST_NY] : 0;
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NY; ++k) {
+        if (keep[j] && keep[k]) v += PCt[i + k * LEARNEST_NX] * Si[k + j * LEARNEST_NY];
       }
       K[i + j * LEARNEST_NX] = v;
       if (x && z && keep[j]) x[i] += v * z[j];
     }
   }
   for (i = 0; i < LEARNEST_NX; ++i) {  /* P -= K (P C')' = K M C P (K's dropped columns are 0) */
-    for (k = 0; k < LEARNEST_NX; ++k) {
+    LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) {
       learnest_real v = 0;
-      for (j = 0; j < LEARNEST_NY; ++j) v += K[i + j * LEARNEST_NX] * PCt[k + j * LEARNEST_NX];
+      LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NY; ++j) v += K[i + j * LEARNEST_NX] * PCt[k + j * LEARNEST_NX];
       P[i * LEARNEST_NX + k] -= v;
     }
   }
   return 1;
 }
 
-/* learnest_masked_gain_update with PCt and S computed from P, C (NY x NX, column-major) and R
- * (NY x NY, symmetric). */
+/* learnest_masked_gain_update with PCt and S computed from P, C (NY x NX, column-major, its
+ * structural nonzeros cnz: LEARNEST_NZ) and R (NY x NY, symmetric). */
 LEARNEST_KIT int learnest_masked_update(learnest_real* P, const learnest_real* C,
-                                        const learnest_real* R, const int* keep,
-                                        const learnest_real* z, learnest_real* x) {
+                                        const unsigned char* cnz, const learnest_real* R,
+                                        const int* keep, const learnest_real* z, learnest_real* x) {
   learnest_real PCt[LEARNEST_NX * LEARNEST_NY], S[LEARNEST_NY * LEARNEST_NY];
   int i, j, k;
-  for (j = 0; j < LEARNEST_NY; ++j) {  /* PCt = P C' */
+  LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NY; ++j) {  /* PCt = P C' */
     for (i = 0; i < LEARNEST_NX; ++i) {
       learnest_real v = 0;
-      for (k = 0; k < LEARNEST_NX; ++k) v += P[i * LEARNEST_NX + k] * C[j + k * LEARNEST_NY];
+      LEARNEST_UNROLL_BLOCK for (k = 0; k < LEARNEST_NX; ++k) {
+        if (LEARNEST_NZ(cnz, j + k * LEARNEST_NY)) v += P[i * LEARNEST_NX + k] * C[j + k * LEARNEST_NY];
+      }
       PCt[i + j * LEARNEST_NX] = v;
     }
   }
-  for (j = 0; j < LEARNEST_NY; ++j) {  /* S = C P C' + R */
+  LEARNEST_UNROLL_BLOCK for (j = 0; j < LEARNEST_NY; ++j) {  /* S = C P C' + R */
     for (k = 0; k < LEARNEST_NY; ++k) {
       learnest_real v = R[j * LEARNEST_NY + k];
-      for (i = 0; i < LEARNEST_NX; ++i) v += C[j + i * LEARNEST_NY] * PCt[i + k * LEARNEST_NX];
+      LEARNEST_UNROLL_BLOCK for (i = 0; i < LEARNEST_NX; ++i) {
+        if (LEARNEST_NZ(cnz, j + i * LEARNEST_NY)) v += C[j + i * LEARNEST_NY] * PCt[i + k * LEARNEST_NX];
+      }
       S[j + k * LEARNEST_NY] = v;
     }
   }
