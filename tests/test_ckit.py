@@ -35,6 +35,7 @@ from test_ukf import update_gain
 
 from learnest_codegen import NoiseModel, Signal, System, get_system
 from learnest_codegen.codegen.mhe import arrival_defines, bounds_defines
+from learnest_codegen.codegen.mhe_gn import model_functions, pattern_defines
 from learnest_codegen.codegen.templates import KIT, kit_files, status_header_text, write_kit
 from learnest_codegen.estimators.ekf import EKF, EKFSettings
 from learnest_codegen.estimators.gate import GateSettings, GateState
@@ -310,10 +311,16 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
     and the warm start must be equal, bit for bit where both copy or shift the same values, and
     to rounding where they compute: the restart prior (a Kalman update, numpy's LU solve against
     the kit's Cholesky), which stays the window's ``xbar`` until the window is full again, and
-    the carried arrival weight (a covariance recursion and its inverse)."""
+    the carried arrival weight (a covariance recursion and its inverse). A second build with
+    the cartpole's Jacobian patterns (LEARNEST_A_PATTERN, LEARNEST_C_PATTERN: the carry, the gate
+    and the Kalman update skip their structural zeros) runs alongside and must equal the dense
+    build bit for bit on every step."""
     k = libraries("kit_core", "gcc", "double")
     cartpole = get_system("cartpole")
     model = prior_model(cartpole)
+    patterns = pattern_defines(*model_functions(model, "m")[:2], model.nx)
+    assert set(patterns) == {"LEARNEST_A_PATTERN", "LEARNEST_C_PATTERN"}  # both have zeros
+    kp = libraries("kit_core", "gcc", "double", patterns)
     settings = mhe_settings(model, MHESettings.from_system(cartpole, horizon=N,
                                                            gate=GateSettings(recover_after=3)))
     mhe = MHE(model, settings)
@@ -326,6 +333,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
     g = np.zeros(k("kt_gate_size", restype=ctypes.c_size_t), dtype=np.uint8)
     gate = settings.gate
     k("kt_gate_defaults", g, gate.threshold, gate.recover_after, gate.inflation, 1e4, restype=None)
+    mp, gp = m.copy(), g.copy()  # the pattern build's state, driven alongside
     n1, restarts, rejections, carried_steps, reseeds = N + 1, 0, 0, 0, 0
     prior = None  # (Python's restart prior, its tolerance) while it is the window's xbar
     for step in range(300):
@@ -339,6 +347,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         if rng.random() < 0.03 and has_previous:  # a failed solve: both restart next step
             mhe._restart = True
             k("kt_mhe_fail", m, restype=None)
+            kp("kt_mhe_fail", mp, restype=None)
         x_pred = model.step(mhe.x, u) if has_previous else x0  # the warm start's last state
         # where a carried arrival covariance moves on: the leaving stage X[0] (Python's _carried)
         H0 = np.asarray(mhe._meas(mhe._window[0], mhe._now.U[0])[1])
@@ -351,13 +360,23 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         h, C = (np.asarray(v) for v in mhe._meas(x_pred, u))
         k("kt_mhe_advance", m, int(has_previous), k.a(u), k.a(x_pred), k.a(H0.T), k.a(A0.T),
           restype=None)
+        kp("kt_mhe_advance", mp, int(has_previous), k.a(u), k.a(x_pred), k.a(H0.T), k.a(A0.T),
+           restype=None)
         rej, restarted = np.zeros(2, dtype=np.intc), ctypes.c_int()
         any_c = k("kt_mhe_gate", m, g, int(has_previous), k.a(u), k.a(y), valid.astype(np.uint8),
                   k.a(h.ravel()), k.a(C.T), rej, ctypes.byref(restarted))
+        rej_p, restarted_p = np.zeros(2, dtype=np.intc), ctypes.c_int()
+        assert kp("kt_mhe_gate", mp, gp, int(has_previous), k.a(u), k.a(y), valid.astype(np.uint8),
+                  k.a(h.ravel()), k.a(C.T), rej_p, ctypes.byref(restarted_p)) == any_c
+        assert np.array_equal(rej_p, rej) and restarted_p.value == restarted.value
         np.testing.assert_array_equal(rej.astype(bool), rejected, err_msg=f"step {step}")
         assert any_c == int(rejected.any())
         blocks = [np.zeros(s) for s in (4, n1, 2 * n1, n1, 2 * n1, 4 * n1)]
         k("kt_mhe_next", m, *blocks, restype=None)
+        blocks_p = [np.zeros_like(b) for b in blocks]
+        kp("kt_mhe_next", mp, *blocks_p, restype=None)
+        for b, b_p in zip(blocks, blocks_p):  # the same bits (a NaN nowhere: compared as bytes)
+            assert b.tobytes() == b_p.tobytes(), f"step {step}"
         xbar, U, Y, mask, G, Xn = blocks
         np.testing.assert_array_equal(U, window.U.ravel(), err_msg=f"step {step}")
         np.testing.assert_array_equal(Y, window.Y.ravel(), err_msg=f"step {step}")
@@ -381,11 +400,16 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
             np.testing.assert_array_equal(Xn, guess.ravel(), err_msg=f"step {step}")
         X = guess + 1e-3 * rng.normal(size=guess.shape)  # a stand-in solution, the same for both
         k("kt_mhe_commit", m, k.a(X.ravel()), restype=None)
+        kp("kt_mhe_commit", mp, k.a(X.ravel()), restype=None)
         mhe._commit(nxt, X)
         Qc, Rc, Pc = np.zeros((4, 4)), np.zeros((2, 2)), np.zeros((4, 4))
         k("kt_mhe_weights", m, Qc, Rc, Pc, restype=None)
+        Pc_p = np.zeros((4, 4))
+        kp("kt_mhe_weights", mp, np.zeros((4, 4)), np.zeros((2, 2)), Pc_p, restype=None)
+        assert Pc_p.tobytes() == Pc.tobytes(), f"step {step}"
         carried = mhe._arrival_cov is not None
         assert k("kt_mhe_carried", m) == int(carried), f"step {step}"
+        assert kp("kt_mhe_carried", mp) == int(carried), f"step {step}"
         # the carried covariance's recursion (products and a Kalman update of nx x nx matrices)
         # and its inverse: at most nx^3 operations into an entry, amplified by the inverse's
         # condition number
@@ -394,6 +418,7 @@ def test_window_equals_the_python_mhe_bookkeeping(libraries):
         np.testing.assert_allclose(Pc, W, rtol=0, atol=tol, err_msg=f"step {step}")
         carried_steps += carried
         k("kt_gate_record", g, rej, valid.astype(np.uint8), restype=ctypes.c_double)
+        kp("kt_gate_record", gp, rej, valid.astype(np.uint8), restype=ctypes.c_double)
         rejections += int(rejected.sum())
     # the recovery, the re-seed, the failures and the carried arrival covariance were exercised
     assert restarts >= 3 and rejections >= 6 and carried_steps >= 3 * n1 and reseeds >= 1
