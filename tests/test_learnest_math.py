@@ -76,6 +76,46 @@ def test_routines_against_numpy(table):
     assert np.all(np.abs(t[:, 1]) <= 1) and np.all(np.isfinite(t[:, 1]))
 
 
+EXP_POS = r"""
+#include <stdio.h>
+#include <string.h>
+#define LEARNEST_REAL float
+#include "learnest_math.h"
+int main(void) {
+  /* every float in [0.5, 32): tanh's exp argument 2|x| lies in [0.7, 18] */
+  unsigned int bits, lo, hi, differ = 0, count = 0;
+  float y = 0.5f, e, p;
+  memcpy(&lo, &y, sizeof lo);
+  y = 32.0f;
+  memcpy(&hi, &y, sizeof hi);
+  for (bits = lo; bits < hi; ++bits, ++count) {
+    memcpy(&y, &bits, sizeof y);
+    e = learnest_expf_(y);
+    p = learnest_expf_pos_(y);
+    differ += memcmp(&e, &p, sizeof e) != 0;
+  }
+  printf("%u %u\n", count, differ);
+  return 0;
+}
+"""
+
+
+def test_tanh_exp_equals_the_general_exp_bit_for_bit(tmp_path):
+    """tanh's exp (learnest_expf_pos_: no range test, no sign) returns learnest_expf_'s bits on
+    every float tanh can give it."""
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not found")
+    for path in kit_files():
+        shutil.copy(path, tmp_path / path.name)
+    (tmp_path / "main.c").write_text(EXP_POS)
+    subprocess.run(["gcc", "-O2", "-std=c99", "-ffp-contract=off", "-fno-math-errno", "-Wall",
+                    "-Wextra", "-Werror", "-pedantic", f"-I{tmp_path}", str(tmp_path / "main.c"),
+                    "-lm", "-o", str(tmp_path / "main")], check=True)
+    out = subprocess.run([str(tmp_path / "main")], capture_output=True, text=True, check=True).stdout
+    count, differ = map(int, out.split())
+    assert count == 6 * 2**23 and differ == 0
+
+
 def test_generated_model_calls_the_kit_routines():
     text = ("#include <math.h>\n#define casadi_real float\n/* Add prefix to internal symbols */\n"
             "static int f(const casadi_real** arg) {\n"
