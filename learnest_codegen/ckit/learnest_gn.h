@@ -202,7 +202,6 @@ LEARNEST_KIT learnest_real learnest_gn_cost(struct learnest_gn* s, const struct 
   return c;
 }
 
-
 /* Wv = W v and WM = W M (M: n x cols, column-major, structure nz) for the n x n W; diag: W is
  * diagonal (its zero terms are skipped, and WM has M's structure). M's entries at its
  * structural zeros are not read. */
@@ -362,9 +361,9 @@ LEARNEST_KIT_INLINE void learnest_gn_build(struct learnest_gn* s, const struct l
  * copied to a local array first (D and E may overlap as far as the compiler knows, so it would
  * reload the row after every store), and so is the row of B_{i-1} that D_i's update reuses
  * when the block loops are unrolled whole (LEARNEST_BLOCK_WHOLE; otherwise, for groups of
- * states and under clang, that copy costs more than it saves). D and E are overwritten by the factor; factor = 0: they hold it
- * already (from an earlier call), and only the substitutions run. 0 if H is not positive
- * definite. */
+ * states and under clang, that copy costs more than it saves). D and E are overwritten by the
+ * factor; factor = 0: they hold it already (from an earlier call), and only the substitutions
+ * run. 0 if H is not positive definite. */
 LEARNEST_KIT int learnest_btd_solve_n(int n, int bs, learnest_real* D, learnest_real* E,
                                       learnest_real* LEARNEST_RESTRICT z, int factor) {
   int i, r, c, k;

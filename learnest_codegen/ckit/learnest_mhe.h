@@ -243,8 +243,8 @@ LEARNEST_KIT int learnest_mhe_carries(const struct learnest_mhe* m, int has_prev
  * taken before (has_previous) and opens the new sample's stage with input u. When the window
  * was full the arrival moves on: its weight becomes W, or, while a covariance is carried
  * (learnest_mhe_carries: H and A given, else NULL), the inverse of the carried one (its
- * variances capped at the arrival ceiling) until it has settled. The caller then predicts the last stage of the warm start, Xn[N] = F(X[N], u)
- * (when has_previous). */
+ * variances capped at the arrival ceiling) until it has settled. The caller then predicts the
+ * last stage of the warm start, Xn[N] = F(X[N], u) (when has_previous). */
 LEARNEST_KIT void learnest_mhe_advance(struct learnest_mhe* m, int has_previous,
                                        const learnest_real* u, const learnest_real* H,
                                        const learnest_real* A) {
